@@ -1,0 +1,51 @@
+"""ament_python package setup for soft_rom (also a plain ``pip install .``)."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = 'soft_rom'
+
+setup(
+    name=package_name,
+    version='0.1.0',
+    packages=find_packages(include=['soft_rom', 'soft_rom.*']),
+    package_data={'soft_rom': ['py.typed']},
+    data_files=[
+        ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
+        ('share/' + package_name, ['package.xml']),
+        ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
+    ],
+    python_requires='>=3.10',
+    install_requires=[
+        'setuptools',
+        'numpy>=1.24',
+        'scipy>=1.10',
+        'cvxpy>=1.4',
+        'clarabel>=0.6',
+        'rosbags>=0.9.20',
+        'zarr>=2.16',
+        'PyYAML>=6.0',
+        'matplotlib>=3.6',
+        'tqdm>=4.64',
+    ],
+    extras_require={
+        'test': ['pytest>=7', 'ruff>=0.5'],
+        'dask': ['dask[array]>=2023.1', 'distributed>=2023.1'],
+        'mesh': ['gmsh>=4.11'],
+    },
+    zip_safe=False,
+    maintainer='soft_rom maintainers',
+    maintainer_email='maintainers@users.noreply.example.com',
+    description='Linear reduced-order models (LOpInf, DMDc, ERA/OKID) of soft robots from '
+                'ROS 2 bags, and a real-time ROM predictor node.',
+    license='Apache-2.0',
+    tests_require=['pytest'],
+    entry_points={
+        'console_scripts': [
+            'soft-rom = soft_rom.cli:main',
+            'predictor = soft_rom.ros.predictor_node:main',
+        ],
+    },
+)

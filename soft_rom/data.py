@@ -1,0 +1,146 @@
+"""Time-series containers shared by every part of soft_rom.
+
+One convention, stated once: **arrays are ``(n_channels, n_samples)``, float64, time in
+seconds.** A snapshot is a column. Bag nanoseconds are converted to seconds at the bag
+boundary (:mod:`soft_rom.bags`) and nowhere else.
+
+Linear models act on *deviations* from a reference configuration: states are centred on
+``q_ref`` (the body at rest) and outputs on ``y_ref``; predictions are returned in absolute
+coordinates.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from soft_rom.errors import DimensionError
+
+__all__ = ['Episode', 'as_signal', 'check_finite']
+
+
+def as_signal(name: str, values: ArrayLike, *, rows: int | None = None,
+              cols: int | None = None, copy: bool = False) -> NDArray[np.float64]:
+    """Return ``values`` as a 2-D float64 array ``(n_channels, n_samples)`` or raise.
+
+    Parameters
+    ----------
+    name : str
+        Name used in error messages (``'U'``, ``'Y'``, ...).
+    values : array_like, shape (n_channels, n_samples) or (n_samples,)
+        A 1-D array is read as a single channel.
+    rows, cols : int, optional
+        Expected number of channels / samples.
+    copy : bool
+        Always return a copy.
+    """
+    arr = np.array(values, dtype=np.float64, copy=True) if copy else np.asarray(
+        values, dtype=np.float64)
+    if arr.ndim == 1:
+        arr = arr[np.newaxis, :]
+    if arr.ndim != 2:
+        raise DimensionError(
+            f'{name} must be a 2-D array (n_channels, n_samples); got shape {arr.shape}.')
+    if rows is not None and arr.shape[0] != rows:
+        raise DimensionError(
+            f'{name} must have {rows} channels (rows); got shape {arr.shape}. '
+            'Arrays are (n_channels, n_samples): transpose if you passed (samples, channels).')
+    if cols is not None and arr.shape[1] != cols:
+        raise DimensionError(f'{name} must have {cols} samples (columns); got shape {arr.shape}.')
+    return arr
+
+
+def check_finite(name: str, arr: NDArray[Any]) -> None:
+    """Raise :class:`ValueError` naming ``name`` and the first bad index if ``arr`` has NaN/Inf."""
+    if not np.all(np.isfinite(arr)):
+        bad = np.argwhere(~np.isfinite(arr))[0]
+        raise DimensionError(
+            f'{name} contains NaN or Inf (first at index {tuple(int(i) for i in bad)}); '
+            'clean or drop those samples before fitting.')
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One recorded or simulated episode.
+
+    Parameters
+    ----------
+    t : ndarray, shape (k,)
+        Sample times in seconds, strictly increasing (uniform for fitting).
+    U : ndarray, shape (m, k)
+        Inputs (e.g. chamber pressures in Pa), absolute.
+    Y : ndarray, shape (p, k)
+        Outputs (e.g. centerline x and z coordinates in m), absolute.
+    Q : array_like, shape (n, k), optional
+        Full states (nodal positions), absolute. May be a lazy on-disk array (zarr) for
+        large models: anything with ``.shape`` and numpy-style slicing ``Q[:, a:b]``.
+    name : str
+        Human-readable name (``'ep1'``).
+    metadata : dict
+        Provenance (source bag, topics, time range, ...); JSON-serialisable.
+    """
+
+    t: NDArray[np.float64]
+    U: NDArray[np.float64]
+    Y: NDArray[np.float64]
+    Q: Any = None
+    name: str = ''
+    metadata: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.t, dtype=np.float64).reshape(-1)
+        k = t.size
+        object.__setattr__(self, 't', t)
+        object.__setattr__(self, 'U', as_signal('U', self.U, cols=k))
+        object.__setattr__(self, 'Y', as_signal('Y', self.Y, cols=k))
+        if self.Q is not None:
+            shape = getattr(self.Q, 'shape', None)
+            if shape is None:
+                object.__setattr__(self, 'Q', as_signal('Q', self.Q, cols=k))
+            elif len(shape) != 2 or shape[1] != k:
+                raise DimensionError(
+                    f'Q must have shape (n, {k}) to match t; got {tuple(shape)}.')
+        if k > 1 and np.any(np.diff(t) <= 0):
+            raise DimensionError(f'episode {self.name!r}: time stamps must be strictly increasing.')
+
+    @property
+    def n_samples(self) -> int:
+        """Number of samples ``k``."""
+        return int(self.t.size)
+
+    @property
+    def dt(self) -> float:
+        """Mean sample time in seconds (``nan`` for a single sample)."""
+        return float(np.mean(np.diff(self.t))) if self.t.size > 1 else float('nan')
+
+    def is_uniform(self, rtol: float = 1e-6) -> bool:
+        """True if the sample times are uniform to ``rtol`` of the mean step."""
+        if self.t.size < 3:
+            return True
+        d = np.diff(self.t)
+        return bool(np.max(np.abs(d - d.mean())) <= rtol * d.mean())
+
+    def slice(self, start: int | None = None, stop: int | None = None,
+              name: str | None = None) -> Episode:
+        """Return samples ``start:stop`` as a new episode (``Q`` stays lazy if it was)."""
+        sl = slice(start, stop)
+        q = None if self.Q is None else self.Q[:, sl]
+        return Episode(t=self.t[sl], U=self.U[:, sl], Y=self.Y[:, sl], Q=q,
+                       name=self.name if name is None else name,
+                       metadata=dict(self.metadata))
+
+    def time_slice(self, t_start: float | None = None, t_stop: float | None = None) -> Episode:
+        """Return the samples with ``t_start <= t < t_stop`` (seconds)."""
+        lo = 0 if t_start is None else int(np.searchsorted(self.t, t_start - 1e-12, 'left'))
+        hi = self.t.size if t_stop is None else int(
+            np.searchsorted(self.t, t_stop - 1e-12, 'left'))
+        return self.slice(lo, hi)
+
+
+def stack_columns(parts: Sequence[NDArray[np.float64]]) -> NDArray[np.float64]:
+    """Concatenate ``(c, k_i)`` arrays along time."""
+    return np.concatenate([np.asarray(p, dtype=np.float64) for p in parts], axis=1)

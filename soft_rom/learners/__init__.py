@@ -1,0 +1,1 @@
+"""Learners: hyperparameters in ``__init__``, ``fit(...) -> self``, a frozen ``model_``."""

@@ -1,0 +1,53 @@
+"""Error metrics (plain functions), as in the paper's eq. (err).
+
+Both are reported everywhere: the paper's relative error on absolute outputs, and the same
+on deviations from ``y_ref`` (more telling, since absolute coordinates dominate the norm).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from soft_rom.data import as_signal
+from soft_rom.errors import DimensionError
+
+__all__ = ['relative_error', 'relative_deviation_error', 'output_errors']
+
+
+def relative_error(Y: ArrayLike, Y_hat: ArrayLike) -> float:
+    """Relative output error ``||Y - Ŷ||_F / ||Y||_F`` (Sharma et al., eq. err).
+
+    Parameters
+    ----------
+    Y, Y_hat : ndarray, shape (p, k)
+        Reference and approximation, absolute coordinates.
+    """
+    Y = as_signal('Y', Y)
+    Y_hat = as_signal('Y_hat', Y_hat)
+    if Y.shape != Y_hat.shape:
+        raise DimensionError(f'Y and Y_hat must have the same shape; got {Y.shape}, '
+                             f'{Y_hat.shape}.')
+    den = np.linalg.norm(Y)
+    return float(np.linalg.norm(Y - Y_hat) / den) if den > 0 else float('nan')
+
+
+def relative_deviation_error(Y: ArrayLike, Y_hat: ArrayLike, y_ref: ArrayLike) -> float:
+    """Relative error on deviations: ``||Y - Ŷ||_F / ||Y - y_ref 1ᵀ||_F``.
+
+    Parameters
+    ----------
+    Y, Y_hat : ndarray, shape (p, k)
+    y_ref : ndarray, shape (p,)
+    """
+    Y = as_signal('Y', Y)
+    y_ref = np.asarray(y_ref, dtype=np.float64).reshape(-1, 1)
+    if y_ref.shape[0] != Y.shape[0]:
+        raise DimensionError(f'y_ref must have {Y.shape[0]} entries; got {y_ref.shape[0]}.')
+    return relative_error(Y - y_ref, as_signal('Y_hat', Y_hat) - y_ref)
+
+
+def output_errors(Y: ArrayLike, Y_hat: ArrayLike, y_ref: ArrayLike) -> dict[str, float]:
+    """Both metrics as ``{'relative_error': ..., 'relative_deviation_error': ...}``."""
+    return {'relative_error': relative_error(Y, Y_hat),
+            'relative_deviation_error': relative_deviation_error(Y, Y_hat, y_ref)}

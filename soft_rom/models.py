@@ -1,0 +1,599 @@
+"""Frozen linear reduced-order models: step, simulate, discretize, save, load.
+
+Two families, one interface (:class:`LinearROM`):
+
+* :class:`SecondOrderModel` -- the LOpInf ROM, continuous in time,
+
+  .. math::
+
+      \\ddot{q}(t) + C \\dot{q}(t) + K q(t) = B u(t), \\qquad y(t) = E q(t) + y_{ref},
+
+  discretized exactly for inputs held constant over each step (zero-order hold).
+* :class:`DiscreteModel` -- DMDc and ERA/OKID ROMs, discrete in time,
+
+  .. math::
+
+      x_{k+1} = A x_k + B u_k, \\qquad y_k = C x_k + D u_k + y_{ref}.
+
+Models know nothing of how they were made (no training arrays); they carry matrices,
+offsets, names/units and JSON metadata. States are deviations from the reference
+configuration; outputs are returned in absolute coordinates.
+
+Model files are ``.npz`` archives of plain numeric arrays plus one JSON document stored as
+a ``uint8`` array; they are read with ``allow_pickle=False`` and validated (format
+version, shapes, finite values, dtypes) before any model is built. See
+:func:`load_model`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import zipfile
+from abc import ABC, abstractmethod
+from collections.abc import Mapping, Sequence
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+import scipy.linalg as sla
+
+from soft_rom.data import as_signal
+from soft_rom.errors import DimensionError, ModelFileError
+
+__all__ = [
+    'DiscreteModel',
+    'DiscreteSystem',
+    'FORMAT_NAME',
+    'FORMAT_VERSION',
+    'LinearROM',
+    'SecondOrderModel',
+    'file_sha256',
+    'load_model',
+]
+
+FORMAT_NAME = 'soft_rom.model'
+FORMAT_VERSION = 1
+_META_KEY = '__metadata__'
+
+Array = NDArray[np.float64]
+
+
+class DiscreteSystem:
+    """A discrete-time state-space system in deviation coordinates.
+
+    .. math:: x_{k+1} = A x_k + B u_k, \\qquad y_k - y_{ref} = C x_k + D u_k
+
+    Parameters
+    ----------
+    A : ndarray, shape (n, n)
+    B : ndarray, shape (n, m)
+    C : ndarray, shape (p, n)
+    D : ndarray, shape (p, m)
+    dt : float
+        Sample time in seconds.
+    """
+
+    __slots__ = ('A', 'B', 'C', 'D', 'dt')
+
+    def __init__(self, A: Array, B: Array, C: Array, D: Array, dt: float) -> None:
+        self.A, self.B, self.C, self.D, self.dt = A, B, C, D, float(dt)
+
+    def __iter__(self):  # allows ``A, B, C, D, dt = system``
+        return iter((self.A, self.B, self.C, self.D, self.dt))
+
+
+def _arr(name: str, value: ArrayLike, shape: tuple[int, ...] | None = None) -> Array:
+    a = np.array(value, dtype=np.float64, copy=True)
+    if shape is not None and a.shape != shape:
+        raise DimensionError(f'{name} must have shape {shape}; got {a.shape}.')
+    if not np.all(np.isfinite(a)):
+        raise DimensionError(f'{name} contains NaN or Inf.')
+    a.setflags(write=False)
+    return a
+
+
+def _names(kind: str, names: Sequence[str] | None, count: int, prefix: str) -> list[str]:
+    if names is None:
+        return [f'{prefix}{i + 1}' for i in range(count)]
+    names = [str(n) for n in names]
+    if len(names) != count:
+        raise DimensionError(f'{kind} must list {count} names; got {len(names)}.')
+    return names
+
+
+class LinearROM(ABC):
+    """Common interface of every reduced-order model.
+
+    Attributes
+    ----------
+    method : str
+        ``'lopinf'``, ``'dmdc'`` or ``'era'``.
+    dt : float
+        Native sample time in seconds (training data step).
+    y_ref : ndarray, shape (p,)
+        Output reference (outputs at the reference configuration).
+    input_names, output_names : list of str
+    input_units, output_units : list of str
+    metadata : dict
+        JSON-serialisable provenance and fit diagnostics.
+    """
+
+    method: ClassVar[str] = ''
+    _matrix_names: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(self, *, dt: float, y_ref: ArrayLike | None, n_inputs: int, n_outputs: int,
+                 input_names: Sequence[str] | None = None,
+                 output_names: Sequence[str] | None = None,
+                 input_units: Sequence[str] | None = None,
+                 output_units: Sequence[str] | None = None,
+                 metadata: Mapping[str, Any] | None = None) -> None:
+        if not np.isfinite(dt) or dt <= 0:
+            raise DimensionError(f'dt must be a positive number of seconds; got {dt!r}.')
+        self.dt = float(dt)
+        self.y_ref = _arr('y_ref', np.zeros(n_outputs) if y_ref is None else y_ref,
+                          (n_outputs,))
+        self.input_names = _names('input_names', input_names, n_inputs, 'u')
+        self.output_names = _names('output_names', output_names, n_outputs, 'y')
+        self.input_units = _names('input_units', input_units or [''] * n_inputs, n_inputs, '')
+        self.output_units = _names('output_units', output_units or [''] * n_outputs,
+                                   n_outputs, '')
+        self.metadata: dict[str, Any] = json.loads(json.dumps(dict(metadata or {})))
+        self._native: DiscreteSystem | None = None
+
+    # -- sizes --------------------------------------------------------------------------
+    @property
+    @abstractmethod
+    def r(self) -> int:
+        """Reduced dimension (for LOpInf: size of ``q``; the state ``[q; q̇]`` has ``2r``)."""
+
+    @property
+    @abstractmethod
+    def n_states(self) -> int:
+        """Length of the state vector used by :meth:`step`."""
+
+    @property
+    def n_inputs(self) -> int:
+        """Number of inputs ``m``."""
+        return len(self.input_names)
+
+    @property
+    def n_outputs(self) -> int:
+        """Number of outputs ``p``."""
+        return len(self.output_names)
+
+    # -- dynamics -----------------------------------------------------------------------
+    @abstractmethod
+    def discretize(self, dt: float | None = None) -> DiscreteSystem:
+        """Return the discrete system for sample time ``dt`` (default :attr:`dt`).
+
+        Inputs are held constant over each step (zero-order hold).
+        """
+
+    @property
+    def system(self) -> DiscreteSystem:
+        """The discrete system at the native :attr:`dt` (cached)."""
+        if self._native is None:
+            self._native = self.discretize(self.dt)
+        return self._native
+
+    def initial_state(self) -> Array:
+        """The reference configuration (zero deviation, at rest)."""
+        return np.zeros(self.n_states)
+
+    def step(self, x: ArrayLike, u: ArrayLike, dt: float | None = None) -> Array:
+        """Advance the state one sample: ``x_next = A x + B u``.
+
+        Parameters
+        ----------
+        x : ndarray, shape (n_states,)
+        u : ndarray, shape (m,)
+            Absolute inputs (the models have no input offset).
+        dt : float, optional
+            Step length; default the native :attr:`dt`.
+        """
+        sys_ = self.system if dt is None else self.discretize(dt)
+        return sys_.A @ np.asarray(x, dtype=np.float64) + sys_.B @ np.asarray(u, np.float64)
+
+    def output(self, x: ArrayLike, u: ArrayLike | None = None) -> Array:
+        """Absolute output ``y = C x + D u + y_ref``, shape (p,)."""
+        sys_ = self.system
+        y = sys_.C @ np.asarray(x, dtype=np.float64) + self.y_ref
+        if u is not None:
+            y = y + sys_.D @ np.asarray(u, dtype=np.float64)
+        return y
+
+    def simulate(self, U: ArrayLike, x0: ArrayLike | None = None, *,
+                 return_states: bool = False) -> Array | tuple[Array, Array]:
+        """Simulate the model for inputs held over each native step.
+
+        Parameters
+        ----------
+        U : ndarray, shape (m, k)
+            Absolute inputs, one column per sample.
+        x0 : ndarray, shape (n_states,), optional
+            Initial state; default :meth:`initial_state`.
+        return_states : bool
+            Also return the states.
+
+        Returns
+        -------
+        Y : ndarray, shape (p, k)
+            Absolute outputs, ``Y[:, j] = C x_j + D u_j + y_ref``.
+        X : ndarray, shape (n_states, k)
+            States (only with ``return_states``).
+        """
+        U = as_signal('U', U, rows=self.n_inputs)
+        A, B, C, D, _ = self.system
+        k = U.shape[1]
+        x = self.initial_state() if x0 is None else _arr('x0', x0, (self.n_states,)).copy()
+        X = np.empty((self.n_states, k))
+        BU = B @ U
+        for j in range(k):
+            X[:, j] = x
+            x = A @ x + BU[:, j]
+        Y = C @ X + D @ U + self.y_ref[:, None]
+        return (Y, X) if return_states else Y
+
+    def state_from_output(self, y: ArrayLike, u: ArrayLike | None = None) -> Array:
+        """Least-squares state estimate from one measured absolute output.
+
+        For the second-order model only ``q`` is observed; the velocity is set to zero.
+        """
+        dy = np.asarray(y, dtype=np.float64) - self.y_ref
+        if u is not None:
+            dy = dy - self.system.D @ np.asarray(u, dtype=np.float64)
+        x, *_ = np.linalg.lstsq(self.system.C, dy, rcond=None)
+        return x
+
+    # -- spectrum -----------------------------------------------------------------------
+    def discrete_eigenvalues(self) -> NDArray[np.complex128]:
+        """Eigenvalues of the native discrete state matrix ``A``."""
+        return np.linalg.eigvals(self.system.A)
+
+    def stability_margin(self) -> float:
+        """``1 - max |λ(A)|`` at the native ``dt``: positive means asymptotically stable."""
+        ev = self.discrete_eigenvalues()
+        return float(1.0 - np.max(np.abs(ev))) if ev.size else 1.0
+
+    # -- files --------------------------------------------------------------------------
+    def matrices(self) -> dict[str, Array]:
+        """The model's defining matrices by name (read-only views)."""
+        return {name: getattr(self, name) for name in self._matrix_names}
+
+    def header(self) -> dict[str, Any]:
+        """The JSON metadata written to a model file."""
+        return {
+            'format': FORMAT_NAME,
+            'format_version': FORMAT_VERSION,
+            'method': self.method,
+            'class': type(self).__name__,
+            'r': self.r,
+            'n_states': self.n_states,
+            'dt': self.dt,
+            'input_names': self.input_names,
+            'output_names': self.output_names,
+            'input_units': self.input_units,
+            'output_units': self.output_units,
+            'stability_margin': self.stability_margin(),
+            'metadata': self.metadata,
+        }
+
+    def save(self, path: str | os.PathLike[str]) -> Path:
+        """Write the model to ``path`` (``.npz``), atomically; returns the path written."""
+        path = Path(path)
+        if path.suffix != '.npz':
+            path = path.with_suffix(path.suffix + '.npz') if path.suffix else path.with_suffix(
+                '.npz')
+        arrays = dict(self.matrices())
+        arrays['y_ref'] = self.y_ref
+        meta = json.dumps(self.header(), sort_keys=True, allow_nan=False).encode('utf-8')
+        arrays[_META_KEY] = np.frombuffer(meta, dtype=np.uint8)
+        tmp = path.with_name(f'.{path.name}.tmp-{os.getpid()}')
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            with open(tmp, 'wb') as fh:
+                np.savez(fh, **arrays)
+            os.replace(tmp, path)
+        finally:
+            if tmp.exists():
+                tmp.unlink()
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> LinearROM:
+        """Load a model file (see :func:`load_model`) and check it is of this class."""
+        model = load_model(path)
+        if not isinstance(model, cls):
+            raise ModelFileError(
+                f'{path}: holds a {type(model).__name__} ({model.method}), not a {cls.__name__}.')
+        return model
+
+    def _common_kwargs(self) -> dict[str, Any]:
+        return dict(dt=self.dt, y_ref=self.y_ref, input_names=self.input_names,
+                    output_names=self.output_names, input_units=self.input_units,
+                    output_units=self.output_units, metadata=self.metadata)
+
+    def __repr__(self) -> str:
+        return (f'{type(self).__name__}(method={self.method!r}, r={self.r}, m={self.n_inputs}, '
+                f'p={self.n_outputs}, dt={self.dt:g})')
+
+
+@lru_cache(maxsize=64)
+def _zoh_cached(key: bytes, r: int, m: int, dt: float) -> tuple[Array, Array]:
+    buf = np.frombuffer(key, dtype=np.float64)
+    Ac = buf[: 4 * r * r].reshape(2 * r, 2 * r)
+    Bc = buf[4 * r * r:].reshape(2 * r, m)
+    n = 2 * r
+    M = np.zeros((n + m, n + m))
+    M[:n, :n] = Ac * dt
+    M[:n, n:] = Bc * dt
+    F = sla.expm(M)
+    Ad, Bd = F[:n, :n].copy(), F[:n, n:].copy()
+    Ad.setflags(write=False)
+    Bd.setflags(write=False)
+    return Ad, Bd
+
+
+class SecondOrderModel(LinearROM):
+    """Continuous second-order (Lagrangian) ROM learned by LOpInf.
+
+    .. math::
+
+        \\ddot{q} + C \\dot{q} + K q = B u, \\qquad y = E q + y_{ref}
+
+    The state used by :meth:`step` is ``x = [q; q̇]`` (length ``2r``). Discretization is
+    exact for inputs held constant over a step (matrix exponential of the augmented
+    first-order system), see Sharma et al., *Data-driven Model Reduction for Soft Robots
+    via Lagrangian Operator Inference*, eq. (L_rom).
+
+    Parameters
+    ----------
+    K, C : ndarray, shape (r, r)
+        Stiffness and damping (symmetric positive definite when learned by LOpInf).
+    B : ndarray, shape (r, m)
+    E : ndarray, shape (p, r)
+    dt : float
+        Native sample time (that of the training data), seconds.
+    y_ref : ndarray, shape (p,)
+    """
+
+    method = 'lopinf'
+    _matrix_names = ('K', 'C', 'B', 'E')
+
+    def __init__(self, K: ArrayLike, C: ArrayLike, B: ArrayLike, E: ArrayLike, *, dt: float,
+                 y_ref: ArrayLike | None = None, **kwargs: Any) -> None:
+        K = np.asarray(K, dtype=np.float64)
+        if K.ndim != 2 or K.shape[0] != K.shape[1]:
+            raise DimensionError(f'K must be square (r, r); got shape {K.shape}.')
+        r = K.shape[0]
+        B = np.asarray(B, dtype=np.float64)
+        E = np.asarray(E, dtype=np.float64)
+        if B.ndim != 2 or B.shape[0] != r:
+            raise DimensionError(f'B must have shape ({r}, m); got {B.shape}.')
+        if E.ndim != 2 or E.shape[1] != r:
+            raise DimensionError(f'E must have shape (p, {r}); got {E.shape}.')
+        super().__init__(dt=dt, y_ref=y_ref, n_inputs=B.shape[1], n_outputs=E.shape[0],
+                         **kwargs)
+        self.K = _arr('K', K, (r, r))
+        self.C = _arr('C', C, (r, r))
+        self.B = _arr('B', B)
+        self.E = _arr('E', E)
+
+    @property
+    def r(self) -> int:
+        return int(self.K.shape[0])
+
+    @property
+    def n_states(self) -> int:
+        return 2 * self.r
+
+    def first_order(self) -> tuple[Array, Array, Array]:
+        """Continuous first-order form ``ẋ = Ac x + Bc u``, ``y - y_ref = Cc x``."""
+        r, m = self.r, self.n_inputs
+        Ac = np.zeros((2 * r, 2 * r))
+        Ac[:r, r:] = np.eye(r)
+        Ac[r:, :r] = -self.K
+        Ac[r:, r:] = -self.C
+        Bc = np.zeros((2 * r, m))
+        Bc[r:] = self.B
+        Cc = np.zeros((self.n_outputs, 2 * r))
+        Cc[:, :r] = self.E
+        return Ac, Bc, Cc
+
+    def eigenvalues(self) -> NDArray[np.complex128]:
+        """Continuous-time eigenvalues of ``[[0, I], [-K, -C]]``."""
+        return np.linalg.eigvals(self.first_order()[0])
+
+    def discretize(self, dt: float | None = None) -> DiscreteSystem:
+        dt = self.dt if dt is None else float(dt)
+        if not np.isfinite(dt) or dt <= 0:
+            raise DimensionError(f'dt must be positive; got {dt!r}.')
+        Ac, Bc, Cc = self.first_order()
+        key = np.concatenate([Ac.ravel(), Bc.ravel()]).tobytes()
+        Ad, Bd = _zoh_cached(key, self.r, self.n_inputs, dt)
+        return DiscreteSystem(Ad, Bd, Cc, np.zeros((self.n_outputs, self.n_inputs)), dt)
+
+    def state_from_output(self, y: ArrayLike, u: ArrayLike | None = None) -> Array:
+        dy = np.asarray(y, dtype=np.float64) - self.y_ref
+        q, *_ = np.linalg.lstsq(self.E, dy, rcond=None)
+        return np.concatenate([q, np.zeros(self.r)])
+
+    def to_discrete(self, dt: float | None = None) -> DiscreteModel:
+        """The exact ZOH discretization as a :class:`DiscreteModel` (same outputs)."""
+        A, B, C, D, dt = self.discretize(dt)
+        kw = self._common_kwargs()
+        kw['dt'] = dt
+        return DiscreteModel(A, B, C, D, method='lopinf', **kw)
+
+
+class DiscreteModel(LinearROM):
+    """Discrete-time state-space ROM (DMDc, ERA/OKID).
+
+    .. math:: x_{k+1} = A x_k + B u_k, \\qquad y_k = C x_k + D u_k + y_{ref}
+
+    Parameters
+    ----------
+    A : ndarray, shape (r, r)
+    B : ndarray, shape (r, m)
+    C : ndarray, shape (p, r)
+    D : ndarray, shape (p, m), optional
+        Feedthrough (ERA/OKID); zero by default (DMDc).
+    dt : float
+        Sample time of the model, seconds.
+    method : str
+        ``'dmdc'`` or ``'era'`` (stored in the file).
+    """
+
+    method = 'discrete'
+    _matrix_names = ('A', 'B', 'C', 'D')
+
+    def __init__(self, A: ArrayLike, B: ArrayLike, C: ArrayLike, D: ArrayLike | None = None, *,
+                 dt: float, method: str = 'discrete', y_ref: ArrayLike | None = None,
+                 **kwargs: Any) -> None:
+        A = np.asarray(A, dtype=np.float64)
+        if A.ndim != 2 or A.shape[0] != A.shape[1]:
+            raise DimensionError(f'A must be square (r, r); got shape {A.shape}.')
+        r = A.shape[0]
+        B = np.asarray(B, dtype=np.float64)
+        C = np.asarray(C, dtype=np.float64)
+        if B.ndim != 2 or B.shape[0] != r:
+            raise DimensionError(f'B must have shape ({r}, m); got {B.shape}.')
+        if C.ndim != 2 or C.shape[1] != r:
+            raise DimensionError(f'C must have shape (p, {r}); got {C.shape}.')
+        super().__init__(dt=dt, y_ref=y_ref, n_inputs=B.shape[1], n_outputs=C.shape[0],
+                         **kwargs)
+        self.method = str(method)  # type: ignore[misc]
+        self.A = _arr('A', A)
+        self.B = _arr('B', B)
+        self.C = _arr('C', C)
+        self.D = _arr('D', np.zeros((C.shape[0], B.shape[1])) if D is None else D,
+                      (C.shape[0], B.shape[1]))
+
+    @property
+    def r(self) -> int:
+        return int(self.A.shape[0])
+
+    @property
+    def n_states(self) -> int:
+        return self.r
+
+    def discretize(self, dt: float | None = None) -> DiscreteSystem:
+        """Return the system at ``dt``, which must be a whole multiple of :attr:`dt`.
+
+        A multiple ``j`` gives ``A^j`` and ``(A^{j-1} + ... + I) B`` (input held for ``j``
+        native steps).
+        """
+        if dt is None or abs(dt - self.dt) <= 1e-9 * self.dt:
+            return DiscreteSystem(self.A, self.B, self.C, self.D, self.dt)
+        ratio = dt / self.dt
+        j = int(round(ratio))
+        if j < 1 or abs(ratio - j) > 1e-6:
+            raise DimensionError(
+                f'{self.method} model has sample time {self.dt:g} s; it can step by whole '
+                f'multiples of it only, not {dt:g} s. Step at the model rate instead.')
+        Aj = np.linalg.matrix_power(self.A, j)
+        S = np.zeros_like(self.A)
+        P = np.eye(self.r)
+        for _ in range(j):
+            S += P
+            P = P @ self.A
+        return DiscreteSystem(Aj, S @ self.B, self.C, self.D, j * self.dt)
+
+
+_CLASSES: dict[str, type[LinearROM]] = {
+    'SecondOrderModel': SecondOrderModel,
+    'DiscreteModel': DiscreteModel,
+}
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """Hex SHA-256 of a file (reported by the predictor node as the model's identity)."""
+    h = hashlib.sha256()
+    with open(path, 'rb') as fh:
+        for block in iter(lambda: fh.read(1 << 20), b''):
+            h.update(block)
+    return h.hexdigest()
+
+
+def load_model(path: str | os.PathLike[str]) -> LinearROM:
+    """Load a model file written by :meth:`LinearROM.save`, without executing any code.
+
+    The archive is opened with ``allow_pickle=False``; object arrays, unknown keys, unknown
+    format versions, wrong shapes, non-float dtypes and NaN/Inf are refused with
+    :class:`~soft_rom.errors.ModelFileError` (a ``ValueError``). A missing file raises
+    ``FileNotFoundError``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f'model file not found: {path}')
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            names = list(npz.files)
+            if _META_KEY not in names:
+                raise ModelFileError(
+                    f'{path}: not a soft_rom model file (no {_META_KEY} entry); '
+                    'write models with LinearROM.save().')
+            raw: dict[str, np.ndarray] = {}
+            for name in names:
+                try:
+                    raw[name] = npz[name]
+                except ValueError as err:  # object arrays need pickle: refuse
+                    raise ModelFileError(
+                        f'{path}: entry {name!r} is an object array, which would need '
+                        'pickle to load; refusing it (model files hold numeric arrays '
+                        'only).') from err
+    except (zipfile.BadZipFile, OSError, EOFError) as err:
+        raise ModelFileError(f'{path}: corrupt or not an .npz archive ({err}).') from err
+
+    meta_arr = raw.pop(_META_KEY)
+    if meta_arr.dtype != np.uint8 or meta_arr.ndim != 1:
+        raise ModelFileError(f'{path}: metadata entry must be a 1-D uint8 array.')
+    try:
+        header = json.loads(meta_arr.tobytes().decode('utf-8'))
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ModelFileError(f'{path}: metadata is not valid UTF-8 JSON ({err}).') from err
+    if not isinstance(header, dict) or header.get('format') != FORMAT_NAME:
+        raise ModelFileError(f'{path}: metadata does not declare format {FORMAT_NAME!r}.')
+    version = header.get('format_version')
+    if version != FORMAT_VERSION:
+        raise ModelFileError(
+            f'{path}: model file format version {version!r} is not supported by this soft_rom '
+            f'(it reads version {FORMAT_VERSION}); upgrade soft_rom or re-export the model.')
+    cls = _CLASSES.get(str(header.get('class')))
+    if cls is None:
+        raise ModelFileError(f'{path}: unknown model class {header.get("class")!r}.')
+    expected = set(cls._matrix_names) | {'y_ref'}
+    if set(raw) != expected:
+        raise ModelFileError(
+            f'{path}: {cls.__name__} needs arrays {sorted(expected)}; found {sorted(raw)}.')
+    for name, arr in raw.items():
+        if arr.dtype.kind != 'f':
+            raise ModelFileError(f'{path}: array {name!r} has dtype {arr.dtype}; expected float.')
+        if not np.all(np.isfinite(arr)):
+            raise ModelFileError(f'{path}: array {name!r} contains NaN or Inf.')
+    kwargs: dict[str, Any] = {}
+    for key in ('input_names', 'output_names', 'input_units', 'output_units'):
+        value = header.get(key)
+        if value is not None and (not isinstance(value, list)
+                                  or not all(isinstance(v, str) for v in value)):
+            raise ModelFileError(f'{path}: metadata {key!r} must be a list of strings.')
+        kwargs[key] = value
+    kwargs['metadata'] = header.get('metadata') or {}
+    try:
+        dt = float(header['dt'])
+        if cls is DiscreteModel:
+            model: LinearROM = DiscreteModel(raw['A'], raw['B'], raw['C'], raw['D'], dt=dt,
+                                             method=str(header.get('method', 'discrete')),
+                                             y_ref=raw['y_ref'], **kwargs)
+        else:
+            model = SecondOrderModel(raw['K'], raw['C'], raw['B'], raw['E'], dt=dt,
+                                     y_ref=raw['y_ref'], **kwargs)
+    except (KeyError, TypeError, ValueError) as err:
+        raise ModelFileError(f'{path}: inconsistent model file: {err}') from err
+    if header.get('r') is not None and header['r'] != model.r:
+        raise ModelFileError(f'{path}: metadata says r={header["r"]}, arrays give r={model.r}.')
+    return model
