@@ -105,7 +105,8 @@ class Episode:
                 raise DimensionError(
                     f'Q must have shape (n, {k}) to match t; got {tuple(shape)}.')
         if k > 1 and np.any(np.diff(t) <= 0):
-            raise DimensionError(f'episode {self.name!r}: time stamps must be strictly increasing.')
+            raise DimensionError(
+                f'episode {self.name!r}: time stamps must be strictly increasing.')
 
     @property
     def n_samples(self) -> int:

@@ -27,15 +27,15 @@ version, shapes, finite values, dtypes) before any model is built. See
 
 from __future__ import annotations
 
-import hashlib
-import json
-import os
-import zipfile
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from functools import lru_cache
+import hashlib
+import json
+import os
 from pathlib import Path
 from typing import Any, ClassVar
+import zipfile
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -530,6 +530,8 @@ def load_model(path: str | os.PathLike[str]) -> LinearROM:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f'model file not found: {path}')
+    if not zipfile.is_zipfile(path):
+        raise ModelFileError(f'{path}: corrupt or not an .npz archive (no zip structure).')
     try:
         with np.load(path, allow_pickle=False) as npz:
             names = list(npz.files)
@@ -546,7 +548,9 @@ def load_model(path: str | os.PathLike[str]) -> LinearROM:
                         f'{path}: entry {name!r} is an object array, which would need '
                         'pickle to load; refusing it (model files hold numeric arrays '
                         'only).') from err
-    except (zipfile.BadZipFile, OSError, EOFError) as err:
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as err:
+        if isinstance(err, ModelFileError):
+            raise
         raise ModelFileError(f'{path}: corrupt or not an .npz archive ({err}).') from err
 
     meta_arr = raw.pop(_META_KEY)

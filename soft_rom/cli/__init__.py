@@ -7,10 +7,10 @@ Each verb lives in its own module ``soft_rom.cli.<verb>`` exposing ``add_parser(
 from __future__ import annotations
 
 import argparse
+from collections.abc import Sequence
 import importlib
 import logging
 import sys
-from collections.abc import Sequence
 
 from soft_rom import __version__
 from soft_rom.errors import SoftRomError

@@ -1,0 +1,206 @@
+"""Tests of the frozen models and of the model file format (no pickle, strict validation)."""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from soft_rom.errors import DimensionError, ModelFileError
+from soft_rom.models import (
+    DiscreteModel,
+    FORMAT_VERSION,
+    load_model,
+    SecondOrderModel,
+)
+
+
+def _random_spd(rng: np.random.Generator, r: int, lo: float, hi: float) -> np.ndarray:
+    Qm, _ = np.linalg.qr(rng.normal(size=(r, r)))
+    return (Qm * rng.uniform(lo, hi, r)) @ Qm.T
+
+
+def _second_order(seed: int = 0, r: int = 4, m: int = 3, p: int = 5) -> SecondOrderModel:
+    rng = np.random.default_rng(seed)
+    return SecondOrderModel(
+        _random_spd(rng, r, 10.0, 400.0), _random_spd(rng, r, 0.5, 5.0),
+        rng.normal(size=(r, m)), rng.normal(size=(p, r)), dt=1e-3,
+        y_ref=rng.normal(size=p), input_names=[f'chamber_{i}' for i in range(m)],
+        input_units=['Pa'] * m, output_units=['m'] * p,
+        metadata={'provenance': {'bags': ['ep1.mcap']}, 'diagnostics': {'training_error': 0.01}})
+
+
+def _discrete(seed: int = 1, r: int = 5, m: int = 2, p: int = 3) -> DiscreteModel:
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(r, r))
+    A *= 0.9 / np.max(np.abs(np.linalg.eigvals(A)))
+    return DiscreteModel(A, rng.normal(size=(r, m)), rng.normal(size=(p, r)),
+                         rng.normal(size=(p, m)), dt=2e-3, method='era', y_ref=np.ones(p))
+
+
+def test_zoh_matches_fine_ode_solution() -> None:
+    model = _second_order()
+    rng = np.random.default_rng(3)
+    k = 400
+    U = np.repeat(rng.normal(size=(model.n_inputs, k // 20)), 20, axis=1)
+    Y = model.simulate(U)
+    Ac, Bc, Cc = model.first_order()
+    t_grid = np.arange(k) * model.dt
+    x = np.zeros(model.n_states)
+    ref = np.empty_like(Y)
+    for j in range(k):
+        ref[:, j] = Cc @ x + model.y_ref
+        sol = solve_ivp(lambda _t, z, u=U[:, j]: Ac @ z + Bc @ u,
+                        (t_grid[j], t_grid[j] + model.dt), x, rtol=1e-12, atol=1e-14,
+                        method='DOP853')
+        x = sol.y[:, -1]
+    dev = Y - model.y_ref[:, None]
+    assert np.linalg.norm(Y - ref) / np.linalg.norm(dev) < 1e-6
+
+
+def test_step_and_simulate_agree() -> None:
+    model = _discrete()
+    U = np.random.default_rng(0).normal(size=(model.n_inputs, 50))
+    Y, X = model.simulate(U, return_states=True)
+    x = model.initial_state()
+    for j in range(U.shape[1]):
+        np.testing.assert_allclose(model.output(x, U[:, j]), Y[:, j], rtol=0, atol=1e-13)
+        x = model.step(x, U[:, j])
+    np.testing.assert_array_equal(X[:, 0], np.zeros(model.n_states))
+
+
+def test_discrete_multiple_of_dt() -> None:
+    model = _discrete()
+    u = np.array([0.3, -1.0])
+    x0 = np.arange(model.r, dtype=float)
+    x = x0.copy()
+    for _ in range(3):
+        x = model.step(x, u)
+    np.testing.assert_allclose(model.step(x0, u, dt=3 * model.dt), x, atol=1e-12)
+    with pytest.raises(DimensionError, match='whole'):
+        model.discretize(1.5 * model.dt)
+
+
+def test_second_order_variable_dt_composes() -> None:
+    model = _second_order()
+    u = np.ones(model.n_inputs)
+    x0 = np.r_[np.ones(model.r), np.zeros(model.r)]
+    two = model.step(model.step(x0, u, dt=0.0007), u, dt=0.0013)
+    np.testing.assert_allclose(model.step(x0, u, dt=0.002), two, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize('factory', [_second_order, _discrete])
+def test_round_trip_bit_exact(tmp_path, factory) -> None:
+    model = factory()
+    path = model.save(tmp_path / 'm.npz')
+    loaded = load_model(path)
+    assert type(loaded) is type(model)
+    for name, arr in model.matrices().items():
+        assert np.array_equal(arr, loaded.matrices()[name])
+        assert arr.tobytes() == loaded.matrices()[name].tobytes()
+    assert loaded.y_ref.tobytes() == model.y_ref.tobytes()
+    assert loaded.metadata == model.metadata
+    assert loaded.input_names == model.input_names
+    assert loaded.method == model.method and loaded.dt == model.dt
+    U = np.random.default_rng(1).normal(size=(model.n_inputs, 30))
+    assert np.array_equal(model.simulate(U), loaded.simulate(U))
+
+
+def _rewrite(src, dst, *, arrays=None, header_update=None, raw_extra=None) -> None:
+    with np.load(src, allow_pickle=False) as npz:
+        data = {k: npz[k] for k in npz.files}
+    header = json.loads(data['__metadata__'].tobytes())
+    header.update(header_update or {})
+    data['__metadata__'] = np.frombuffer(json.dumps(header).encode(), dtype=np.uint8)
+    data.update(arrays or {})
+    np.savez(dst, **data)
+    if raw_extra:
+        with zipfile.ZipFile(dst, 'a') as zf:
+            for name, payload in raw_extra.items():
+                zf.writestr(name, payload)
+
+
+class _Boom:
+    def __reduce__(self):  # executed only if someone unpickles
+        return (exec, ("open('/tmp/soft_rom_pwned', 'w').write('x')",))
+
+
+def test_hostile_pickled_object_array_is_refused(tmp_path) -> None:
+    good = _second_order().save(tmp_path / 'good.npz')
+    bad = tmp_path / 'bad.npz'
+    with np.load(good) as npz:
+        data = {k: npz[k] for k in npz.files}
+    data['K'] = np.array([_Boom()], dtype=object)  # np.savez pickles object arrays
+    np.savez(bad, **data)
+    if os.path.exists('/tmp/soft_rom_pwned'):
+        os.remove('/tmp/soft_rom_pwned')
+    with pytest.raises(ModelFileError, match='object array|pickle'):
+        load_model(bad)
+    assert not os.path.exists('/tmp/soft_rom_pwned')
+
+
+@pytest.mark.parametrize('case, match', [
+    ('nan', 'NaN'),
+    ('shape', 'shape|must have'),
+    ('version', 'version'),
+    ('int', 'dtype'),
+    ('missing', 'needs arrays'),
+    ('format', 'format'),
+])
+def test_bad_files_are_refused(tmp_path, case, match) -> None:
+    model = _second_order()
+    good = model.save(tmp_path / 'good.npz')
+    bad = tmp_path / 'bad.npz'
+    if case == 'nan':
+        K = model.K.copy()
+        K[0, 0] = np.nan
+        _rewrite(good, bad, arrays={'K': K})
+    elif case == 'shape':
+        _rewrite(good, bad, arrays={'B': np.zeros((model.r + 1, model.n_inputs))})
+    elif case == 'version':
+        _rewrite(good, bad, header_update={'format_version': FORMAT_VERSION + 1})
+    elif case == 'int':
+        _rewrite(good, bad, arrays={'K': np.eye(model.r, dtype=np.int64)})
+    elif case == 'missing':
+        with np.load(good) as npz:
+            data = {k: npz[k] for k in npz.files if k != 'E'}
+        np.savez(bad, **data)
+    elif case == 'format':
+        _rewrite(good, bad, header_update={'format': 'something.else'})
+    with pytest.raises(ModelFileError, match=match):
+        load_model(bad)
+
+
+def test_missing_and_corrupt_files(tmp_path) -> None:
+    with pytest.raises(FileNotFoundError):
+        load_model(tmp_path / 'nope.npz')
+    junk = tmp_path / 'junk.npz'
+    junk.write_bytes(b'not a zip at all')
+    with pytest.raises(ModelFileError, match='corrupt'):
+        load_model(junk)
+    good = _second_order().save(tmp_path / 'good.npz')
+    trunc = tmp_path / 'trunc.npz'
+    trunc.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(ModelFileError):
+        load_model(trunc)
+
+
+def test_constructor_validation() -> None:
+    with pytest.raises(DimensionError):
+        SecondOrderModel(np.eye(2), np.eye(2), np.ones((3, 1)), np.ones((1, 2)), dt=1e-3)
+    with pytest.raises(DimensionError):
+        DiscreteModel(np.eye(2), np.ones((2, 1)), np.ones((1, 2)), dt=0.0)
+    with pytest.raises(DimensionError):
+        DiscreteModel(np.eye(2) * np.nan, np.ones((2, 1)), np.ones((1, 2)), dt=1.0)
+
+
+def test_stability_margin_and_eigenvalues() -> None:
+    model = _second_order()
+    assert np.all(model.eigenvalues().real < 0)
+    assert 0 < model.stability_margin() < 1
+    unstable = DiscreteModel(np.diag([1.1, 0.5]), np.ones((2, 1)), np.ones((1, 2)), dt=1.0)
+    assert unstable.stability_margin() == pytest.approx(-0.1)
