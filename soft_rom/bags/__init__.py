@@ -1,0 +1,15 @@
+"""ROS 2 bags: the only part of soft_rom that imports rosbags.
+
+- :class:`EpisodeBagWriter` / :class:`BagTopics`: write episodes as bags (sqlite3 or MCAP)
+  laid out as a SOFA + ROS 2 recording (``SPEC.md``, bag contract).
+- :mod:`soft_rom.bags.reader`: open bags, describe them (``soft-rom info``) and stream
+  decoded messages as numpy arrays for the converter (:mod:`soft_rom.convert`).
+"""
+
+from __future__ import annotations
+
+from soft_rom.bags.reader import BagMessage, BagReader, describe_bag, is_bag
+from soft_rom.bags.writer import BagTopics, EpisodeBagWriter, STORAGES
+
+__all__ = ['BagMessage', 'BagReader', 'BagTopics', 'EpisodeBagWriter', 'STORAGES',
+           'describe_bag', 'is_bag']

@@ -1,0 +1,299 @@
+"""Reading ROS 2 bags (sqlite3 or MCAP) as streams of decoded numpy values.
+
+:class:`BagReader` wraps :class:`rosbags.rosbag2.Reader`, translates its errors into
+:class:`~soft_rom.errors.BagError` with the bag, topic and time in the message, and turns
+the message types of the bag contract into numpy values (:func:`decode`):
+
+=================================== =========================== =======================
+type                                value                       stamp
+=================================== =========================== =======================
+``sensor_msgs/msg/FluidPressure``   ``(1,)`` Pa                 ``header.stamp``
+``std_msgs/msg/Float64MultiArray``  ``(len,)`` (layout kept)    none: bag log time
+``std_msgs/msg/Float32MultiArray``  ``(len,)`` float32         none: bag log time
+``geometry_msgs/msg/PoseArray``     ``(N, 3)`` positions        ``header.stamp``
+``geometry_msgs/msg/PoseStamped``   ``(1, 3)``                  ``header.stamp``
+``sensor_msgs/msg/PointCloud2``     ``(N, 3)`` x, y, z fields   ``header.stamp``
+=================================== =========================== =======================
+
+Time stamps stay integer nanoseconds here; :mod:`soft_rom.convert` converts them to seconds.
+Multi-array data are returned as zero-copy views of the message buffer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from rosbags.rosbag2 import Reader
+from rosbags.rosbag2.errors import ReaderError
+
+from soft_rom.bags.writer import typestore
+from soft_rom.errors import BagError
+
+__all__ = ['BagMessage', 'BagReader', 'SUPPORTED_TYPES', 'decode', 'describe_bag', 'is_bag',
+           'bag_storage']
+
+#: Message types :func:`decode` understands.
+SUPPORTED_TYPES = (
+    'sensor_msgs/msg/FluidPressure',
+    'std_msgs/msg/Float64MultiArray',
+    'std_msgs/msg/Float32MultiArray',
+    'geometry_msgs/msg/PoseArray',
+    'geometry_msgs/msg/PoseStamped',
+    'sensor_msgs/msg/PointCloud2',
+)
+
+_PF_DTYPES = {1: 'i1', 2: 'u1', 3: 'i2', 4: 'u2', 5: 'i4', 6: 'u4', 7: 'f4', 8: 'f8'}
+
+
+@dataclass(frozen=True)
+class BagMessage:
+    """One decoded message.
+
+    Attributes
+    ----------
+    topic : str
+    msgtype : str
+    log_ns : int
+        Bag log (receive) time, ns.
+    stamp_ns : int or None
+        ``header.stamp`` in ns, or ``None`` for header-less types.
+    value : ndarray
+        See the table in the module docstring.
+    layout : tuple of (label, size), optional
+        Multi-array layout dimensions.
+    """
+
+    topic: str
+    msgtype: str
+    log_ns: int
+    stamp_ns: int | None
+    value: NDArray[Any]
+    layout: tuple[tuple[str, int], ...] = ()
+
+    @property
+    def time_ns(self) -> int:
+        """Header stamp when there is one, else the bag log time."""
+        return self.log_ns if self.stamp_ns is None else self.stamp_ns
+
+
+def _stamp(msg: Any) -> int:
+    st = msg.header.stamp
+    return int(st.sec) * 1_000_000_000 + int(st.nanosec)
+
+
+def _pointcloud_xyz(msg: Any) -> NDArray[Any]:
+    fields = {f.name: f for f in msg.fields}
+    missing = [c for c in 'xyz' if c not in fields]
+    if missing:
+        raise BagError(f'PointCloud2 has no field(s) {missing}; fields are {sorted(fields)}.')
+    n = int(msg.width) * int(msg.height)
+    step = int(msg.point_step)
+    raw = np.asarray(msg.data, dtype=np.uint8)
+    if raw.size < n * step:
+        raise BagError(f'PointCloud2 data has {raw.size} bytes; expected {n * step} '
+                       f'({n} points x {step} bytes).')
+    end = '>' if msg.is_bigendian else '<'
+    out = np.empty((n, 3), dtype=np.float64)
+    f0 = [fields[c] for c in 'xyz']
+    dts = {_PF_DTYPES.get(int(f.datatype)) for f in f0}
+    offs = [int(f.offset) for f in f0]
+    if None in dts:
+        raise BagError('PointCloud2 x/y/z fields have an unsupported datatype.')
+    if len(dts) == 1 and step % np.dtype(dts.copy().pop()).itemsize == 0 and int(
+            msg.row_step) == step * int(msg.width):
+        dt = np.dtype(end + dts.pop())
+        isz = dt.itemsize
+        if all(o % isz == 0 for o in offs):
+            rows = raw[:n * step].view(dt).reshape(n, step // isz)
+            return rows[:, [o // isz for o in offs]].astype(np.float64)
+    rows = raw[:n * step].reshape(n, step)
+    for j, f in enumerate(f0):
+        dt = np.dtype(end + _PF_DTYPES[int(f.datatype)])
+        o = int(f.offset)
+        out[:, j] = np.ascontiguousarray(rows[:, o:o + dt.itemsize]).view(dt).reshape(n)
+    return out
+
+
+def decode(msgtype: str, msg: Any) -> tuple[int | None, NDArray[Any], tuple[tuple[str, int],
+                                                                                ...]]:
+    """Return ``(stamp_ns or None, value, layout)`` of a deserialised message."""
+    if msgtype == 'sensor_msgs/msg/FluidPressure':
+        return _stamp(msg), np.array([msg.fluid_pressure], dtype=np.float64), ()
+    if msgtype in ('std_msgs/msg/Float64MultiArray', 'std_msgs/msg/Float32MultiArray'):
+        data = np.asarray(msg.data)
+        off = int(msg.layout.data_offset)
+        layout = tuple((str(d.label), int(d.size)) for d in msg.layout.dim)
+        return None, data[off:] if off else data, layout
+    if msgtype == 'geometry_msgs/msg/PoseArray':
+        pts = np.array([(p.position.x, p.position.y, p.position.z) for p in msg.poses],
+                       dtype=np.float64).reshape(-1, 3)
+        return _stamp(msg), pts, ()
+    if msgtype == 'geometry_msgs/msg/PoseStamped':
+        p = msg.pose.position
+        return _stamp(msg), np.array([[p.x, p.y, p.z]], dtype=np.float64), ()
+    if msgtype == 'sensor_msgs/msg/PointCloud2':
+        return _stamp(msg), _pointcloud_xyz(msg), ()
+    raise BagError(f'message type {msgtype} is not supported; use one of {SUPPORTED_TYPES}.')
+
+
+def is_bag(path: str | Path) -> bool:
+    """True if ``path`` looks like a rosbag2 directory or a ``.mcap`` / ``.db3`` file."""
+    p = Path(path)
+    if p.is_dir():
+        return (p / 'metadata.yaml').exists() or any(p.glob('*.mcap')) or any(p.glob('*.db3'))
+    return p.suffix in ('.mcap', '.db3') and p.exists()
+
+
+def bag_storage(path: str | Path) -> str:
+    """``'mcap'`` or ``'sqlite3'`` from the files of the bag at ``path``."""
+    p = Path(path)
+    files = [p] if p.is_file() else list(p.iterdir()) if p.is_dir() else []
+    if any(f.suffix == '.mcap' for f in files):
+        return 'mcap'
+    if any(f.suffix == '.db3' for f in files):
+        return 'sqlite3'
+    raise BagError(f'{p} holds no .mcap or .db3 file: not a ROS 2 bag.')
+
+
+class BagReader:
+    """Open a ROS 2 bag for reading; use as a context manager.
+
+    Parameters
+    ----------
+    path : str or Path
+        rosbag2 directory (with ``metadata.yaml``) or a single ``.mcap`` / ``.db3`` file.
+    storage : {'auto', 'mcap', 'sqlite3'}
+        Expected storage; ``'auto'`` accepts either.
+
+    Raises
+    ------
+    FileNotFoundError
+        ``path`` does not exist.
+    BagError
+        The bag is truncated, corrupt, of another storage than requested, or unreadable.
+    """
+
+    def __init__(self, path: str | Path, storage: str = 'auto') -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise FileNotFoundError(f'bag {self.path} does not exist.')
+        if storage not in ('auto', 'mcap', 'sqlite3'):
+            raise BagError(f"storage must be 'auto', 'mcap' or 'sqlite3'; got {storage!r}.")
+        self.storage = bag_storage(self.path)
+        if storage != 'auto' and storage != self.storage:
+            raise BagError(f'{self.path} is a {self.storage} bag, not {storage}.')
+        self._reader: Reader | None = None
+        self._ts = typestore()
+
+    def open(self) -> BagReader:
+        """Open the bag (reads its metadata and index)."""
+        try:
+            reader = Reader(self.path)
+            reader.open()
+        except (ReaderError, OSError, ValueError, KeyError) as err:
+            raise BagError(f'cannot open bag {self.path} ({self.storage}): {err}. '
+                           'The bag may be truncated or corrupt (was the recorder killed?); '
+                           'try `ros2 bag reindex` on it.') from err
+        except Exception as err:  # noqa: BLE001 - storage backends raise many kinds
+            raise BagError(f'cannot open bag {self.path} ({self.storage}): '
+                           f'{type(err).__name__}: {err}') from err
+        self._reader = reader
+        return self
+
+    def close(self) -> None:
+        """Close the bag."""
+        if self._reader is not None:
+            reader, self._reader = self._reader, None
+            try:
+                reader.close()
+            except Exception:  # noqa: BLE001 - nothing to save at this point
+                pass
+
+    def __enter__(self) -> BagReader:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def reader(self) -> Reader:
+        """The underlying rosbags reader."""
+        if self._reader is None:
+            raise BagError('BagReader is not open: use it as a context manager.')
+        return self._reader
+
+    @property
+    def topics(self) -> dict[str, tuple[str, int]]:
+        """``{topic: (msgtype, message count)}``."""
+        return {name: (info.msgtype or 'mixed', int(info.msgcount))
+                for name, info in self.reader.topics.items()}
+
+    @property
+    def start_ns(self) -> int:
+        """Log time of the first message (ns); 0 for an empty bag."""
+        return int(self.reader.start_time) if self.reader.message_count else 0
+
+    @property
+    def end_ns(self) -> int:
+        """Log time of the last message (ns); 0 for an empty bag."""
+        # rosbags reports an exclusive end (last stamp + 1 ns).
+        return int(self.reader.end_time) - 1 if self.reader.message_count else 0
+
+    @property
+    def message_count(self) -> int:
+        """Total number of messages."""
+        return int(self.reader.message_count)
+
+    def raw(self, topics: Sequence[str]) -> Iterator[tuple[str, str, int, bytes]]:
+        """Yield ``(topic, msgtype, log_ns, cdr bytes)`` of ``topics`` in log-time order."""
+        conns = [c for c in self.reader.connections if c.topic in set(topics)]
+        if not conns:
+            return
+        it = self.reader.messages(connections=conns)
+        while True:
+            try:
+                conn, log_ns, data = next(it)
+            except StopIteration:
+                return
+            except Exception as err:  # noqa: BLE001 - storage backends raise many kinds
+                raise BagError(f'bag {self.path} is truncated or corrupt while reading '
+                               f'{sorted(topics)}: {type(err).__name__}: {err}') from err
+            yield conn.topic, conn.msgtype, int(log_ns), data
+
+    def messages(self, topics: Sequence[str]) -> Iterator[BagMessage]:
+        """Yield decoded :class:`BagMessage` of ``topics`` in log-time order."""
+        for topic, msgtype, log_ns, data in self.raw(topics):
+            try:
+                msg = self._ts.deserialize_cdr(data, msgtype)
+            except Exception as err:  # noqa: BLE001 - corrupt CDR raises many kinds
+                raise BagError(f'{topic} at log time {log_ns * 1e-9:.9f} s: cannot decode '
+                               f'{msgtype} ({type(err).__name__}: {err}); the message is '
+                               'corrupt.') from err
+            stamp, value, layout = decode(msgtype, msg)
+            yield BagMessage(topic, msgtype, log_ns, stamp, value, layout)
+
+
+def describe_bag(path: str | Path) -> dict[str, Any]:
+    """Summary of a bag: storage, duration, and per topic type, count, rate (Hz).
+
+    Returns
+    -------
+    dict
+        ``{'path', 'storage', 'start_s', 'end_s', 'duration_s', 'message_count',
+        'topics': {topic: {'type', 'count', 'rate_hz'}}}``.
+    """
+    with BagReader(path) as bag:
+        start, end = bag.start_ns, bag.end_ns
+        dur = (end - start) * 1e-9
+        topics = {}
+        for name, (msgtype, count) in sorted(bag.topics.items()):
+            rate = (count - 1) / dur if dur > 0 and count > 1 else float('nan')
+            topics[name] = {'type': msgtype, 'count': count, 'rate_hz': rate}
+        return {'path': str(path), 'storage': bag.storage, 'start_s': start * 1e-9,
+                'end_s': end * 1e-9, 'duration_s': dur, 'message_count': bag.message_count,
+                'topics': topics}

@@ -1,0 +1,107 @@
+"""Tests of soft_rom.bags: the episode bag writer and the bag reader (both storages)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from soft_rom.bags import BagReader, BagTopics, describe_bag, EpisodeBagWriter, is_bag
+from soft_rom.errors import BagError, DimensionError
+
+STORAGES = ('mcap', 'sqlite3')
+
+
+def _write(path, storage, k=6, n_nodes=5, **kw):
+    rng = np.random.default_rng(1)
+    t = 0.001 * np.arange(1, k + 1)
+    P = rng.normal(size=(k, 6)) * 1e4
+    C = rng.normal(size=(k, 20, 3))
+    X = rng.normal(size=(k, n_nodes, 3))
+    with EpisodeBagWriter(path, storage=storage, n_chambers=6, n_nodes=n_nodes, **kw) as w:
+        for j in range(k):
+            w.write(t[j], P[j], C[j], X[j])
+    return t, P, C, X
+
+
+@pytest.mark.parametrize('storage', STORAGES)
+def test_contract_topics_types_and_values(tmp_path, storage):
+    path = tmp_path / 'ep'
+    t, P, C, X = _write(path, storage)
+    info = describe_bag(path)
+    assert info['storage'] == storage
+    topics = info['topics']
+    for i in range(1, 7):
+        assert topics[f'/soft_robot/pressure/chamber_{i}'] == {
+            'type': 'sensor_msgs/msg/FluidPressure', 'count': 6,
+            'rate_hz': pytest.approx(1000.0, rel=1e-9)}
+    assert topics['/soft_robot/centerline']['type'] == 'geometry_msgs/msg/PoseArray'
+    assert topics['/soft_robot/state']['type'] == 'std_msgs/msg/Float64MultiArray'
+    assert info['duration_s'] == pytest.approx(0.005, abs=1e-12)
+    with BagReader(path) as bag:
+        msgs = list(bag.messages(['/soft_robot/state', '/soft_robot/centerline',
+                                  '/soft_robot/pressure/chamber_3']))
+    state = [m for m in msgs if m.topic == '/soft_robot/state']
+    cl = [m for m in msgs if m.topic == '/soft_robot/centerline']
+    p3 = [m for m in msgs if m.topic.endswith('chamber_3')]
+    assert len(state) == len(cl) == len(p3) == 6
+    for j in range(6):
+        ns = round(t[j] * 1e9)
+        assert state[j].stamp_ns is None and state[j].log_ns == ns
+        assert state[j].layout == (('nodes', 5), ('xyz', 3))
+        np.testing.assert_array_equal(state[j].value.reshape(5, 3), X[j])
+        assert cl[j].stamp_ns == ns == cl[j].log_ns
+        np.testing.assert_array_equal(cl[j].value, C[j])
+        assert p3[j].value[0] == P[j, 2] and p3[j].stamp_ns == ns
+
+
+@pytest.mark.parametrize('state_type', ['float32', 'pointcloud2'])
+def test_alternative_state_and_pressure_array(tmp_path, state_type):
+    path = tmp_path / 'ep'
+    t, P, C, X = _write(path, 'mcap', state_type=state_type, pressure_mode='array')
+    info = describe_bag(path)
+    assert '/soft_robot/pressures' in info['topics']
+    assert not any('chamber' in k for k in info['topics'])
+    with BagReader(path) as bag:
+        st = list(bag.messages(['/soft_robot/state']))
+        pr = list(bag.messages(['/soft_robot/pressures']))
+    assert pr[0].msgtype == 'std_msgs/msg/Float64MultiArray' and pr[0].stamp_ns is None
+    np.testing.assert_array_equal(pr[4].value, P[4])
+    got = st[3].value.reshape(5, 3)
+    np.testing.assert_array_equal(got, X[3].astype(np.float32).astype(np.float64))
+    if state_type == 'pointcloud2':
+        assert st[3].stamp_ns == round(t[3] * 1e9)
+
+
+def test_failure_mid_write_leaves_no_bag(tmp_path):
+    path = tmp_path / 'ep'
+    with pytest.raises(RuntimeError, match='boom'):
+        with EpisodeBagWriter(path, storage='mcap', n_chambers=6) as w:
+            w.write(0.001, np.zeros(6), np.zeros((20, 3)))
+            raise RuntimeError('boom')
+    assert not path.exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bad_arguments_and_existing_path(tmp_path):
+    path = tmp_path / 'ep'
+    _write(path, 'sqlite3', k=2)
+    with pytest.raises(BagError, match='exists already'):
+        EpisodeBagWriter(path).open()
+    with pytest.raises(BagError, match='storage'):
+        EpisodeBagWriter(tmp_path / 'x', storage='bag')
+    with EpisodeBagWriter(path, storage='mcap', overwrite=True, n_nodes=3) as w:
+        with pytest.raises(DimensionError):
+            w.write(0.001, np.zeros(5), np.zeros((20, 3)), np.zeros((3, 3)))
+        with pytest.raises(DimensionError):
+            w.write(0.001, np.zeros(6), np.zeros((20, 3)), None)
+        w.write(0.001, np.zeros(6), np.zeros((20, 3)), np.zeros((3, 3)))
+    assert describe_bag(path)['storage'] == 'mcap'
+    assert is_bag(path) and not is_bag(tmp_path)
+
+
+def test_custom_topics(tmp_path):
+    topics = BagTopics(pressure_template='/p{i}', centerline='/cl', state='/x')
+    with EpisodeBagWriter(tmp_path / 'b', storage='mcap', n_chambers=2, n_nodes=1,
+                          topics=topics) as w:
+        w.write(1.5, [1.0, 2.0], np.ones((3, 3)), np.ones((1, 3)))
+    assert set(describe_bag(tmp_path / 'b')['topics']) == {'/p1', '/p2', '/cl', '/x'}
