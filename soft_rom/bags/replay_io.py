@@ -1,0 +1,345 @@
+"""Bags for ``soft-rom replay``: write the predictor node's topics offline (rosbags).
+
+:class:`PredictionBagWriter` writes exactly the topics and types the node
+(:mod:`soft_rom.ros.predictor_node`) publishes, under the node's name
+(default ``soft_rom_predictor``):
+
+================================== ====================================== =====================
+topic                              type                                   when
+================================== ====================================== =====================
+``/<node>/centerline``             ``geometry_msgs/msg/PoseArray``        every published step
+``/<node>/centerline_marker``      ``visualization_msgs/msg/Marker``      idem (ns ``predicted``,
+                                                                          and ``measured``)
+``/<node>/output``                 ``std_msgs/msg/Float64MultiArray``     every published step
+``/<node>/error``                  ``std_msgs/msg/Float64``               with measurements
+``/diagnostics``                   ``diagnostic_msgs/msg/DiagnosticArray`` every period
+``/<node>/model_info``             ``std_msgs/msg/String`` (JSON)         once, transient local
+================================== ====================================== =====================
+
+:func:`replay_to_bag` runs a :class:`~soft_rom.predictor.Predictor` over an episode and
+writes those topics; :func:`write_input_bag` writes an episode as the *inputs* of the
+bag contract (pressures per chamber or as one array, measured centerline), for tests and
+demos; :func:`read_messages` reads any bag back as deserialized messages.
+
+Both rosbag2 storage formats are supported: ``'sqlite3'`` and ``'mcap'`` (Jazzy's
+default). Bag time stamps are nanoseconds here and seconds everywhere else.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+import math
+import os
+from pathlib import Path
+import shutil
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.typesys import get_typestore, Stores
+
+from soft_rom.data import Episode
+from soft_rom.errors import BagError
+from soft_rom.predictor import Health, Predictor, replay_episode, ReplayResult
+from soft_rom.ros.conversions import (
+    check_components,
+    health_key_values,
+    model_info_json,
+    outputs_to_points,
+    sec_to_stamp,
+)
+
+try:  # rosbags >= 0.10
+    from rosbags.interfaces import (
+        Qos,
+        QosDurability,
+        QosHistory,
+        QosLiveliness,
+        QosReliability,
+        QosTime,
+    )
+except ImportError:  # pragma: no cover - older rosbags: no QoS metadata
+    Qos = None  # type: ignore[assignment,misc]
+
+__all__ = [
+    'DEFAULT_NODE_NAME',
+    'PredictionBagWriter',
+    'read_messages',
+    'replay_to_bag',
+    'storage_plugin',
+    'write_input_bag',
+]
+
+DEFAULT_NODE_NAME = 'soft_rom_predictor'
+_TS = get_typestore(Stores.ROS2_JAZZY)
+_T = _TS.types
+Array = NDArray[np.float64]
+
+
+def storage_plugin(storage: str) -> StoragePlugin:
+    """``'sqlite3'`` or ``'mcap'`` to the rosbags plugin."""
+    try:
+        return {'sqlite3': StoragePlugin.SQLITE3, 'mcap': StoragePlugin.MCAP}[storage]
+    except KeyError:
+        raise BagError(f"bag storage must be 'sqlite3' or 'mcap'; got {storage!r}.") from None
+
+
+def _open_writer(path: str | os.PathLike[str], storage: str, overwrite: bool) -> Writer:
+    path = Path(path)
+    if path.exists():
+        if not overwrite:
+            raise FileExistsError(f'{path} exists; choose another output or pass overwrite.')
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
+    writer = Writer(path, version=9, storage_plugin=storage_plugin(storage))
+    try:
+        writer.open()
+    except Exception as err:  # rosbags WriterError and OSError
+        raise BagError(f'cannot create bag {path}: {err}') from err
+    return writer
+
+
+def _latched_qos() -> list[Any]:
+    if Qos is None:  # pragma: no cover
+        return []
+    zero = QosTime(0, 0)
+    return [Qos(QosHistory.KEEP_LAST, 1, QosReliability.RELIABLE, QosDurability.TRANSIENT_LOCAL,
+                zero, zero, QosLiveliness.AUTOMATIC, zero, False)]
+
+
+def _header(t: float, frame_id: str) -> Any:
+    sec, nsec = sec_to_stamp(t)
+    return _T['std_msgs/msg/Header'](stamp=_T['builtin_interfaces/msg/Time'](sec, nsec),
+                                     frame_id=frame_id)
+
+
+def _point(x: float, y: float, z: float) -> Any:
+    return _T['geometry_msgs/msg/Point'](x=x, y=y, z=z)
+
+
+def _pose_array(t: float, frame_id: str, points: Array) -> Any:
+    Pose, Quat = _T['geometry_msgs/msg/Pose'], _T['geometry_msgs/msg/Quaternion']
+    poses = [Pose(position=_point(x, y, z), orientation=Quat(0.0, 0.0, 0.0, 1.0))
+             for x, y, z in points.tolist()]
+    return _T['geometry_msgs/msg/PoseArray'](header=_header(t, frame_id), poses=poses)
+
+
+def _marker(t: float, frame_id: str, points: Array, ns: str, marker_id: int,
+            rgba: tuple[float, float, float, float], width: float) -> Any:
+    M = _T['visualization_msgs/msg/Marker']
+    empty = np.zeros(0, dtype=np.uint8)
+    return M(
+        header=_header(t, frame_id), ns=ns, id=marker_id, type=M.LINE_STRIP, action=M.ADD,
+        pose=_T['geometry_msgs/msg/Pose'](position=_point(0.0, 0.0, 0.0),
+                                          orientation=_T['geometry_msgs/msg/Quaternion'](
+                                              0.0, 0.0, 0.0, 1.0)),
+        scale=_T['geometry_msgs/msg/Vector3'](x=width, y=0.0, z=0.0),
+        color=_T['std_msgs/msg/ColorRGBA'](*rgba),
+        lifetime=_T['builtin_interfaces/msg/Duration'](sec=0, nanosec=0), frame_locked=False,
+        points=[_point(x, y, z) for x, y, z in points.tolist()], colors=[],
+        texture_resource='',
+        texture=_T['sensor_msgs/msg/CompressedImage'](header=_header(t, frame_id), format='',
+                                                      data=empty),
+        uv_coordinates=[], text='', mesh_resource='',
+        mesh_file=_T['visualization_msgs/msg/MeshFile'](filename='', data=empty),
+        mesh_use_embedded_materials=False)
+
+
+def _float64_array(values: Array, label: str) -> Any:
+    dim = _T['std_msgs/msg/MultiArrayDimension'](label=label, size=values.size,
+                                                 stride=values.size)
+    layout = _T['std_msgs/msg/MultiArrayLayout'](dim=[dim], data_offset=0)
+    return _T['std_msgs/msg/Float64MultiArray'](layout=layout,
+                                                data=np.array(values, dtype=np.float64))
+
+
+def _diagnostics(t: float, health: Health, name: str, hardware_id: str) -> Any:
+    KV = _T['diagnostic_msgs/msg/KeyValue']
+    status = _T['diagnostic_msgs/msg/DiagnosticStatus'](
+        level=int(health.level), name=name, message=health.message, hardware_id=hardware_id,
+        values=[KV(key=k, value=v) for k, v in health_key_values(health)])
+    return _T['diagnostic_msgs/msg/DiagnosticArray'](header=_header(t, ''), status=[status])
+
+
+class PredictionBagWriter:
+    """Write the predictor node's topics to a bag (a context manager).
+
+    Parameters
+    ----------
+    path : path
+        Output bag directory (must not exist unless ``overwrite``).
+    storage : {'mcap', 'sqlite3'}
+    node_name : str
+        Topics are ``/<node_name>/...`` (the node's private ``~/`` names).
+    frame_id : str
+        Frame of the centerline.
+    components : str
+        Output layout (``'xz'``: ``y = [x_1..x_N, z_1..z_N]``).
+    fill : float
+        Coordinate value for components the model does not predict.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, storage: str = 'mcap',
+                 node_name: str = DEFAULT_NODE_NAME, frame_id: str = 'world',
+                 components: str = 'xz', fill: float = 0.0, overwrite: bool = False) -> None:
+        self.path = Path(path)
+        self.frame_id, self.components, self.fill = frame_id, components, float(fill)
+        self.node_name = node_name.strip('/')
+        self._writer = _open_writer(self.path, storage, overwrite)
+        base = f'/{self.node_name}'
+        self.topics = {
+            'centerline': (f'{base}/centerline', 'geometry_msgs/msg/PoseArray'),
+            'marker': (f'{base}/centerline_marker', 'visualization_msgs/msg/Marker'),
+            'output': (f'{base}/output', 'std_msgs/msg/Float64MultiArray'),
+            'error': (f'{base}/error', 'std_msgs/msg/Float64'),
+            'diagnostics': ('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray'),
+            'model_info': (f'{base}/model_info', 'std_msgs/msg/String'),
+        }
+        self._conn = {}
+        for key, (topic, msgtype) in self.topics.items():
+            qos = _latched_qos() if key == 'model_info' else []
+            self._conn[key] = self._writer.add_connection(topic, msgtype, typestore=_TS,
+                                                          offered_qos_profiles=qos)
+
+    def _write(self, key: str, t: float, msg: Any) -> None:
+        data = _TS.serialize_cdr(msg, self.topics[key][1])
+        self._writer.write(self._conn[key], int(round(t * 1e9)), data)
+
+    def write_model_info(self, t: float, info: dict[str, Any]) -> None:
+        """The latched JSON description of the model."""
+        self._write('model_info', t, _T['std_msgs/msg/String'](data=model_info_json(info)))
+
+    def write_prediction(self, t: float, y: Array, measured: Array | None = None) -> None:
+        """Centerline, marker(s) and raw output for one published step at ``t`` seconds."""
+        check_components(self.components, y.size)
+        pts = outputs_to_points(y, self.components, self.fill)
+        self._write('centerline', t, _pose_array(t, self.frame_id, pts))
+        self._write('marker', t, _marker(t, self.frame_id, pts, 'predicted', 0,
+                                         (0.1, 0.4, 1.0, 1.0), 0.004))
+        if measured is not None:
+            mpts = outputs_to_points(measured, self.components, self.fill)
+            self._write('marker', t, _marker(t, self.frame_id, mpts, 'measured', 1,
+                                             (1.0, 0.3, 0.1, 1.0), 0.003))
+        self._write('output', t, _float64_array(np.asarray(y, dtype=np.float64), 'outputs'))
+
+    def write_error(self, t: float, error: float) -> None:
+        """Windowed relative error (``std_msgs/Float64``)."""
+        self._write('error', t, _T['std_msgs/msg/Float64'](data=float(error)))
+
+    def write_diagnostics(self, t: float, health: Health) -> None:
+        """One ``DiagnosticArray`` with the predictor's status."""
+        self._write('diagnostics', t, _diagnostics(
+            t, health, f'{self.node_name}: prediction', self.node_name))
+
+    def close(self) -> None:
+        """Finish the bag (writes its metadata)."""
+        self._writer.close()
+
+    def __enter__(self) -> PredictionBagWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def replay_to_bag(predictor: Predictor, episode: Episode, out: str | os.PathLike[str], *,
+                  storage: str = 'mcap', publish_every: int = 1,
+                  diagnostics_period: float = 1.0, measured: bool = True,
+                  node_name: str = DEFAULT_NODE_NAME, frame_id: str = 'world',
+                  components: str = 'xz', overwrite: bool = False,
+                  progress: Callable[[int], Any] | None = None) -> ReplayResult:
+    """Run ``predictor`` over ``episode`` and write the node's topics to ``out``.
+
+    Every ``publish_every``-th sample publishes centerline, markers, output and (with
+    measurements) the error; diagnostics every ``diagnostics_period`` seconds of episode
+    time; the model info once at the start. Returns the :class:`ReplayResult`.
+    """
+    if publish_every < 1:
+        raise BagError(f'publish_every must be >= 1; got {publish_every}.')
+    check_components(components, predictor.model.n_outputs)
+    Y = episode.Y
+    with PredictionBagWriter(out, storage=storage, node_name=node_name, frame_id=frame_id,
+                             components=components, overwrite=overwrite) as writer:
+        t0 = float(episode.t[0]) if episode.t.size else 0.0
+        writer.write_model_info(t0, predictor.info)
+        next_diag = [t0]
+
+        def emit(j: int, t: float, yhat: Array, pred: Predictor) -> None:
+            if j % publish_every == 0:
+                writer.write_prediction(t, yhat, Y[:, j] if measured else None)
+                err = pred.windowed_error()
+                if measured and math.isfinite(err):
+                    writer.write_error(t, err)
+            if t >= next_diag[0]:
+                writer.write_diagnostics(t, pred.health(t))
+                next_diag[0] = t + diagnostics_period
+            if progress is not None:
+                progress(j)
+
+        result = replay_episode(predictor, episode, measured=measured, callback=emit)
+    return result
+
+
+def write_input_bag(path: str | os.PathLike[str], episode: Episode, *, storage: str = 'mcap',
+                    per_chamber: bool = True,
+                    chamber_topics: list[str] | None = None,
+                    array_topic: str = '/soft_robot/pressures',
+                    centerline_topic: str | None = '/soft_robot/centerline',
+                    components: str = 'xz', frame_id: str = 'world',
+                    overwrite: bool = False) -> Path:
+    """Write an episode as the inputs of the bag contract (pressures, measured centerline).
+
+    Pressures go one ``sensor_msgs/FluidPressure`` per chamber (stamped) or one
+    ``std_msgs/Float64MultiArray`` per sample (bag time only); the outputs as a stamped
+    ``geometry_msgs/PoseArray`` (component-major layout ``components``).
+    """
+    m = episode.U.shape[0]
+    topics = chamber_topics or [f'/soft_robot/pressure/chamber_{i + 1}' for i in range(m)]
+    if per_chamber and len(topics) != m:
+        raise BagError(f'{m} inputs but {len(topics)} chamber topics.')
+    writer = _open_writer(path, storage, overwrite)
+    try:
+        FP = _T['sensor_msgs/msg/FluidPressure']
+        if per_chamber:
+            conns = [writer.add_connection(tp, FP.__msgtype__, typestore=_TS) for tp in topics]
+        else:
+            arr_conn = writer.add_connection(array_topic, 'std_msgs/msg/Float64MultiArray',
+                                             typestore=_TS)
+        c_conn = None
+        if centerline_topic:
+            check_components(components, episode.Y.shape[0])
+            c_conn = writer.add_connection(centerline_topic, 'geometry_msgs/msg/PoseArray',
+                                           typestore=_TS)
+        for j, t in enumerate(episode.t.tolist()):
+            ns = int(round(t * 1e9))
+            if per_chamber:
+                for i, conn in enumerate(conns):
+                    msg = FP(header=_header(t, ''), fluid_pressure=float(episode.U[i, j]),
+                             variance=0.0)
+                    writer.write(conn, ns, _TS.serialize_cdr(msg, FP.__msgtype__))
+            else:
+                msg = _float64_array(episode.U[:, j], 'chambers')
+                writer.write(arr_conn, ns, _TS.serialize_cdr(msg, msg.__msgtype__))
+            if c_conn is not None:
+                pts = outputs_to_points(episode.Y[:, j], components)
+                writer.write(c_conn, ns, _TS.serialize_cdr(_pose_array(t, frame_id, pts),
+                                                           'geometry_msgs/msg/PoseArray'))
+    finally:
+        writer.close()
+    return Path(path)
+
+
+def read_messages(path: str | os.PathLike[str],
+                  topics: list[str] | None = None) -> Iterator[tuple[str, float, Any]]:
+    """Yield ``(topic, bag_time_seconds, message)`` from any rosbag2 bag, in time order."""
+    try:
+        reader = Reader(Path(path))
+        reader.open()
+    except Exception as err:
+        raise BagError(f'cannot open bag {path}: {err}') from err
+    try:
+        conns = [c for c in reader.connections if topics is None or c.topic in topics]
+        for conn, ns, raw in reader.messages(connections=conns):
+            yield conn.topic, ns * 1e-9, _TS.deserialize_cdr(raw, conn.msgtype)
+    finally:
+        reader.close()

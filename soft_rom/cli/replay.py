@@ -1,0 +1,128 @@
+"""``soft-rom replay MODEL BAG -o OUT``: run the predictor node's core offline over a bag.
+
+The bag's inputs (and measured centerline, when present) are read with
+:func:`soft_rom.convert.read_episode`; the same :class:`~soft_rom.predictor.Predictor` the
+node runs is stepped over them, and the node's topics are written to ``OUT``
+(:mod:`soft_rom.bags.replay_io`). A summary of the errors is printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from soft_rom.errors import ConfigError
+
+__all__ = ['add_parser', 'run']
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    """Register ``replay`` and its options."""
+    parser = subparsers.add_parser(
+        'replay', help='model x bag -> bag of predictions (the predictor node, offline)',
+        description='Run the predictor node core over the inputs of a bag and write the '
+                    'topics the node would publish (/soft_rom_predictor/centerline, '
+                    'centerline_marker, output, error, model_info and /diagnostics).')
+    parser.add_argument('model', help='model file (.npz)')
+    parser.add_argument('bag', help='input bag (sqlite3 or MCAP)')
+    parser.add_argument('-o', '--output', required=True, help='output bag directory')
+    parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap',
+                        help='storage of the output bag (default mcap)')
+    parser.add_argument('--mapping', default=None,
+                        help='topic mapping YAML for reading the bag (see soft-rom convert)')
+    parser.add_argument('--config', default=None,
+                        help='predictor params file (default: none; config/predictor.yaml '
+                             'layout); command-line options override it')
+    parser.add_argument('--kalman', action='store_true', default=None,
+                        help='correct the state with the steady-state Kalman filter')
+    parser.add_argument('--process-noise', type=float, default=None,
+                        help='Kalman process noise variance')
+    parser.add_argument('--measurement-noise', type=float, default=None,
+                        help='Kalman measurement noise variance')
+    parser.add_argument('--stepping', choices=('fixed', 'input'), default=None,
+                        help='fixed integration rate or stepping by input stamps')
+    parser.add_argument('--publish-rate', type=float, default=None,
+                        help='publish rate in Hz (default: the params file, else every step)')
+    parser.add_argument('--components', default=None,
+                        help='output layout, component-major (default xz)')
+    parser.add_argument('--frame-id', default=None, help='frame of the centerline')
+    parser.add_argument('--node-name', default='soft_rom_predictor',
+                        help='topics are /<node-name>/... (default soft_rom_predictor)')
+    parser.add_argument('--no-measured', action='store_true',
+                        help='ignore the measured centerline (open-loop prediction only)')
+    parser.add_argument('--compare', action='store_true',
+                        help='also report open-loop vs Kalman-corrected errors')
+    parser.add_argument('--overwrite', action='store_true', help='replace OUT if it exists')
+    parser.add_argument('--summary-json', default=None, help='also write the summary here')
+    parser.set_defaults(func=run)
+    return parser
+
+
+def _read(bag: str, mapping: str | None) -> Any:
+    try:
+        from soft_rom.convert import read_episode
+    except ImportError as err:  # pragma: no cover - until the converter is installed
+        raise ConfigError(f'soft-rom replay needs soft_rom.convert.read_episode ({err}).') from err
+    episode, report = read_episode(bag, mapping)
+    return episode, report
+
+
+def run(args: argparse.Namespace) -> int:
+    """Execute ``soft-rom replay``; returns the exit code."""
+    from tqdm import tqdm
+
+    from soft_rom.bags.replay_io import replay_to_bag
+    from soft_rom.predictor import kalman_vs_open_loop, Predictor
+    from soft_rom.ros.params import load_params_file, predictor_config
+
+    values: dict[str, Any] = load_params_file(args.config) if args.config else {}
+    overrides = {'kalman': args.kalman, 'process_noise': args.process_noise,
+                 'measurement_noise': args.measurement_noise, 'stepping': args.stepping,
+                 'publish_rate_hz': args.publish_rate, 'output_components': args.components,
+                 'frame_id': args.frame_id}
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    config = predictor_config(values)
+    predictor = Predictor(args.model, config)
+    model = predictor.model
+    episode, _report = _read(args.bag, args.mapping)
+    publish_rate = float(values.get('publish_rate_hz', 0.0) or 0.0)
+    every = 1 if publish_rate <= 0 else max(1, int(round(1.0 / (publish_rate * model.dt))))
+    measured = not args.no_measured and episode.Y.shape[0] > 0
+    with tqdm(total=episode.n_samples, desc='replay', unit='step', leave=False) as bar:
+        result = replay_to_bag(
+            predictor, episode, args.output, storage=args.storage, publish_every=every,
+            measured=measured, node_name=args.node_name,
+            frame_id=str(values.get('frame_id', 'world')),
+            components=str(values.get('output_components', 'xz')), overwrite=args.overwrite,
+            progress=lambda j: bar.update(1) if j % 100 == 0 and j else None)
+    summary = dict(result.summary)
+    summary['output_bag'] = str(Path(args.output))
+    health = predictor.health()
+    summary['final_status'] = health.level.name
+    summary['final_message'] = health.message
+    if args.compare and measured:
+        summary['compare'] = kalman_vs_open_loop(model, episode, config=config)
+    print(f'replayed {summary["samples"]} samples of {args.bag} through '
+          f'{model.method} r={model.r} ({"Kalman" if config.kalman else "open loop"}) '
+          f'-> {args.output}')
+    if measured and not math.isnan(summary['relative_error']):
+        print(f'  relative error            {summary["relative_error"]:.4e}')
+        print(f'  relative deviation error  {summary["relative_deviation_error"]:.4e}')
+    else:
+        print('  no measured outputs: errors not computed')
+    if 'compare' in summary:
+        c = summary['compare']
+        print(f'  open loop (deviation)     {c["open_loop"]:.4e}')
+        print(f'  Kalman    (deviation)     {c["kalman"]:.4e}   ratio {c["ratio"]:.3f}')
+    dropped = {k: v for k, v in summary['counters'].items()
+               if k in ('wrong_length', 'nonfinite', 'backwards', 'measured_dropped',
+                        'diverged') and v}
+    print(f'  final status {health.level.name}: {health.message}'
+          + (f'; dropped {dropped}' if dropped else ''))
+    if args.summary_json:
+        Path(args.summary_json).write_text(json.dumps(summary, indent=2, default=str),
+                                           encoding='utf-8')
+    return 0

@@ -1,0 +1,127 @@
+"""The predictor node's parameters, stated once (no ROS import).
+
+The node declares each :class:`Param` with a ``ParameterDescriptor`` (description, range,
+``read_only``); ``soft-rom replay --config`` reads the same names from the same YAML file
+(``config/predictor.yaml``, ROS 2 params-file layout) so both run the core identically.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+from soft_rom.errors import ConfigError
+from soft_rom.predictor import PredictorConfig
+
+__all__ = ['NODE_NAME', 'PARAMS', 'Param', 'load_params_file', 'predictor_config']
+
+NODE_NAME = 'soft_rom_predictor'
+
+
+@dataclass(frozen=True)
+class Param:
+    """One node parameter: name, default, description, optional range, read-only flag."""
+
+    name: str
+    default: Any
+    description: str
+    range: tuple[float, float] | None = None
+    read_only: bool = True
+    choices: tuple[str, ...] | None = None
+
+
+_CHAMBERS = [f'/soft_robot/pressure/chamber_{i}' for i in range(1, 7)]
+
+PARAMS: tuple[Param, ...] = (
+    Param('model_path', '', 'Model file (.npz) to run; set at run time to reload atomically.',
+          read_only=False),
+    Param('wait_for_model', False,
+          'If the model cannot be loaded at start-up: true = stay up idle until a valid '
+          'model_path is set; false = log the error and exit with status 1.'),
+    Param('input_mode', 'per_chamber', 'per_chamber: one FluidPressure topic per input; '
+          'array: one Float64MultiArray with all inputs.', choices=('per_chamber', 'array')),
+    Param('input_topics', _CHAMBERS, 'FluidPressure topics, one per model input, in order.'),
+    Param('array_topic', '/soft_robot/pressures', 'Float64MultiArray topic (input_mode array).'),
+    Param('input_scale', 1.0, 'u = input_scale * value + input_offset (e.g. Pa to kPa).'),
+    Param('input_offset', 0.0, 'u = input_scale * value + input_offset (e.g. gauge vs '
+          'absolute pressure).'),
+    Param('input_qos', 'sensor_data', 'QoS of input and measured subscriptions: sensor_data '
+          '(best effort) or reliable.', choices=('sensor_data', 'reliable')),
+    Param('qos_depth', 10, 'History depth of the subscriptions.', range=(1, 1000)),
+    Param('stepping', 'fixed', 'fixed: integrate at rate_hz on a timer; input: step exactly '
+          'to each input stamp.', choices=('fixed', 'input')),
+    Param('rate_hz', 0.0, 'Integration rate (fixed stepping); 0 = the model rate 1/dt.',
+          range=(0.0, 100000.0)),
+    Param('publish_rate_hz', 50.0, 'Publish rate, decimated from the integration rate; '
+          '0 = every step.', range=(0.0, 100000.0)),
+    Param('diagnostics_rate_hz', 1.0, 'Rate of /diagnostics.', range=(0.01, 100.0)),
+    Param('frame_id', 'world', 'Frame of the published centerline.'),
+    Param('output_components', 'xz', 'Which coordinates the output vector holds, '
+          'component-major (xz: [x_1..x_N, z_1..z_N]).'),
+    Param('fill_value', 0.0, 'Coordinate value for components the model does not predict.'),
+    Param('measured_topic', '/soft_robot/centerline', 'Measured centerline (PoseArray) for '
+          'error monitoring and state correction; empty = none.'),
+    # Predictor core settings (PredictorConfig); changeable at run time.
+    Param('input_timeout_s', 0.5, 'An input silent longer than this: value held, STALE.',
+          range=(0.0, 3600.0), read_only=False),
+    Param('error_window', 100, 'Measurements in the windowed relative error.',
+          range=(1, 1000000), read_only=False),
+    Param('error_metric', 'deviation', 'Error held against the thresholds: deviation (from '
+          'y_ref) or absolute.', read_only=False, choices=('deviation', 'absolute')),
+    Param('warn_threshold', 0.1, 'Windowed relative error above which status is WARN.',
+          range=(0.0, 100.0), read_only=False),
+    Param('error_threshold', 0.3, 'Windowed relative error above which status is ERROR.',
+          range=(0.0, 100.0), read_only=False),
+    Param('initial_state', 'reference', 'reference, or measured (from the first measured '
+          'centerline).', read_only=False, choices=('reference', 'measured')),
+    Param('kalman', False, 'Correct the state with a steady-state Kalman filter at each '
+          'measurement (default open loop, as in the paper).', read_only=False),
+    Param('process_noise', 1e-6, 'Kalman process noise variance per state and step.',
+          range=(1e-30, 1e30), read_only=False),
+    Param('measurement_noise', 1e-4, 'Kalman measurement noise variance per output.',
+          range=(1e-30, 1e30), read_only=False),
+    Param('max_catchup_steps', 10000, 'Most integration steps in one update; beyond that '
+          'model time jumps (counted).', range=(1, 10000000), read_only=False),
+)
+
+_CONFIG_FIELDS = {f.name for f in fields(PredictorConfig)}
+_BY_NAME = {p.name: p for p in PARAMS}
+
+
+def predictor_config(values: Mapping[str, Any]) -> PredictorConfig:
+    """The :class:`PredictorConfig` from node parameter values (other names ignored)."""
+    kwargs = {k: v for k, v in values.items() if k in _CONFIG_FIELDS}
+    for name in ('error_window', 'max_catchup_steps'):
+        if name in kwargs:
+            kwargs[name] = int(kwargs[name])
+    for name in ('rate_hz', 'input_timeout_s', 'warn_threshold', 'error_threshold',
+                 'process_noise', 'measurement_noise'):
+        if name in kwargs:
+            kwargs[name] = float(kwargs[name])
+    return PredictorConfig(**kwargs)
+
+
+def load_params_file(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any]:
+    """Read ``ros__parameters`` of ``node_name`` (or ``/**``) from a ROS 2 params YAML file.
+
+    Unknown parameter names are refused (:class:`~soft_rom.errors.ConfigError`).
+    """
+    import yaml
+
+    path = Path(path)
+    try:
+        doc = yaml.safe_load(path.read_text(encoding='utf-8')) or {}
+    except yaml.YAMLError as err:
+        raise ConfigError(f'{path}: not valid YAML ({err}).') from err
+    values: dict[str, Any] = {}
+    for key in ('/**', node_name, f'/{node_name}'):
+        section = doc.get(key) if isinstance(doc, dict) else None
+        if isinstance(section, dict):
+            values.update(section.get('ros__parameters') or {})
+    unknown = sorted(set(values) - set(_BY_NAME) - {'use_sim_time'})
+    if unknown:
+        raise ConfigError(f'{path}: unknown predictor parameters {unknown}; known: '
+                          f'{sorted(_BY_NAME)}.')
+    return values

@@ -1,0 +1,129 @@
+"""``soft-rom replay``: the node's topics written offline, equal to the model's simulation."""
+
+from __future__ import annotations
+
+from collections import Counter
+import json
+
+import numpy as np
+import pytest
+
+from soft_rom.bags.replay_io import read_messages, replay_to_bag, write_input_bag
+from soft_rom.data import Episode
+from soft_rom.errors import BagError
+from soft_rom.models import file_sha256, SecondOrderModel
+from soft_rom.predictor import Predictor, PredictorConfig
+from soft_rom.ros.conversions import data_to_array, outputs_to_points, poses_to_points
+
+N_POINTS = 5
+NODE = '/soft_rom_predictor'
+
+
+def _model() -> SecondOrderModel:
+    rng = np.random.default_rng(7)
+    r, m, p = 4, 3, 2 * N_POINTS
+    M = rng.standard_normal((r, r))
+    K = (M @ M.T / r + 4.0 * np.eye(r)) * 100.0
+    y_ref = np.concatenate([np.linspace(0.0, 0.4, N_POINTS), np.zeros(N_POINTS)])
+    return SecondOrderModel(K, 0.5 * np.eye(r) + 0.01 * K, rng.standard_normal((r, m)),
+                            0.01 * rng.standard_normal((p, r)), dt=1e-3, y_ref=y_ref)
+
+
+def _episode(model: SecondOrderModel, k: int = 120) -> Episode:
+    rng = np.random.default_rng(8)
+    U = np.repeat(rng.standard_normal((model.n_inputs, k // 10)), 10, axis=1)
+    t = 2.0 + np.arange(k) * model.dt
+    return Episode(t=t, U=U, Y=model.simulate(U), name='ep')
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_replay_bag_has_node_topics_and_exact_predictions(tmp_path, storage: str) -> None:
+    model = _model()
+    path = model.save(tmp_path / 'm.npz')
+    ep = _episode(model)
+    out = tmp_path / 'out'
+    res = replay_to_bag(Predictor(path), ep, out, storage=storage, publish_every=4,
+                        diagnostics_period=0.05)
+    assert res.summary['relative_error'] <= 1e-12
+    msgs = list(read_messages(out))
+    count = Counter(topic for topic, _, _ in msgs)
+    k_pub = len(range(0, ep.n_samples, 4))
+    assert count[f'{NODE}/centerline'] == k_pub
+    assert count[f'{NODE}/output'] == k_pub
+    assert count[f'{NODE}/centerline_marker'] == 2 * k_pub     # predicted + measured
+    assert count[f'{NODE}/error'] == k_pub
+    assert count[f'{NODE}/model_info'] == 1
+    assert count['/diagnostics'] == 3                           # t = 2.0, 2.05, 2.1
+    outputs = np.array([data_to_array(m.data) for tp, _, m in msgs if tp == f'{NODE}/output'])
+    np.testing.assert_allclose(outputs.T, ep.Y[:, ::4], rtol=0, atol=1e-12)
+    first = next(m for tp, _, m in msgs if tp == f'{NODE}/centerline')
+    assert first.header.frame_id == 'world'
+    assert first.header.stamp.sec == 2 and first.header.stamp.nanosec == 0
+    np.testing.assert_allclose(poses_to_points(first.poses),
+                               outputs_to_points(ep.Y[:, 0], 'xz'), atol=1e-12)
+    markers = [m for tp, _, m in msgs if tp == f'{NODE}/centerline_marker']
+    assert {m.ns for m in markers} == {'predicted', 'measured'}
+    assert all(m.type == 4 and len(m.points) == N_POINTS for m in markers)
+    info = json.loads(next(m.data for tp, _, m in msgs if tp == f'{NODE}/model_info'))
+    assert info['r'] == 4 and info['method'] == 'lopinf'
+    assert info['sha256'] == file_sha256(path)
+    diag = next(m for tp, _, m in msgs if tp == '/diagnostics').status[0]
+    keys = {kv.key for kv in diag.values}
+    assert {'error_deviation', 'nonfinite', 'backwards', 'wrong_length'} <= keys
+    errors = [m.data for tp, _, m in msgs if tp == f'{NODE}/error']
+    assert max(errors) <= 1e-10
+
+
+def test_replay_refuses_existing_output(tmp_path) -> None:
+    model = _model()
+    out = tmp_path / 'out'
+    out.mkdir()
+    with pytest.raises(FileExistsError):
+        replay_to_bag(Predictor(model), _episode(model), out)
+    with pytest.raises(BagError):
+        replay_to_bag(Predictor(model), _episode(model), tmp_path / 'x', storage='rosbag1')
+
+
+def test_input_bag_round_trip(tmp_path) -> None:
+    model = _model()
+    ep = _episode(model, k=20)
+    bag = write_input_bag(tmp_path / 'in', ep, storage='sqlite3')
+    count = Counter(tp for tp, _, _ in read_messages(bag))
+    assert count['/soft_robot/pressure/chamber_1'] == 20
+    assert count['/soft_robot/centerline'] == 20
+    pressures = [m.fluid_pressure for tp, _, m in read_messages(
+        bag, ['/soft_robot/pressure/chamber_2'])]
+    np.testing.assert_array_equal(pressures, ep.U[1])
+
+
+def test_cli_replay_end_to_end(tmp_path, capsys) -> None:
+    convert = pytest.importorskip('soft_rom.convert')
+    if not hasattr(convert, 'read_episode'):
+        pytest.skip('soft_rom.convert.read_episode not available yet')
+    from soft_rom.cli import main
+
+    model = _model()
+    path = model.save(tmp_path / 'm.npz')
+    ep = _episode(model)
+    bag = write_input_bag(tmp_path / 'in', ep, storage='mcap')
+    out = tmp_path / 'pred'
+    summary = tmp_path / 's.json'
+    code = main(['replay', str(path), str(bag), '-o', str(out), '--publish-rate', '0',
+                 '--summary-json', str(summary), '--components', 'xz'])
+    assert code == 0
+    text = capsys.readouterr().out
+    assert 'relative deviation error' in text
+    data = json.loads(summary.read_text())
+    assert data['samples'] == ep.n_samples
+    assert data['relative_error'] <= 1e-9
+    outputs = np.array([data_to_array(m.data)
+                        for _, _, m in read_messages(out, [f'{NODE}/output'])])
+    np.testing.assert_allclose(outputs.T, ep.Y, atol=1e-9)
+
+
+def test_kalman_option_reaches_the_core(tmp_path) -> None:
+    model = _model()
+    res = replay_to_bag(Predictor(model, PredictorConfig(kalman=True)), _episode(model),
+                        tmp_path / 'k', storage='sqlite3')
+    assert res.summary['config']['kalman'] is True
+    assert res.summary['relative_error'] <= 1e-9       # exact model: nothing to correct
