@@ -1,0 +1,631 @@
+"""The chunked on-disk training set (zarr), written by ``soft-rom convert`` and read by the fits.
+
+Layout (zarr format 2 on disk, so zarr 2.16+ and zarr 3.x both read and write it, and
+:func:`dask.array.from_zarr` reads it on a cluster)::
+
+    OUT.zarr/                      attrs: format='soft_rom.trainingset', format_version=1,
+                                          input_names, input_units, output_names,
+                                          output_units, episode_names, provenance, ...
+        q_ref      (n,)            reference configuration (absent without states)
+        y_ref      (p,)            reference output
+        episodes/<name>/           attrs: metadata (source bag, topics, time range, report)
+            t      (k,)            seconds, strictly increasing
+            U      (m, k)          inputs, absolute
+            Y      (p, k)          outputs, absolute
+            Q      (n, k)          optional full states, absolute, float64
+
+Arrays follow the package convention ``(n_channels, n_samples)``, float64. ``Q`` is chunked in
+blocks of ``(min(n, 32768), 32)`` (8 MiB, uncompressed): a column block of 32 snapshots reads
+``ceil(n / 32768)`` whole chunks (the streaming POD's randomized range finder) and a row block
+reads whole chunks too (its Gram pass), so both access patterns of
+:mod:`soft_rom.scale` read every stored byte once per pass. Compression is off for ``Q``:
+nodal positions in float64 barely compress (zstd: about 0.9 of the size) and it halved the
+write throughput in our measurements. The writer holds at most one chunk column
+(``n x 32`` values) of ``Q`` in memory.
+
+A training set is written atomically: into a hidden temporary directory next to the target,
+renamed into place only when :class:`TrainingSetWriter` exits without an exception.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Mapping, Sequence
+import json
+from pathlib import Path
+import shutil
+from types import TracebackType
+from typing import Any
+import uuid
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from soft_rom.data import as_signal, Episode
+from soft_rom.errors import DatasetError, DimensionError
+
+__all__ = ['FORMAT', 'FORMAT_VERSION', 'EpisodeWriter', 'TrainingSet', 'TrainingSetWriter']
+
+FORMAT = 'soft_rom.trainingset'
+FORMAT_VERSION = 1
+#: Default ``Q`` chunk: rows (at most) and columns.
+Q_CHUNK_ROWS = 32768
+Q_CHUNK_COLS = 32
+
+
+def _zarr() -> Any:
+    try:
+        import zarr
+    except ImportError as err:  # pragma: no cover - zarr is a hard dependency
+        raise DatasetError('the training-set format needs the zarr package: '
+                           'pip install zarr') from err
+    return zarr
+
+
+def _open_group(path: Path, mode: str) -> Any:
+    zarr = _zarr()
+    major = int(str(zarr.__version__).split('.')[0])
+    if mode == 'w' and major >= 3:
+        return zarr.open_group(str(path), mode=mode, zarr_format=2)
+    return zarr.open_group(str(path), mode=mode)
+
+
+def _create_array(group: Any, name: str, shape: tuple[int, ...], chunks: tuple[int, ...],
+                  data: NDArray[Any] | None = None, compress: bool = True) -> Any:
+    """Create a float64 array under ``group`` with the zarr 3 or the zarr 2 API."""
+    chunks = tuple(max(int(c), 1) for c in chunks)
+    if hasattr(group, 'create_array'):  # zarr 3
+        kw: dict[str, Any] = {} if compress else {'compressors': None}
+        arr = group.create_array(name, shape=shape, chunks=chunks, dtype='f8',
+                                 fill_value=0.0, **kw)
+    else:  # zarr 2
+        kw = {} if compress else {'compressor': None}
+        arr = group.create_dataset(name, shape=shape, chunks=chunks, dtype='f8',
+                                   fill_value=0.0, **kw)
+    if data is not None and data.size:
+        arr[...] = data
+    return arr
+
+
+def _jsonable(obj: Any, what: str) -> Any:
+    """``obj`` converted to plain JSON types (numpy scalars and arrays become lists)."""
+    def default(o: Any) -> Any:
+        if isinstance(o, np.generic):
+            return o.item()
+        if isinstance(o, np.ndarray):
+            return o.tolist()
+        if isinstance(o, Path):
+            return str(o)
+        raise TypeError(f'{type(o).__name__} is not JSON-serialisable')
+    try:
+        return json.loads(json.dumps(obj, default=default, allow_nan=True))
+    except (TypeError, ValueError) as err:
+        raise DatasetError(f'{what} must be JSON-serialisable: {err}') from err
+
+
+def _check_name(name: str) -> str:
+    name = str(name)
+    if not name or '/' in name or '\\' in name or name.startswith('.') or name != name.strip():
+        raise DatasetError(f'episode name {name!r} is not valid: use a non-empty name without '
+                           "'/' that does not start with '.'.")
+    return name
+
+
+class EpisodeWriter:
+    """Appends samples of one episode; obtained from :meth:`TrainingSetWriter.begin_episode`.
+
+    Small arrays (``t``, ``U``, ``Y``) are kept in memory until the episode is finished;
+    ``Q`` goes to disk one chunk column at a time.
+    """
+
+    def __init__(self, owner: TrainingSetWriter, group: Any, name: str, n_states: int | None,
+                 metadata: Mapping[str, Any] | None, q_chunks: tuple[int, int]) -> None:
+        self._owner = owner
+        self._group = group
+        self.name = name
+        self.n_states = None if n_states is None else int(n_states)
+        self.metadata = _jsonable(dict(metadata or {}), f'metadata of episode {name!r}')
+        self._q_chunks = q_chunks
+        self._t: list[NDArray[np.float64]] = []
+        self._U: list[NDArray[np.float64]] = []
+        self._Y: list[NDArray[np.float64]] = []
+        self._Q: Any = None
+        self._qbuf: NDArray[np.float64] | None = None
+        self._qfill = 0
+        self._qwritten = 0
+        self._has_q: bool | None = None
+        self._last_t = -np.inf
+        self.n_samples = 0
+        self.first_q: NDArray[np.float64] | None = None
+        self.first_y: NDArray[np.float64] | None = None
+        self.closed = False
+
+    def append(self, t: ArrayLike, U: ArrayLike, Y: ArrayLike, Q: ArrayLike | None = None) -> None:
+        """Append ``k`` samples.
+
+        Parameters
+        ----------
+        t : array_like, shape (k,)
+            Times in seconds, strictly increasing, continuing the previous appends.
+        U : array_like, shape (m, k)
+        Y : array_like, shape (p, k)
+        Q : array_like, shape (n, k), optional
+            Given on every append of the episode or on none.
+        """
+        if self.closed:
+            raise DatasetError(f'episode {self.name!r} is finished; begin a new one.')
+        tt = np.asarray(t, dtype=np.float64).reshape(-1)
+        k = tt.size
+        if k == 0:
+            return
+        U = as_signal('U', U, rows=len(self._owner.input_names), cols=k)
+        Y = as_signal('Y', Y, rows=len(self._owner.output_names), cols=k)
+        for label, arr in (('t', tt), ('U', U), ('Y', Y)):
+            if not np.all(np.isfinite(arr)):
+                raise DimensionError(f'episode {self.name!r}: {label} contains NaN or Inf.')
+        if tt[0] <= self._last_t or (k > 1 and np.any(np.diff(tt) <= 0)):
+            raise DimensionError(f'episode {self.name!r}: times must be strictly increasing '
+                                 f'(near t = {tt[0]:.9f} s).')
+        has_q = Q is not None
+        if self._has_q is None:
+            self._has_q = has_q
+        elif self._has_q != has_q:
+            raise DimensionError(f'episode {self.name!r}: Q must be given on every append or on '
+                                 'none.')
+        if has_q:
+            self._append_q(Q, k)
+        if self.first_y is None:
+            self.first_y = Y[:, 0].copy()
+        self._t.append(tt.copy())
+        self._U.append(U.copy())
+        self._Y.append(Y.copy())
+        self._last_t = float(tt[-1])
+        self.n_samples += k
+
+    def _append_q(self, Q: Any, k: int) -> None:
+        shape = getattr(Q, 'shape', None)
+        if shape is None:
+            Q = np.asarray(Q, dtype=np.float64)
+            shape = Q.shape
+        if len(shape) != 2 or shape[1] != k:
+            raise DimensionError(f'episode {self.name!r}: Q must have shape (n, {k}); '
+                                 f'got {tuple(shape)}.')
+        n = int(shape[0])
+        if self.n_states is None:
+            self.n_states = n
+        if n != self.n_states:
+            raise DimensionError(f'episode {self.name!r}: Q must have {self.n_states} rows; '
+                                 f'got {n}.')
+        if self._Q is None:
+            rows = min(n, self._q_chunks[0])
+            cols = self._q_chunks[1]
+            self._Q = _create_array(self._group, 'Q', (n, 0), (rows, cols), compress=False)
+            self._qbuf = np.empty((n, cols), dtype=np.float64)
+        buf = self._qbuf
+        if buf is None:
+            raise DatasetError(f'episode {self.name!r}: Q buffer already released.')
+        j = 0
+        while j < k:
+            take = min(k - j, buf.shape[1] - self._qfill)
+            block = np.asarray(Q[:, j:j + take], dtype=np.float64)
+            if not np.all(np.isfinite(block)):
+                bad = np.argwhere(~np.isfinite(block))[0]
+                raise DimensionError(f'episode {self.name!r}: Q contains NaN or Inf '
+                                     f'(row {bad[0]}, sample {self.n_samples + j + bad[1]}).')
+            buf[:, self._qfill:self._qfill + take] = block
+            if self.first_q is None:
+                self.first_q = buf[:, 0].copy()
+            self._qfill += take
+            j += take
+            if self._qfill == buf.shape[1]:
+                self._flush_q()
+
+    def _flush_q(self) -> None:
+        if self._qfill == 0 or self._Q is None or self._qbuf is None:
+            return
+        a, b = self._qwritten, self._qwritten + self._qfill
+        self._Q.resize((self._Q.shape[0], b))
+        self._Q[:, a:b] = self._qbuf[:, :self._qfill]
+        self._qwritten = b
+        self._qfill = 0
+
+    def finish(self) -> None:
+        """Write ``t``, ``U``, ``Y`` and the last ``Q`` columns; called by the writer."""
+        if self.closed:
+            return
+        self.closed = True
+        if self.n_samples == 0:
+            raise DatasetError(f'episode {self.name!r} has no samples; nothing to store.')
+        self._flush_q()
+        self._qbuf = None
+        t = np.concatenate(self._t)
+        U = np.concatenate(self._U, axis=1)
+        Y = np.concatenate(self._Y, axis=1)
+        k = t.size
+        _create_array(self._group, 't', (k,), (k,), data=t)
+        _create_array(self._group, 'U', U.shape, U.shape, data=U)
+        _create_array(self._group, 'Y', Y.shape, Y.shape, data=Y)
+        meta = dict(self.metadata)
+        meta.setdefault('t_start', float(t[0]))
+        meta.setdefault('t_end', float(t[-1]))
+        meta['n_samples'] = int(k)
+        meta['has_state'] = bool(self._has_q)
+        self._group.attrs.update({'metadata': _jsonable(meta, 'episode metadata')})
+        self._t, self._U, self._Y = [], [], []
+
+
+class TrainingSetWriter:
+    """Write a training set atomically, episode by episode; use as a context manager.
+
+    Parameters
+    ----------
+    path : str or Path
+        Target directory (conventionally ``*.zarr``).
+    input_names, input_units : sequence of str, length m
+    output_names, output_units : sequence of str, length p
+    attrs : dict, optional
+        Extra JSON root attributes; ``attrs['provenance']`` is stored as the provenance.
+    overwrite : bool
+        Replace an existing training set (only once the new one is complete).
+    q_chunks : (int, int)
+        Chunk shape ``(rows, cols)`` of ``Q`` (rows capped at ``n``).
+
+    Examples
+    --------
+    >>> with TrainingSetWriter('train.zarr', input_names=['p1'], input_units=['Pa'],
+    ...                        output_names=['x1'], output_units=['m']) as w:
+    ...     ep = w.begin_episode('ep1')
+    ...     ep.append(t, U, Y)
+    """
+
+    def __init__(self, path: str | Path, *, input_names: Sequence[str],
+                 input_units: Sequence[str], output_names: Sequence[str],
+                 output_units: Sequence[str], attrs: Mapping[str, Any] | None = None,
+                 overwrite: bool = False,
+                 q_chunks: tuple[int, int] = (Q_CHUNK_ROWS, Q_CHUNK_COLS)) -> None:
+        self.path = Path(path)
+        self.input_names = [str(s) for s in input_names]
+        self.input_units = [str(s) for s in input_units]
+        self.output_names = [str(s) for s in output_names]
+        self.output_units = [str(s) for s in output_units]
+        if len(self.input_units) != len(self.input_names) or not self.input_names:
+            raise DatasetError('input_names and input_units must be non-empty and of equal '
+                               f'length; got {len(self.input_names)} and {len(self.input_units)}.')
+        if len(self.output_units) != len(self.output_names) or not self.output_names:
+            raise DatasetError('output_names and output_units must be non-empty and of equal '
+                               f'length; got {len(self.output_names)} and '
+                               f'{len(self.output_units)}.')
+        self.attrs = _jsonable(dict(attrs or {}), 'attrs')
+        self.overwrite = bool(overwrite)
+        self.q_chunks = (int(q_chunks[0]), int(q_chunks[1]))
+        if self.path.exists() and not self.overwrite:
+            raise DatasetError(f'{self.path} exists already; pass overwrite=True (--overwrite) '
+                               'to replace it.')
+        self._tmp: Path | None = None
+        self._root: Any = None
+        self._episodes: dict[str, EpisodeWriter] = {}
+        self._current: EpisodeWriter | None = None
+        self._q_ref: NDArray[np.float64] | None = None
+        self._y_ref: NDArray[np.float64] | None = None
+
+    def open(self) -> TrainingSetWriter:
+        """Create the temporary directory; called by ``__enter__``."""
+        if self._root is not None:
+            return self
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = self.path.parent / f'.{self.path.name}.tmp-{uuid.uuid4().hex[:8]}'
+        self._root = _open_group(self._tmp, 'w')
+        self._root.require_group('episodes')
+        return self
+
+    def __enter__(self) -> TrainingSetWriter:
+        return self.open()
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+    def begin_episode(self, name: str, n_states: int | None = None,
+                      metadata: Mapping[str, Any] | None = None) -> EpisodeWriter:
+        """Start episode ``name`` (the previous one is finished); returns its writer."""
+        if self._root is None:
+            raise DatasetError('TrainingSetWriter is not open: use it as a context manager.')
+        name = _check_name(name)
+        if name in self._episodes:
+            raise DatasetError(f'episode {name!r} was written already; names must be unique.')
+        if self._current is not None:
+            self._current.finish()
+        group = self._root['episodes'].require_group(name)
+        ep = EpisodeWriter(self, group, name, n_states, metadata, self.q_chunks)
+        self._episodes[name] = ep
+        self._current = ep
+        return ep
+
+    def set_reference(self, q_ref: ArrayLike | None = None,
+                      y_ref: ArrayLike | None = None) -> None:
+        """Set ``q_ref`` (n,) and/or ``y_ref`` (p,); default: first sample of the first episode."""
+        if q_ref is not None:
+            self._q_ref = np.asarray(q_ref, dtype=np.float64).reshape(-1).copy()
+        if y_ref is not None:
+            y = np.asarray(y_ref, dtype=np.float64).reshape(-1)
+            if y.size != len(self.output_names):
+                raise DimensionError(f'y_ref must have {len(self.output_names)} values; '
+                                     f'got {y.size}.')
+            self._y_ref = y.copy()
+
+    def close(self) -> None:
+        """Finish the last episode, write references and attributes, move into place."""
+        if self._root is None or self._tmp is None:
+            return
+        try:
+            if self._current is not None:
+                self._current.finish()
+            if not self._episodes:
+                raise DatasetError(f'no episode was written to {self.path}; nothing to store.')
+            first = next(iter(self._episodes.values()))
+            y_ref = self._y_ref if self._y_ref is not None else first.first_y
+            q_ref = self._q_ref
+            if q_ref is None:
+                q_ref = next((e.first_q for e in self._episodes.values()
+                              if e.first_q is not None), None)
+            ns = {e.n_states for e in self._episodes.values() if e.n_states is not None}
+            if len(ns) > 1:
+                raise DimensionError(f'episodes have different state sizes {sorted(ns)}.')
+            if q_ref is not None and ns and q_ref.size != ns.pop():
+                raise DimensionError(f'q_ref has {q_ref.size} values; the states have '
+                                     f'{self._episodes[first.name].n_states} rows.')
+            if y_ref is None:
+                raise DatasetError('no output sample was written; cannot set y_ref.')
+            _create_array(self._root, 'y_ref', y_ref.shape, y_ref.shape, data=y_ref)
+            if q_ref is not None:
+                _create_array(self._root, 'q_ref', q_ref.shape,
+                              (min(q_ref.size, 1 << 20),), data=q_ref, compress=False)
+            attrs = dict(self.attrs)
+            attrs.update({
+                'format': FORMAT, 'format_version': FORMAT_VERSION,
+                'input_names': self.input_names, 'input_units': self.input_units,
+                'output_names': self.output_names, 'output_units': self.output_units,
+                'episode_names': list(self._episodes),
+                'provenance': attrs.get('provenance', {}),
+            })
+            self._root.attrs.update(attrs)
+        except BaseException:
+            self.abort()
+            raise
+        self._root = None
+        old = None
+        if self.path.exists():
+            old = self.path.parent / f'.{self.path.name}.old-{uuid.uuid4().hex[:8]}'
+            self.path.rename(old)
+        self._tmp.rename(self.path)
+        self._tmp = None
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+
+    def abort(self) -> None:
+        """Delete the temporary directory; ``path`` is left untouched."""
+        self._root = None
+        self._current = None
+        if self._tmp is not None:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._tmp = None
+
+
+class TrainingSet:
+    """A training set on disk, read lazily (``Q`` stays a zarr array).
+
+    Use :meth:`open`; ``ts[name]`` is an :class:`~soft_rom.data.Episode` whose ``Q`` is the
+    zarr array (slice it in column blocks, or hand it to :func:`dask.array.from_zarr`).
+    """
+
+    def __init__(self, path: Path, root: Any) -> None:
+        self.path = path
+        self._root = root
+        self.attrs: dict[str, Any] = dict(root.attrs)
+
+    @classmethod
+    def open(cls, path: str | Path) -> TrainingSet:
+        """Open the training set at ``path``.
+
+        Raises
+        ------
+        DatasetError
+            Missing directory, not a soft_rom training set, unknown format version, or
+            inconsistent array shapes.
+        """
+        p = Path(path)
+        if not p.exists():
+            raise DatasetError(f'training set {p} does not exist; create it with '
+                               '`soft-rom convert BAG... -o OUT.zarr`.')
+        try:
+            root = _open_group(p, 'r')
+            attrs = dict(root.attrs)
+        except Exception as err:  # noqa: BLE001 - zarr raises many kinds on corrupt stores
+            raise DatasetError(f'{p} is not a readable zarr training set '
+                               f'({type(err).__name__}: {err}).') from err
+        if attrs.get('format') != FORMAT:
+            raise DatasetError(f'{p} is not a soft_rom training set (format attribute is '
+                               f'{attrs.get("format")!r}, expected {FORMAT!r}).')
+        version = attrs.get('format_version')
+        if version != FORMAT_VERSION:
+            raise DatasetError(f'{p} has training-set format version {version!r}; this soft_rom '
+                               f'reads version {FORMAT_VERSION}. Upgrade soft_rom or convert '
+                               'the bags again.')
+        for key in ('input_names', 'input_units', 'output_names', 'output_units',
+                    'episode_names'):
+            if not isinstance(attrs.get(key), list):
+                raise DatasetError(f'{p}: attribute {key!r} is missing or not a list.')
+        ts = cls(p, root)
+        ts._validate()
+        return ts
+
+    def _validate(self) -> None:
+        m, p = len(self.input_names), len(self.output_names)
+        n = None if self.q_ref is None else self.q_ref.size
+        if self.y_ref.shape != (p,):
+            raise DatasetError(f'{self.path}: y_ref has shape {self.y_ref.shape}; expected '
+                               f'({p},).')
+        for name in self.episode_names:
+            g = self._group(name)
+            try:
+                k = g['t'].shape[0]
+                shapes = {'U': (m, k), 'Y': (p, k)}
+                if 'Q' in g:
+                    shapes['Q'] = (n if n is not None else g['Q'].shape[0], k)
+                for key, want in shapes.items():
+                    if tuple(g[key].shape) != want:
+                        raise DatasetError(f'{self.path}: episode {name!r} array {key} has '
+                                           f'shape {tuple(g[key].shape)}; expected {want}.')
+            except KeyError as err:
+                raise DatasetError(f'{self.path}: episode {name!r} is incomplete '
+                                   f'(missing {err}).') from err
+
+    def _group(self, name: str) -> Any:
+        if name not in self.episode_names:
+            raise DatasetError(f'no episode {name!r} in {self.path}; episodes are '
+                               f'{self.episode_names}.')
+        try:
+            return self._root['episodes'][name]
+        except KeyError as err:
+            raise DatasetError(f'{self.path}: episode group {name!r} is missing.') from err
+
+    @classmethod
+    def from_episodes(cls, path: str | Path, episodes: Sequence[Episode], *,
+                      input_names: Sequence[str] | None = None,
+                      input_units: Sequence[str] | None = None,
+                      output_names: Sequence[str] | None = None,
+                      output_units: Sequence[str] | None = None,
+                      q_ref: ArrayLike | None = None, y_ref: ArrayLike | None = None,
+                      attrs: Mapping[str, Any] | None = None, overwrite: bool = False,
+                      q_chunks: tuple[int, int] = (Q_CHUNK_ROWS, Q_CHUNK_COLS)) -> TrainingSet:
+        """Write in-memory episodes to ``path`` and open the result (tests, small data).
+
+        Names default to ``u1..um`` / ``y1..yp`` and units to ``''``.
+        """
+        if not episodes:
+            raise DatasetError('from_episodes needs at least one episode.')
+        m, p = episodes[0].U.shape[0], episodes[0].Y.shape[0]
+        in_names = list(input_names) if input_names is not None else [
+            f'u{i + 1}' for i in range(m)]
+        out_names = list(output_names) if output_names is not None else [
+            f'y{i + 1}' for i in range(p)]
+        with TrainingSetWriter(
+                path, input_names=in_names,
+                input_units=list(input_units) if input_units is not None else [''] * m,
+                output_names=out_names,
+                output_units=list(output_units) if output_units is not None else [''] * p,
+                attrs=attrs, overwrite=overwrite, q_chunks=q_chunks) as w:
+            for i, ep in enumerate(episodes):
+                writer = w.begin_episode(ep.name or f'ep{i + 1}', metadata=ep.metadata)
+                if ep.Q is None:
+                    writer.append(ep.t, ep.U, ep.Y)
+                else:
+                    step = max(q_chunks[1], 1)
+                    for a in range(0, ep.n_samples, step):
+                        b = min(a + step, ep.n_samples)
+                        writer.append(ep.t[a:b], ep.U[:, a:b], ep.Y[:, a:b], ep.Q[:, a:b])
+            w.set_reference(q_ref=q_ref, y_ref=y_ref)
+        return cls.open(path)
+
+    # -- accessors ----------------------------------------------------------------------
+    @property
+    def episode_names(self) -> list[str]:
+        """Episode names in the order they were written."""
+        return list(self.attrs['episode_names'])
+
+    @property
+    def input_names(self) -> list[str]:
+        """Input names, length m."""
+        return list(self.attrs['input_names'])
+
+    @property
+    def input_units(self) -> list[str]:
+        """Input units, length m."""
+        return list(self.attrs['input_units'])
+
+    @property
+    def output_names(self) -> list[str]:
+        """Output names, length p."""
+        return list(self.attrs['output_names'])
+
+    @property
+    def output_units(self) -> list[str]:
+        """Output units, length p."""
+        return list(self.attrs['output_units'])
+
+    @property
+    def provenance(self) -> dict[str, Any]:
+        """Provenance attributes (bags, topics, conversion options)."""
+        return dict(self.attrs.get('provenance') or {})
+
+    @property
+    def q_ref(self) -> NDArray[np.float64] | None:
+        """Reference configuration ``(n,)``, or ``None`` without states."""
+        if 'q_ref' not in self._root:
+            return None
+        return np.asarray(self._root['q_ref'][...], dtype=np.float64)
+
+    @property
+    def y_ref(self) -> NDArray[np.float64]:
+        """Reference output ``(p,)``."""
+        return np.asarray(self._root['y_ref'][...], dtype=np.float64)
+
+    @property
+    def n_states(self) -> int | None:
+        """State dimension ``n`` or ``None``."""
+        q = self.q_ref
+        return None if q is None else int(q.size)
+
+    def has_state(self, name: str) -> bool:
+        """True if episode ``name`` stores ``Q``."""
+        return 'Q' in self._group(name)
+
+    def q_array(self, name: str) -> Any:
+        """The zarr array ``Q`` (n, k) of episode ``name``."""
+        g = self._group(name)
+        if 'Q' not in g:
+            raise DatasetError(f'episode {name!r} of {self.path} has no states (Q); convert '
+                               'the bags without --no-state.')
+        return g['Q']
+
+    def metadata(self, name: str) -> dict[str, Any]:
+        """Episode attributes (source bag, topics, time range, conversion report)."""
+        return dict(self._group(name).attrs.get('metadata') or {})
+
+    def __getitem__(self, name: str) -> Episode:
+        g = self._group(name)
+        return Episode(t=np.asarray(g['t'][...], dtype=np.float64),
+                       U=np.asarray(g['U'][...], dtype=np.float64),
+                       Y=np.asarray(g['Y'][...], dtype=np.float64),
+                       Q=g['Q'] if 'Q' in g else None, name=name,
+                       metadata=self.metadata(name))
+
+    def episodes(self, names: Sequence[str] | None = None) -> list[Episode]:
+        """Episodes ``names`` (default all, in order); ``Q`` is lazy (zarr) or ``None``."""
+        return [self[n] for n in (self.episode_names if names is None else names)]
+
+    def __iter__(self) -> Iterator[Episode]:
+        return iter(self.episodes())
+
+    def __len__(self) -> int:
+        return len(self.episode_names)
+
+    def describe(self) -> dict[str, Any]:
+        """Summary for ``soft-rom info``."""
+        eps = {}
+        for name in self.episode_names:
+            g = self._group(name)
+            t = np.asarray(g['t'][...])
+            eps[name] = {
+                'n_samples': int(t.size), 't_start': float(t[0]), 't_end': float(t[-1]),
+                'dt_mean': float(np.mean(np.diff(t))) if t.size > 1 else float('nan'),
+                'Q': list(g['Q'].shape) if 'Q' in g else None,
+                'Q_chunks': list(g['Q'].chunks) if 'Q' in g else None,
+                'source': self.metadata(name).get('source_bag'),
+            }
+        return {'path': str(self.path), 'format_version': self.attrs.get('format_version'),
+                'input_names': self.input_names, 'input_units': self.input_units,
+                'output_names': self.output_names, 'output_units': self.output_units,
+                'n_states': self.n_states, 'episodes': eps, 'provenance': self.provenance}
