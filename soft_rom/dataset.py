@@ -110,6 +110,11 @@ def _check_name(name: str) -> str:
     return name
 
 
+def check_all_finite(arr: Any) -> bool:
+    """True if every value of ``arr`` is finite."""
+    return bool(np.all(np.isfinite(np.asarray(arr, dtype=np.float64))))
+
+
 class EpisodeWriter:
     """Appends samples of one episode; obtained from :meth:`TrainingSetWriter.begin_episode`.
 
@@ -151,6 +156,33 @@ class EpisodeWriter:
         Q : array_like, shape (n, k), optional
             Given on every append of the episode or on none.
         """
+        k = np.asarray(t).size
+        has_q = Q is not None
+        if self._has_q is not None and self._has_q != has_q:
+            raise DimensionError(f'episode {self.name!r}: Q must be given on every append or on '
+                                 'none.')
+        if has_q:
+            shape = getattr(Q, 'shape', None) or np.shape(Q)
+            if len(shape) != 2 or shape[1] != k:
+                raise DimensionError(f'episode {self.name!r}: Q must have shape (n, {k}); '
+                                     f'got {tuple(shape)}.')
+            if self.n_states is not None and shape[0] != self.n_states:
+                raise DimensionError(f'episode {self.name!r}: Q must have {self.n_states} '
+                                     f'rows; got {shape[0]}.')
+            if check_all_finite(Q) is False:
+                raise DimensionError(f'episode {self.name!r}: Q contains NaN or Inf.')
+        self.append_signals(t, U, Y)
+        self._has_q = has_q
+        if has_q and k:
+            self.append_states(Q, check_finite=False)
+
+    def append_signals(self, t: ArrayLike, U: ArrayLike, Y: ArrayLike) -> None:
+        """Append ``t`` (k,), ``U`` (m, k), ``Y`` (p, k) without states.
+
+        With :meth:`append_states` this lets a streaming producer (the bag converter) send
+        state columns as they arrive and the signals later; the number of state columns must
+        equal the number of samples when the episode is finished.
+        """
         if self.closed:
             raise DatasetError(f'episode {self.name!r} is finished; begin a new one.')
         tt = np.asarray(t, dtype=np.float64).reshape(-1)
@@ -165,14 +197,6 @@ class EpisodeWriter:
         if tt[0] <= self._last_t or (k > 1 and np.any(np.diff(tt) <= 0)):
             raise DimensionError(f'episode {self.name!r}: times must be strictly increasing '
                                  f'(near t = {tt[0]:.9f} s).')
-        has_q = Q is not None
-        if self._has_q is None:
-            self._has_q = has_q
-        elif self._has_q != has_q:
-            raise DimensionError(f'episode {self.name!r}: Q must be given on every append or on '
-                                 'none.')
-        if has_q:
-            self._append_q(Q, k)
         if self.first_y is None:
             self.first_y = Y[:, 0].copy()
         self._t.append(tt.copy())
@@ -181,14 +205,21 @@ class EpisodeWriter:
         self._last_t = float(tt[-1])
         self.n_samples += k
 
-    def _append_q(self, Q: Any, k: int) -> None:
+    def append_states(self, Q: Any, check_finite: bool = True) -> None:
+        """Append state columns ``Q`` (n, k) (any array with ``shape`` and column slicing)."""
+        if self.closed:
+            raise DatasetError(f'episode {self.name!r} is finished; begin a new one.')
         shape = getattr(Q, 'shape', None)
         if shape is None:
             Q = np.asarray(Q, dtype=np.float64)
             shape = Q.shape
-        if len(shape) != 2 or shape[1] != k:
-            raise DimensionError(f'episode {self.name!r}: Q must have shape (n, {k}); '
-                                 f'got {tuple(shape)}.')
+        if len(shape) == 1:
+            Q = np.asarray(Q, dtype=np.float64).reshape(-1, 1)
+            shape = Q.shape
+        if len(shape) != 2:
+            raise DimensionError(f'episode {self.name!r}: Q must be 2-D (n, k); got '
+                                 f'{tuple(shape)}.')
+        k = int(shape[1])
         n = int(shape[0])
         if self.n_states is None:
             self.n_states = n
@@ -207,10 +238,10 @@ class EpisodeWriter:
         while j < k:
             take = min(k - j, buf.shape[1] - self._qfill)
             block = np.asarray(Q[:, j:j + take], dtype=np.float64)
-            if not np.all(np.isfinite(block)):
+            if check_finite and not np.all(np.isfinite(block)):
                 bad = np.argwhere(~np.isfinite(block))[0]
                 raise DimensionError(f'episode {self.name!r}: Q contains NaN or Inf '
-                                     f'(row {bad[0]}, sample {self.n_samples + j + bad[1]}).')
+                                     f'(row {bad[0]}, sample {self.n_q + j + bad[1]}).')
             buf[:, self._qfill:self._qfill + take] = block
             if self.first_q is None:
                 self.first_q = buf[:, 0].copy()
@@ -218,6 +249,11 @@ class EpisodeWriter:
             j += take
             if self._qfill == buf.shape[1]:
                 self._flush_q()
+
+    @property
+    def n_q(self) -> int:
+        """Number of state columns appended so far."""
+        return self._qwritten + self._qfill
 
     def _flush_q(self) -> None:
         if self._qfill == 0 or self._Q is None or self._qbuf is None:
@@ -235,6 +271,9 @@ class EpisodeWriter:
         self.closed = True
         if self.n_samples == 0:
             raise DatasetError(f'episode {self.name!r} has no samples; nothing to store.')
+        if self._Q is not None and self.n_q != self.n_samples:
+            raise DimensionError(f'episode {self.name!r}: {self.n_q} state columns for '
+                                 f'{self.n_samples} samples.')
         self._flush_q()
         self._qbuf = None
         t = np.concatenate(self._t)
@@ -248,7 +287,7 @@ class EpisodeWriter:
         meta.setdefault('t_start', float(t[0]))
         meta.setdefault('t_end', float(t[-1]))
         meta['n_samples'] = int(k)
-        meta['has_state'] = bool(self._has_q)
+        meta['has_state'] = self._Q is not None
         self._group.attrs.update({'metadata': _jsonable(meta, 'episode metadata')})
         self._t, self._U, self._Y = [], [], []
 
