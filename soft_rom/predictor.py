@@ -53,7 +53,7 @@ prediction locked to the measurements; open-loop prediction (the paper's) is the
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field, replace
 import enum
 import math
@@ -389,7 +389,8 @@ class Predictor:
         return dict(self._rt.info)
 
     def reload(self, model: LinearROM | str | os.PathLike[str],
-               config: PredictorConfig | None = None) -> None:
+               config: PredictorConfig | None = None, *,
+               validate: Callable[[LinearROM], None] | None = None) -> None:
         """Swap in another model (and/or config) atomically.
 
         Everything (file, discretization, Kalman gain) is built first; on any failure the
@@ -397,7 +398,8 @@ class Predictor:
         (:class:`FileNotFoundError`, :class:`~soft_rom.errors.ModelFileError`,
         :class:`~soft_rom.errors.ConfigError`, :class:`~soft_rom.errors.SolverError`).
         On success the state restarts (:meth:`reset`); held inputs are kept if the new
-        model has the same number of inputs.
+        model has the same number of inputs. ``validate(model)``, if given, may raise to
+        refuse the new model before anything changes (e.g. the node checks its topics).
         """
         config = self.config if config is None else config
         path = None
@@ -409,7 +411,11 @@ class Predictor:
                 raise
             except (OSError, ValueError) as err:
                 raise ModelFileError(f'{path}: cannot load model ({err}).') from err
-        rt = _Runtime(model, config, path)
+        if validate is not None:
+            validate(model)
+        self._swap(_Runtime(model, config, path), config)
+
+    def _swap(self, rt: _Runtime, config: PredictorConfig) -> None:
         old_u, old_stamp, old_arrival = self.u, self._stamp, self._arrival
         self._rt, self.config = rt, config
         self._init_buffers()
@@ -420,6 +426,26 @@ class Predictor:
         t = self.t
         self.reset()
         self._set_time(t)
+
+    def set_config(self, config: PredictorConfig) -> None:
+        """Change settings; atomic like :meth:`reload`.
+
+        Changing only the monitor thresholds, metric or input timeout keeps the state;
+        a new ``error_window`` clears the monitor; changing the stepping, rate or Kalman
+        design rebuilds the discretization (:meth:`reload` of the running model, same file).
+        """
+        old = self.config
+        rebuild = ('stepping', 'rate_hz', 'kalman', 'process_noise', 'measurement_noise')
+        if any(getattr(old, k) != getattr(config, k) for k in rebuild):
+            rt = _Runtime(self.model, config, None)
+            rt.path, rt.sha256 = self._rt.path, self._rt.sha256
+            rt.info = dict(self._rt.info)
+            self._swap(rt, config)
+            return
+        self.config = config
+        if config.error_window != old.error_window:
+            self._win = np.zeros((3, config.error_window))
+            self._win_n = self._win_i = 0
 
     def reset(self) -> None:
         """Back to the initial state (reference, or next measurement); clears the monitor.
@@ -493,11 +519,12 @@ class Predictor:
         return True
 
     def _before_input(self, stamp: float) -> None:
+        # The previous input is held up to ``stamp`` (whole steps in 'fixed' stepping).
         if self.t is None:
             self._set_time(float(stamp))
         elif stamp < self.t:
             self.counters['late'] += 1
-        elif self.config.stepping == 'input':
+        else:
             self.advance_to(stamp)
 
     # -- stepping ------------------------------------------------------------------------

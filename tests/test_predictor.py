@@ -271,3 +271,22 @@ def test_catchup_is_bounded() -> None:
     assert pred.advance_to(10.0) == 100
     assert pred.counters['catchup_skipped'] == 10000 - 100
     assert pred.t == pytest.approx(10.0)
+
+
+def test_set_config_keeps_state_unless_the_design_changes() -> None:
+    model = _second_order()
+    pred = Predictor(model)
+    pred.set_input(np.ones(3), 0.0)
+    pred.advance_to(0.02)
+    x = pred.x.copy()
+    pred.set_config(pred.config.replace(warn_threshold=0.01, error_threshold=0.02))
+    np.testing.assert_array_equal(pred.x, x)
+    assert pred.config.warn_threshold == 0.01
+    pred.set_config(pred.config.replace(error_window=5))
+    np.testing.assert_array_equal(pred.x, x)
+    with pytest.raises(ConfigError):
+        pred.set_config(pred.config.replace(stepping='input', rate_hz=-1.0))
+    np.testing.assert_array_equal(pred.x, x)
+    pred.set_config(pred.config.replace(kalman=True))
+    assert pred.info['r'] == model.r and np.all(pred.x == 0)
+    assert pred.t == pytest.approx(0.02)
