@@ -415,7 +415,8 @@ class PredictorNode(Node):
             else:
                 self.predictor.set_config(config)
         except Exception as err:  # noqa: BLE001 - refused, running model stays
-            reason = f'{type(err).__name__}: {err}; the running model is unchanged'
+            why = str(err).rstrip('.')
+            reason = f'{type(err).__name__}: {why}; the running model is unchanged'
             self.get_logger().error(f'parameter change refused: {reason}')
             return SetParametersResult(successful=False, reason=reason)
         return SetParametersResult(successful=True)
