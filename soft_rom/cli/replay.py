@@ -61,13 +61,16 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     return parser
 
 
-def _read(bag: str, mapping: str | None) -> Any:
-    try:
-        from soft_rom.convert import read_episode
-    except ImportError as err:  # pragma: no cover - until the converter is installed
-        raise ConfigError(f'soft-rom replay needs soft_rom.convert.read_episode ({err}).') from err
+def _read(bag: str, mapping_path: str | None) -> tuple[Any, Any, str]:
+    """Episode, conversion report and output components (from the mapping) of ``bag``."""
+    from soft_rom.convert import load_mapping, read_episode
+
+    mapping = load_mapping(mapping_path)
+    if mapping.output.order != 'component_major':
+        raise ConfigError(f'replay needs a component-major output order; the mapping says '
+                          f'{mapping.output.order!r}.')
     episode, report = read_episode(bag, mapping)
-    return episode, report
+    return episode, report, ''.join(mapping.output.components)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -87,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
     config = predictor_config(values)
     predictor = Predictor(args.model, config)
     model = predictor.model
-    episode, _report = _read(args.bag, args.mapping)
+    episode, _report, components = _read(args.bag, args.mapping)
+    values.setdefault('output_components', components)
     publish_rate = float(values.get('publish_rate_hz', 0.0) or 0.0)
     every = 1 if publish_rate <= 0 else max(1, int(round(1.0 / (publish_rate * model.dt))))
     measured = not args.no_measured and episode.Y.shape[0] > 0
