@@ -1,0 +1,96 @@
+"""Benchmark: LOpInf operator solve, FastSPDSolver vs the straightforward cvxpy formulation.
+
+Data: POD coefficients of a simulated damped mass-spring chain (n = 400 degrees of freedom)
+driven by three antagonistic input pairs (m = 6, ``u_{2i+1} = -u_{2i}`` so U has rank 3),
+with small measurement noise on the snapshots, K = 4,000 snapshots at 1 kHz; derivatives by
+8th-order central differences. For r = 10, 16, 28 the script times
+
+* the baseline: ``cvxpy`` with Clarabel on ``min ||Q̈ + C Q̇ + K Q - B U||_F`` over the raw
+  ``r × k`` residual, ``K, C ⪰ eps I`` (as one would write it in CVX);
+* :class:`soft_rom.learners.lopinf_solvers.FastSPDSolver` on the same data,
+
+and prints the times, their ratio and the relative gap of the Frobenius objectives
+(positive: the fast solver is worse). Run::
+
+    .venv/bin/python benchmarks/bench_lopinf.py [--repeat 5] [--r 10 16 28]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import scipy.linalg as sla
+
+from soft_rom.ddt import FiniteDifference
+from soft_rom.learners.lopinf_solvers import CvxpySolver, FastSPDSolver, objective
+
+
+def make_data(r: int, *, k: int = 4000, n: int = 400, m: int = 6, dt: float = 1e-3,
+              noise: float = 1e-4, seed: int = 0
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Reduced data ``Q, Qd, Qdd`` (r, k') and ``U`` (m, k') of a damped chain."""
+    rng = np.random.default_rng(seed)
+    # Chain fixed at one end; stiffness varying along the body (soft tip).
+    kk = 4e4 * np.linspace(1.0, 0.2, n) * (1 + 0.1 * rng.random(n))
+    Kf = np.diag(kk + np.r_[kk[1:], 0.0]) - np.diag(kk[1:], 1) - np.diag(kk[1:], -1)
+    Cf = 0.5 * np.eye(n) + 2e-3 * Kf
+    Bf = np.zeros((n, m))
+    for i in range(m // 2):
+        a, b = (i + 1) * n // (m // 2 + 1), (i + 1) * n // (m // 2 + 1) + n // 20
+        Bf[a - 5:a + 5, 2 * i] = 50.0
+        Bf[b - 5:b + 5, 2 * i + 1] = -40.0
+    t = np.arange(k + 8) * dt
+    U = np.zeros((m, t.size))
+    for i in range(m // 2):
+        f = rng.uniform(0.3, 3.0, 4)
+        ph = rng.uniform(0, 2 * np.pi, 4)
+        U[2 * i] = 1e4 * np.sum(np.sin(2 * np.pi * f[:, None] * t + ph[:, None]), axis=0)
+        U[2 * i + 1] = -U[2 * i]
+    Ac = np.block([[np.zeros((n, n)), np.eye(n)], [-Kf, -Cf]])
+    Bc = np.vstack([np.zeros((n, m)), Bf])
+    M = np.zeros((2 * n + m, 2 * n + m))
+    M[:2 * n, :2 * n] = Ac * dt
+    M[:2 * n, 2 * n:] = Bc * dt
+    E = sla.expm(M)
+    Ad, Bd = E[:2 * n, :2 * n], E[:2 * n, 2 * n:]
+    X = np.zeros((2 * n, t.size))
+    for j in range(t.size - 1):
+        X[:, j + 1] = Ad @ X[:, j] + Bd @ U[:, j]
+    Qf = X[:n] + noise * np.std(X[:n]) * rng.standard_normal((n, t.size))
+    V = np.linalg.svd(Qf, full_matrices=False)[0][:, :r]
+    Qhat = V.T @ Qf
+    fd = FiniteDifference(8)
+    Q, Qd, Qdd = fd.derivatives(Qhat, dt)
+    return Q, Qd, Qdd, fd.trim(U)
+
+
+def main() -> None:
+    """Run the benchmark and print a table."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--r', type=int, nargs='+', default=[10, 16, 28])
+    ap.add_argument('--repeat', type=int, default=5, help='fast-solver repetitions (best of)')
+    args = ap.parse_args()
+    print(f'{"r":>3} {"k":>5} {"method":>24} {"t_cvxpy_raw[s]":>14} {"t_fast[s]":>10} '
+          f'{"ratio":>8} {"rel_gap":>10} {"cond(Z)":>9}')
+    for r in args.r:
+        Q, Qd, Qdd, U = make_data(r)
+        cond = np.linalg.cond(np.vstack([Qd, Q]))
+        t0 = time.perf_counter()
+        ref = CvxpySolver('CLARABEL', formulation='raw').solve(Q, Qd, Qdd, U)
+        t_ref = time.perf_counter() - t0
+        best = np.inf
+        for _ in range(args.repeat):
+            t0 = time.perf_counter()
+            sol = FastSPDSolver().solve(Q, Qd, Qdd, U)
+            best = min(best, time.perf_counter() - t0)
+        o_ref = objective(*ref[:3], Q, Qd, Qdd, U)
+        o_fast = objective(*sol[:3], Q, Qd, Qdd, U)
+        gap = (o_fast - o_ref) / o_ref
+        print(f'{r:>3} {Q.shape[1]:>5} {sol.info["method"]:>24} {t_ref:>14.3f} {best:>10.4f} '
+              f'{t_ref / best:>8.1f} {gap:>10.2e} {cond:>9.2e}', flush=True)
+
+
+if __name__ == '__main__':
+    main()

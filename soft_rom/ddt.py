@@ -1,0 +1,177 @@
+"""Time derivatives of uniformly sampled states by central finite differences.
+
+Edge treatment (one rule for every order): **the edges are trimmed**. A central stencil of
+order ``p`` (``p`` = 2, 4, 6, 8) has half-width ``h = p / 2``; derivatives are returned only
+for the interior columns ``h .. k-h-1`` where the full stencil fits, together with the states
+(and, through :meth:`FiniteDifference.trim`, any other signal such as the inputs) of the same
+columns. Every returned derivative therefore has the nominal order of accuracy; an episode
+loses ``h`` samples at each end (4 at order 8). Derivatives are computed per episode
+(:meth:`FiniteDifference.episodes`) and never straddle two episodes.
+
+Reference: Fornberg, *Generation of finite difference formulas on arbitrarily spaced
+grids*, Math. Comp. 51 (1988) -- the coefficients below are his central-difference tables.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from fractions import Fraction as F
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from soft_rom.errors import ConfigError, DimensionError
+
+__all__ = ['DerivativeEstimator', 'FiniteDifference', 'as_estimator']
+
+Array = NDArray[np.float64]
+
+# Central stencils on offsets -h..h (Fornberg 1988, table 1).
+_FIRST = {
+    2: [F(-1, 2), 0, F(1, 2)],
+    4: [F(1, 12), F(-2, 3), 0, F(2, 3), F(-1, 12)],
+    6: [F(-1, 60), F(3, 20), F(-3, 4), 0, F(3, 4), F(-3, 20), F(1, 60)],
+    8: [F(1, 280), F(-4, 105), F(1, 5), F(-4, 5), 0, F(4, 5), F(-1, 5), F(4, 105),
+        F(-1, 280)],
+}
+_SECOND = {
+    2: [1, -2, 1],
+    4: [F(-1, 12), F(4, 3), F(-5, 2), F(4, 3), F(-1, 12)],
+    6: [F(1, 90), F(-3, 20), F(3, 2), F(-49, 18), F(3, 2), F(-3, 20), F(1, 90)],
+    8: [F(-1, 560), F(8, 315), F(-1, 5), F(8, 5), F(-205, 72), F(8, 5), F(-1, 5), F(8, 315),
+        F(-1, 560)],
+}
+
+
+@runtime_checkable
+class DerivativeEstimator(Protocol):
+    """What the LOpInf learner needs from a derivative estimator."""
+
+    def derivatives(self, Q: ArrayLike, dt: float) -> tuple[Array, Array, Array]:
+        """Return aligned ``(states, first, second)`` derivatives of ``Q`` (r, k)."""
+        ...
+
+    def trim(self, X: ArrayLike) -> Array:
+        """Return the columns of ``X`` (c, k) aligned with :meth:`derivatives`' output."""
+        ...
+
+
+class FiniteDifference:
+    """Central finite differences of order 2, 4, 6 or 8 with trimmed edges.
+
+    .. math::
+
+        \\dot q_j \\approx \\frac{1}{\\Delta t}\\sum_{i=-h}^{h} a_i q_{j+i}, \\qquad
+        \\ddot q_j \\approx \\frac{1}{\\Delta t^2}\\sum_{i=-h}^{h} b_i q_{j+i},
+        \\qquad h = p/2,
+
+    both with truncation error :math:`O(\\Delta t^p)`.
+
+    Parameters
+    ----------
+    order : int
+        Order of accuracy ``p``: 2, 4, 6 or 8 (default 8).
+    """
+
+    def __init__(self, order: int = 8) -> None:
+        if order not in _FIRST:
+            raise ConfigError(f'finite-difference order must be one of 2, 4, 6, 8; got {order!r}.')
+        self.order = int(order)
+
+    def __repr__(self) -> str:
+        return f'FiniteDifference(order={self.order})'
+
+    @property
+    def half_width(self) -> int:
+        """Samples lost at each end of an episode (``order // 2``)."""
+        return self.order // 2
+
+    def _check(self, Q: ArrayLike) -> Array:
+        X = np.asarray(Q, dtype=np.float64)
+        if X.ndim == 1:
+            X = X[np.newaxis, :]
+        if X.ndim != 2:
+            raise DimensionError(f'states must be 2-D (r, k); got shape {X.shape}.')
+        if X.shape[1] < self.order + 1:
+            raise DimensionError(f'an order-{self.order} central difference needs at least '
+                                 f'{self.order + 1} samples per episode; got {X.shape[1]}.')
+        return X
+
+    def trim(self, X: ArrayLike) -> Array:
+        """Columns ``h .. k-h-1`` of ``X`` (c, k): those that have derivatives."""
+        X = self._check(X)
+        h = self.half_width
+        return X[:, h:X.shape[1] - h]
+
+    def derivatives(self, Q: ArrayLike, dt: float) -> tuple[Array, Array, Array]:
+        """First and second time derivatives of one episode.
+
+        Parameters
+        ----------
+        Q : ndarray, shape (r, k)
+            Uniformly sampled states, one column per sample.
+        dt : float
+            Sample time in seconds.
+
+        Returns
+        -------
+        Q_mid : ndarray, shape (r, k - order)
+            The states at the columns where derivatives exist (:meth:`trim` of ``Q``).
+        Qd, Qdd : ndarray, shape (r, k - order)
+            First and second derivatives at those columns.
+        """
+        X = self._check(Q)
+        if not np.isfinite(dt) or dt <= 0:
+            raise DimensionError(f'dt must be a positive number of seconds; got {dt!r}.')
+        h, k = self.half_width, X.shape[1]
+        n = k - 2 * h
+        d1 = np.zeros((X.shape[0], n))
+        d2 = np.zeros((X.shape[0], n))
+        for i, (a, b) in enumerate(zip(_FIRST[self.order], _SECOND[self.order])):
+            cols = X[:, i:i + n]
+            if a:
+                d1 += float(a) * cols
+            if b:
+                d2 += float(b) * cols
+        return X[:, h:k - h].copy(), d1 / dt, d2 / dt ** 2
+
+    def episodes(self, Qs: Sequence[ArrayLike], dt: float,
+                 others: Sequence[Sequence[ArrayLike]] = ()
+                 ) -> tuple[Array, Array, Array, list[Array]]:
+        """Derivatives of several episodes, each on its own, stacked along time.
+
+        Parameters
+        ----------
+        Qs : sequence of ndarray, each shape (r, k_i)
+        dt : float
+        others : sequence of sequences of ndarray
+            Other signals (e.g. ``[U_list]``) to trim the same way, one list per signal with
+            one ``(c, k_i)`` array per episode.
+
+        Returns
+        -------
+        Q, Qd, Qdd : ndarray, shape (r, sum_i (k_i - order))
+        trimmed : list of ndarray
+            One stacked, trimmed array per entry of ``others``.
+        """
+        parts = [self.derivatives(Q, dt) for Q in Qs]
+        if not parts:
+            raise DimensionError('no episode given.')
+        stacked = [np.concatenate([p[j] for p in parts], axis=1) for j in range(3)]
+        trimmed = []
+        for signal in others:
+            if len(signal) != len(parts):
+                raise DimensionError('every signal in others needs one array per episode.')
+            trimmed.append(np.concatenate([self.trim(x) for x in signal], axis=1))
+        return stacked[0], stacked[1], stacked[2], trimmed
+
+
+def as_estimator(ddt: int | DerivativeEstimator) -> DerivativeEstimator:
+    """An estimator object from an order (``8`` -> ``FiniteDifference(8)``) or an estimator."""
+    if isinstance(ddt, (int, np.integer)) and not isinstance(ddt, bool):
+        return FiniteDifference(int(ddt))
+    if isinstance(ddt, DerivativeEstimator):
+        return ddt
+    raise ConfigError(f'ddt must be an order (2, 4, 6, 8) or an object with derivatives() and '
+                      f'trim(); got {ddt!r}.')

@@ -1,0 +1,403 @@
+"""Lagrangian Operator Inference (LOpInf): a second-order ROM with SPD stiffness and damping.
+
+.. math::
+
+    \\ddot{\\hat q} + C \\dot{\\hat q} + K \\hat q = B u, \\qquad y = E \\hat q + y_{ref},
+    \\qquad \\hat q = V_r^T (q - q_{ref}),
+
+learned from snapshots by (i) a POD basis :math:`V_r`, (ii) finite-difference time
+derivatives of the reduced coordinates, per episode, (iii) the constrained least-squares
+problem
+
+.. math::
+
+    \\min_{K, C, B} \\|\\ddot{\\hat Q} + C\\dot{\\hat Q} + K\\hat Q - B U\\|_F \\quad
+    \\text{s.t.}\\ K = K^T \\succ 0,\\ C = C^T \\succ 0,
+
+and (iv) the output operator :math:`E` by least squares. Reference: Sharma et al.,
+*Data-driven Model Reduction for Soft Robots via Lagrangian Operator Inference*, sec. 2.2.
+
+Unit invariance: before solving, the reduced coordinates are divided by one scalar (their
+RMS) and every input channel by its RMS. A scalar change of the units of ``q`` leaves ``K``
+and ``C`` unchanged (only ``B`` and ``E`` scale), and so does a per-channel change of the
+units of ``u``; the operators are mapped back exactly, so predictions do not depend on the
+units (Pa vs kPa, m vs mm) and ``eps`` keeps its meaning (1/s² for K, 1/s for C).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+import copy
+import time
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from soft_rom.basis import BasisBuilder, POD, project
+from soft_rom.data import as_signal, check_finite, Episode
+from soft_rom.ddt import as_estimator, DerivativeEstimator, FiniteDifference
+from soft_rom.errors import ConfigError, DimensionError, NotFittedError
+from soft_rom.learners.lopinf_solvers import DEFAULT_EPS, FastSPDSolver, OperatorSolver
+from soft_rom.models import SecondOrderModel
+
+__all__ = ['LOpInf']
+
+Array = NDArray[np.float64]
+
+_NAME_KEYS = ('input_names', 'output_names', 'input_units', 'output_units')
+
+
+def _rms(X: Array, axis: int | None = None) -> Array:
+    s = np.atleast_1d(np.sqrt(np.mean(X ** 2, axis=axis))) if X.size else np.ones(1)
+    return np.where(s > 0, s, 1.0)
+
+
+class LOpInf:
+    """Learner of second-order ROMs with symmetric positive definite ``K`` and ``C``.
+
+    Parameters
+    ----------
+    r : int, optional
+        Reduced dimension; if ``None``, chosen by ``energy`` (ignored when ``basis`` is given).
+    energy : float
+        POD energy fraction used when ``r`` is ``None`` (default 0.95).
+    ddt : int or DerivativeEstimator
+        Derivative estimator, or an order (2, 4, 6, 8) for :class:`~soft_rom.ddt.
+        FiniteDifference` (default 8). Edges of every episode are trimmed.
+    solver : OperatorSolver, optional
+        Default :class:`~soft_rom.learners.lopinf_solvers.FastSPDSolver`; e.g.
+        ``CvxpySolver('CLARABEL')`` for the reference.
+    basis : BasisBuilder, optional
+        A basis builder *object* (default ``POD(r, energy)``); it is copied before fitting.
+    eps : float
+        ``K`` and ``C`` have eigenvalues ``≥ eps`` (default
+        :data:`~soft_rom.learners.lopinf_solvers.DEFAULT_EPS`).
+    scale : bool
+        Scale states and inputs by their RMS before solving (unit invariance; keep True).
+
+    Attributes
+    ----------
+    model_ : SecondOrderModel
+        The learned ROM (continuous; ``dt`` of the data; zero initial deviation).
+    K_, C_ : ndarray, shape (r, r)
+    B_ : ndarray, shape (r, m)
+    E_ : ndarray, shape (p, r)
+    basis_ : BasisBuilder or None
+        The fitted basis builder (``None`` after :meth:`fit_reduced`).
+    q_ref_ : ndarray, shape (n,) or None
+    y_ref_ : ndarray, shape (p,)
+    solver_info_ : dict
+        The solver's report (objective, method, steps, ...).
+    diagnostics_ : dict
+        What is stored in ``model_.metadata['diagnostics']``.
+
+    Examples
+    --------
+    >>> rom = LOpInf(r=12).fit(episodes).model_                  # doctest: +SKIP
+    >>> Y = rom.simulate(test.U)                                 # doctest: +SKIP
+    """
+
+    def __init__(self, r: int | None = None, energy: float = 0.95, *,
+                 ddt: int | DerivativeEstimator = 8, solver: OperatorSolver | None = None,
+                 basis: BasisBuilder | None = None, eps: float = DEFAULT_EPS,
+                 scale: bool = True) -> None:
+        self.r = r
+        self.energy = energy
+        self.ddt = ddt
+        self.solver = solver
+        self.basis = basis
+        self.eps = eps
+        self.scale = scale
+
+    def __repr__(self) -> str:
+        return (f'LOpInf(r={self.r!r}, energy={self.energy!r}, ddt={self.ddt!r}, '
+                f'solver={self.solver!r}, eps={self.eps!r})')
+
+    # ---------------------------------------------------------------------------------
+    def fit(self, episodes: Episode | Sequence[Episode], q_ref: ArrayLike | None = None,
+            y_ref: ArrayLike | None = None, *, input_names: Sequence[str] | None = None,
+            output_names: Sequence[str] | None = None,
+            input_units: Sequence[str] | None = None,
+            output_units: Sequence[str] | None = None,
+            metadata: dict[str, Any] | None = None) -> LOpInf:
+        """Learn the ROM from episodes with full states.
+
+        Parameters
+        ----------
+        episodes : Episode or sequence of Episode
+            Each with ``Q (n, k_i)`` (may be lazy), ``U (m, k_i)``, ``Y (p, k_i)``, uniformly
+            sampled with the same ``dt``. Derivatives never straddle two episodes.
+        q_ref : ndarray, shape (n,), optional
+            Reference configuration; default the first snapshot of the first episode.
+        y_ref : ndarray, shape (p,), optional
+            Output reference; default the first output of the first episode.
+        input_names, output_names, input_units, output_units : sequence of str, optional
+            Default: the first episode's metadata entries of those names, if any.
+        metadata : dict, optional
+            Extra JSON metadata merged into the model's.
+
+        Returns
+        -------
+        self
+        """
+        eps_list = [episodes] if isinstance(episodes, Episode) else list(episodes)
+        if not eps_list:
+            raise DimensionError('LOpInf.fit needs at least one episode.')
+        for ep in eps_list:
+            if ep.Q is None:
+                raise DimensionError(f'episode {ep.name!r} has no states Q; LOpInf needs the '
+                                     'full states (or call fit_reduced with POD coordinates).')
+        n = int(eps_list[0].Q.shape[0])
+        for ep in eps_list:
+            if int(ep.Q.shape[0]) != n:
+                raise DimensionError(f'episode {ep.name!r} has {ep.Q.shape[0]} states; the '
+                                     f'first episode has {n}.')
+        if q_ref is None:
+            q_ref = np.asarray(eps_list[0].Q[:, 0:1], dtype=np.float64)[:, 0]
+        q_ref = as_signal('q_ref', np.reshape(np.asarray(q_ref, dtype=np.float64), (-1, 1)),
+                          rows=n)[:, 0].copy()
+        check_finite('q_ref', q_ref)
+        builder = POD(r=self.r, energy=self.energy) if self.basis is None else copy.deepcopy(
+            self.basis)
+        if not callable(getattr(builder, 'fit', None)):
+            raise ConfigError(f'basis must be a BasisBuilder object (fit, basis_, '
+                              f'singular_values_); got {type(builder).__name__}.')
+        t0 = time.perf_counter()
+        builder.fit([ep.Q for ep in eps_list], q_ref)
+        if not isinstance(builder, BasisBuilder):
+            raise ConfigError(f'the basis builder {type(builder).__name__} has no basis_ or '
+                              'singular_values_ after fit().')
+        V = np.asarray(builder.basis_, dtype=np.float64)
+        if V.ndim != 2 or V.shape[0] != n:
+            raise DimensionError(f'the basis builder returned basis_ of shape {V.shape}; '
+                                 f'expected ({n}, r).')
+        Qhat = [project(ep.Q, V, q_ref) for ep in eps_list]
+        t_basis = time.perf_counter() - t0
+        s = np.asarray(builder.singular_values_, dtype=np.float64)
+        r = V.shape[1]
+        energy = getattr(builder, 'energy_', None)
+        captured = (float(np.asarray(energy)[r - 1]) if energy is not None
+                    else float(np.sum(s[:r] ** 2) / np.sum(s ** 2)))
+        meta = self._names_from(eps_list[0], dict(input_names=input_names,
+                                                  output_names=output_names,
+                                                  input_units=input_units,
+                                                  output_units=output_units))
+        self.fit_reduced(Qhat, [ep.U for ep in eps_list], [ep.Y for ep in eps_list],
+                         self._common_dt(eps_list), y_ref,
+                         names=[ep.name for ep in eps_list], energy_captured=captured,
+                         time_ranges=[[float(ep.t[0]), float(ep.t[-1])] for ep in eps_list],
+                         metadata=metadata, **meta)
+        self.basis_ = builder
+        self.q_ref_ = q_ref
+        diag = self.diagnostics_
+        diag['n_full'] = n
+        diag['basis_seconds'] = t_basis
+        diag['singular_values'] = [float(x) for x in s[:max(r, min(s.size, 100))]]
+        self._rebuild_model()
+        return self
+
+    def fit_reduced(self, Qhat: Sequence[ArrayLike], U: Sequence[ArrayLike],
+                    Y: Sequence[ArrayLike], dt: float, y_ref: ArrayLike | None = None, *,
+                    input_names: Sequence[str] | None = None,
+                    output_names: Sequence[str] | None = None,
+                    input_units: Sequence[str] | None = None,
+                    output_units: Sequence[str] | None = None,
+                    names: Sequence[str] | None = None,
+                    energy_captured: float | None = None,
+                    time_ranges: Sequence[Sequence[float]] | None = None,
+                    metadata: dict[str, Any] | None = None) -> LOpInf:
+        """Learn the operators from already reduced coordinates (one array per episode).
+
+        This is what out-of-core code (:mod:`soft_rom.scale`) calls after a streaming POD.
+
+        Parameters
+        ----------
+        Qhat : sequence of ndarray, each shape (r, k_i)
+            Reduced coordinates ``Vᵀ (Q_i - q_ref)`` of each episode.
+        U : sequence of ndarray, each shape (m, k_i)
+        Y : sequence of ndarray, each shape (p, k_i)
+            Absolute outputs.
+        dt : float
+            Sample time (s), the same for every episode.
+        y_ref : ndarray, shape (p,), optional
+            Default the first output of the first episode.
+        input_names, output_names, input_units, output_units : sequence of str, optional
+        names : sequence of str, optional
+            Episode names (provenance).
+        energy_captured : float, optional
+            POD energy fraction of the basis (diagnostics).
+        time_ranges : sequence of [t_start, t_end], optional
+            Provenance.
+        metadata : dict, optional
+            Extra JSON metadata merged into the model's.
+
+        Returns
+        -------
+        self
+        """
+        t0 = time.perf_counter()
+        Qhat = [as_signal('Qhat', q) for q in Qhat]
+        U = [as_signal('U', u) for u in U]
+        Y = [as_signal('Y', y) for y in Y]
+        if not Qhat or not len(Qhat) == len(U) == len(Y):
+            raise DimensionError(f'Qhat, U and Y need one array per episode; got {len(Qhat)}, '
+                                 f'{len(U)} and {len(Y)}.')
+        r, m, p = Qhat[0].shape[0], U[0].shape[0], Y[0].shape[0]
+        for i, (q, u, y) in enumerate(zip(Qhat, U, Y)):
+            if q.shape[0] != r or u.shape[0] != m or y.shape[0] != p:
+                raise DimensionError(f'episode {i} has (r, m, p) = ({q.shape[0]}, {u.shape[0]}, '
+                                     f'{y.shape[0]}); the first has ({r}, {m}, {p}).')
+            if not q.shape[1] == u.shape[1] == y.shape[1]:
+                raise DimensionError(f'episode {i}: Qhat, U and Y must have the same number of '
+                                     f'samples; got {q.shape[1]}, {u.shape[1]}, {y.shape[1]}.')
+            for name, a in (('Qhat', q), ('U', u), ('Y', y)):
+                check_finite(f'{name} of episode {i}', a)
+        dt = float(dt)
+        if not np.isfinite(dt) or dt <= 0:
+            raise DimensionError(f'dt must be a positive number of seconds; got {dt!r}.')
+        if y_ref is None:
+            y_ref = Y[0][:, 0]
+        y_ref = as_signal('y_ref', np.reshape(np.asarray(y_ref, dtype=np.float64), (-1, 1)),
+                          rows=p)[:, 0].copy()
+        estimator = as_estimator(self.ddt)
+        solver = FastSPDSolver() if self.solver is None else self.solver
+        if not isinstance(solver, OperatorSolver):
+            raise ConfigError(f'solver must have a solve(Q, Qd, Qdd, U, eps=) method; got '
+                              f'{type(solver).__name__}.')
+
+        # Scale (unit invariance): one scalar for the states, one RMS per input channel.
+        all_q = np.concatenate(Qhat, axis=1)
+        all_u = np.concatenate(U, axis=1)
+        if not np.any(all_q):
+            raise DimensionError('the reduced states are identically zero: the body never '
+                                 'moved away from q_ref, so there is nothing to learn.')
+        s_q = float(_rms(all_q)[0]) if self.scale else 1.0
+        s_u = _rms(all_u, axis=1) if self.scale else np.ones(m)
+        too_short = [i for i, q in enumerate(Qhat) if q.shape[1] <= 2 * _half_width(estimator)]
+        if too_short:
+            raise DimensionError(f'episodes {too_short} are too short for the derivative '
+                                 f'estimator {estimator!r}; drop them or use a lower order.')
+        Qs, Qd, Qdd, (Us,) = _episodes(estimator, [q / s_q for q in Qhat], dt,
+                                       [[u / s_u[:, None] for u in U]])
+        sol = solver.solve(Qs, Qd, Qdd, Us, eps=self.eps)
+        K = 0.5 * (sol.K + sol.K.T)
+        C = 0.5 * (sol.C + sol.C.T)
+        B = sol.B * s_q / s_u[None, :]
+        residual = float(np.linalg.norm(Qdd + C @ Qd + K @ Qs - sol.B @ Us))
+        rel_residual = residual / max(float(np.linalg.norm(Qdd)), 1e-300)
+
+        # Output operator: min ||(Y - y_ref) - E Qhat||_F over all samples.
+        dY = np.concatenate(Y, axis=1) - y_ref[:, None]
+        Et, *_ = np.linalg.lstsq((all_q / s_q).T, dY.T, rcond=None)
+        E = Et.T / s_q
+        out_res = float(np.linalg.norm(dY - E @ all_q)) / max(float(np.linalg.norm(dY)), 1e-300)
+
+        self.K_, self.C_, self.B_, self.E_ = K, C, B, E
+        self.y_ref_ = y_ref
+        self.dt_ = dt
+        self.basis_ = None
+        self.q_ref_ = None
+        self.state_scale_ = s_q
+        self.input_scale_ = s_u
+        self.solver_info_ = dict(sol.info)
+        lam_k, lam_c = np.linalg.eigvalsh(K), np.linalg.eigvalsh(C)
+        self.diagnostics_ = {
+            'r': int(r),
+            'training_residual': residual * s_q,
+            'training_residual_relative': rel_residual,
+            'output_residual_relative': out_res,
+            'energy_captured': None if energy_captured is None else float(energy_captured),
+            'eigenvalues_K': [float(x) for x in lam_k],
+            'eigenvalues_C': [float(x) for x in lam_c],
+            'eps': float(self.eps),
+            'ddt': repr(estimator),
+            'solver': repr(solver),
+            'solver_info': self.solver_info_,
+            'state_scale': s_q,
+            'input_scale': [float(x) for x in s_u],
+            'n_samples_used': int(Qs.shape[1]),
+            'fit_seconds': time.perf_counter() - t0,
+        }
+        self._provenance = {
+            'method': 'lopinf',
+            'episodes': [str(x) for x in (names if names is not None else
+                                          [f'episode{i}' for i in range(len(Qhat))])],
+            'time_ranges': None if time_ranges is None else [[float(a), float(b)]
+                                                             for a, b in time_ranges],
+            'n_samples': [int(q.shape[1]) for q in Qhat],
+        }
+        self._names = dict(input_names=input_names, output_names=output_names,
+                           input_units=input_units, output_units=output_units)
+        self._extra_meta = dict(metadata or {})
+        self._rebuild_model()
+        return self
+
+    # ---------------------------------------------------------------------------------
+    @property
+    def model(self) -> SecondOrderModel:
+        """The fitted model (raises :class:`~soft_rom.errors.NotFittedError` before fit)."""
+        self._check()
+        return self.model_
+
+    def predict(self, U: ArrayLike, x0: ArrayLike | None = None) -> Array:
+        """Absolute outputs (p, k) for inputs ``U`` (m, k) from ``x0`` (default at rest)."""
+        return self.model.simulate(U, x0)
+
+    def _check(self) -> None:
+        if not hasattr(self, 'model_'):
+            raise NotFittedError('this LOpInf is not fitted yet: call fit(episodes) or '
+                                 'fit_reduced(...) first.')
+
+    def _rebuild_model(self) -> None:
+        diag = dict(self.diagnostics_)
+        meta = {'provenance': self._provenance, 'diagnostics': diag}
+        meta.update(self._extra_meta)
+        kw = {k: v for k, v in self._names.items() if v is not None}
+        model = SecondOrderModel(self.K_, self.C_, self.B_, self.E_, dt=self.dt_,
+                                 y_ref=self.y_ref_, metadata=meta, **kw)
+        diag['stability_margin'] = model.stability_margin()
+        ev = model.eigenvalues()
+        diag['eigenvalues'] = [[float(z.real), float(z.imag)] for z in ev]
+        meta['diagnostics'] = diag
+        self.diagnostics_ = diag
+        self.model_ = SecondOrderModel(self.K_, self.C_, self.B_, self.E_, dt=self.dt_,
+                                       y_ref=self.y_ref_, metadata=meta, **kw)
+
+    @staticmethod
+    def _names_from(ep: Episode, given: dict[str, Any]) -> dict[str, Any]:
+        out = {}
+        for key in _NAME_KEYS:
+            val = given.get(key)
+            if val is None:
+                val = ep.metadata.get(key) if isinstance(ep.metadata, dict) else None
+            if val is not None:
+                out[key] = list(val)
+        return out
+
+    @staticmethod
+    def _common_dt(episodes: Sequence[Episode]) -> float:
+        dts = []
+        for ep in episodes:
+            if ep.n_samples < 2 or not ep.is_uniform():
+                raise DimensionError(f'episode {ep.name!r} is not uniformly sampled (or has '
+                                     'fewer than 2 samples); resample it first.')
+            dts.append(ep.dt)
+        dt = dts[0]
+        if any(abs(d - dt) > 1e-6 * dt for d in dts):
+            raise DimensionError(f'episodes have different sample times {dts}; resample first.')
+        return float(dt)
+
+
+def _half_width(estimator: DerivativeEstimator) -> int:
+    return int(getattr(estimator, 'half_width', getattr(estimator, 'order', 8) // 2))
+
+
+def _episodes(estimator: DerivativeEstimator, Qs: Sequence[Array], dt: float,
+              others: Sequence[Sequence[Array]]) -> tuple[Array, Array, Array, list[Array]]:
+    if isinstance(estimator, FiniteDifference):
+        return estimator.episodes(Qs, dt, others)
+    parts = [estimator.derivatives(q, dt) for q in Qs]
+    stacked = [np.concatenate([pp[j] for pp in parts], axis=1) for j in range(3)]
+    trimmed = [np.concatenate([estimator.trim(x) for x in sig], axis=1) for sig in others]
+    return stacked[0], stacked[1], stacked[2], trimmed

@@ -1,0 +1,89 @@
+"""Tests of soft_rom.basis: POD recovers a known subspace; lazy snapshots; rank selection."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from soft_rom.basis import BasisBuilder, POD, project, select_rank
+from soft_rom.errors import ConfigError, DimensionError, NotFittedError
+
+
+class LazyArray:
+    """Minimal lazy array: only ``shape`` and ``[:, a:b]`` (counts the columns read)."""
+
+    def __init__(self, data):
+        self._data = np.asarray(data)
+        self.shape = self._data.shape
+        self.max_cols = 0
+
+    def __getitem__(self, key):
+        rows, cols = key
+        assert rows == slice(None) and isinstance(cols, slice)
+        out = self._data[:, cols]
+        self.max_cols = max(self.max_cols, out.shape[1])
+        return out.copy()
+
+
+def _low_rank(seed=0, n=50, r=3):
+    rng = np.random.default_rng(seed)
+    Phi, _ = np.linalg.qr(rng.standard_normal((n, r)))
+    q_ref = rng.standard_normal(n)
+    eps = []
+    for j in range(2):
+        t = np.linspace(0, 1, 200 + 50 * j)
+        a = np.vstack([np.sin((i + 1) * 3.0 * t + j) * 10.0 ** -i for i in range(r)])
+        eps.append(q_ref[:, None] + Phi @ a)
+    return Phi, q_ref, eps
+
+
+def test_pod_recovers_known_subspace():
+    Phi, q_ref, eps = _low_rank()
+    pod = POD(energy=0.999999).fit(eps, q_ref)
+    assert pod.r_ == 3
+    V = pod.basis_
+    np.testing.assert_allclose(V.T @ V, np.eye(3), atol=1e-12)
+    assert np.linalg.norm(V @ V.T - Phi @ Phi.T) < 1e-10
+    assert pod.singular_values_[3] < 1e-10 * pod.singular_values_[0]
+    assert np.all(np.diff(pod.energy_) >= -1e-15) and abs(pod.energy_[-1] - 1.0) < 1e-12
+    # Projection and reconstruction are exact on the subspace.
+    for Q in eps:
+        np.testing.assert_allclose(pod.reconstruct(pod.project(Q)), Q, atol=1e-10)
+    assert isinstance(pod, BasisBuilder)
+
+
+def test_lazy_snapshots_read_in_blocks():
+    Phi, q_ref, eps = _low_rank(seed=1)
+    lazy = [LazyArray(Q) for Q in eps]
+    pod_lazy = POD(r=3, block_columns=64).fit(lazy, q_ref)
+    pod = POD(r=3).fit(eps, q_ref)
+    np.testing.assert_allclose(pod_lazy.basis_, pod.basis_, atol=1e-12)
+    Qhat = project(lazy[1], pod.basis_, q_ref, block_columns=37)
+    np.testing.assert_allclose(Qhat, pod.basis_.T @ (eps[1] - q_ref[:, None]), atol=1e-12)
+    assert lazy[1].max_cols == 64  # never read whole
+
+
+def test_rank_selection_and_errors():
+    s = np.array([10.0, 5.0, 1.0, 0.1])
+    total = np.sum(s ** 2)
+    assert select_rank(s, energy=100 / total) == 1
+    assert select_rank(s, energy=125 / total + 1e-9) == 3
+    assert select_rank(s, energy=1.0) == 4
+    assert select_rank(s, r=2, energy=0.1) == 2
+    with pytest.raises(ConfigError):
+        select_rank(s, r=5)
+    with pytest.raises(ConfigError):
+        select_rank(s, energy=1.5)
+    with pytest.raises(DimensionError):
+        select_rank(np.zeros(3))
+    with pytest.raises(NotFittedError):
+        POD().project(np.zeros((3, 2)))
+    with pytest.raises(DimensionError):
+        POD().fit([np.zeros((3, 4))], np.zeros(2))
+
+
+def test_sign_convention_is_scale_invariant():
+    Phi, q_ref, eps = _low_rank(seed=2)
+    a = POD(r=3).fit(eps, q_ref)
+    b = POD(r=3).fit([1e3 * Q for Q in eps], 1e3 * q_ref)
+    np.testing.assert_allclose(a.basis_, b.basis_, atol=1e-10)
