@@ -1,0 +1,107 @@
+"""``soft-rom info PATH``: describe a ROS 2 bag, a training set or a model file."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from soft_rom.errors import SoftRomError
+
+__all__ = ['add_parser', 'describe', 'run']
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register ``info``."""
+    parser = subparsers.add_parser(
+        'info', help='describe a bag, a training set or a model file',
+        description='Describe a ROS 2 bag (topics, types, counts, rates, duration), a training '
+                    'set (episodes, names, units, shapes) or a model file (method, r, dt, '
+                    'names, units, stability margin, metadata).')
+    parser.add_argument('paths', nargs='+', metavar='PATH')
+    parser.add_argument('--json', action='store_true', help='print JSON instead of text')
+    parser.set_defaults(func=run)
+    return parser
+
+
+def describe(path: str | Path) -> dict[str, Any]:
+    """``{'kind': 'bag' | 'trainingset' | 'model', ...}`` for ``path``."""
+    p = Path(path)
+    if not p.exists():
+        raise FileNotFoundError(f'{p} does not exist.')
+    if p.is_file() and p.suffix == '.npz':
+        from soft_rom.models import load_model
+        model = load_model(p)
+        head = model.header()
+        head.pop('format', None)
+        return {'kind': 'model', 'path': str(p), **head}
+    if p.is_dir() and ((p / '.zattrs').exists() or (p / 'zarr.json').exists()):
+        from soft_rom.dataset import TrainingSet
+        return {'kind': 'trainingset', **TrainingSet.open(p).describe()}
+    from soft_rom.bags.reader import describe_bag, is_bag
+    if is_bag(p):
+        return {'kind': 'bag', **describe_bag(p)}
+    raise SoftRomError(f'{p} is neither a ROS 2 bag, a training set (.zarr) nor a model file '
+                       '(.npz).')
+
+
+def _fmt_names(names: list[str], units: list[str]) -> str:
+    items = [f'{n} [{u}]' if u else n for n, u in zip(names, units)]
+    if len(items) > 8:
+        items = items[:4] + ['...'] + items[-2:]
+    return ', '.join(items)
+
+
+def format_text(d: dict[str, Any]) -> str:
+    """Human-readable form of :func:`describe`."""
+    kind = d['kind']
+    lines = []
+    if kind == 'bag':
+        lines.append(f"bag {d['path']} ({d['storage']}): {d['message_count']} messages, "
+                     f"{d['duration_s']:.3f} s ({d['start_s']:.6f} .. {d['end_s']:.6f} s)")
+        width = max([len(t) for t in d['topics']] + [5])
+        for topic, info in d['topics'].items():
+            rate = info['rate_hz']
+            rate_s = f'{rate:9.2f} Hz' if math.isfinite(rate) else '        - Hz'
+            lines.append(f"  {topic:{width}s}  {info['type']:36s} {info['count']:8d} msgs "
+                         f'{rate_s}')
+    elif kind == 'trainingset':
+        lines.append(f"training set {d['path']} (format {d['format_version']}): "
+                     f"{len(d['episodes'])} episode(s), n = {d['n_states']}")
+        lines.append(f"  inputs  (m = {len(d['input_names'])}): "
+                     f"{_fmt_names(d['input_names'], d['input_units'])}")
+        lines.append(f"  outputs (p = {len(d['output_names'])}): "
+                     f"{_fmt_names(d['output_names'], d['output_units'])}")
+        for name, ep in d['episodes'].items():
+            q = 'no Q' if ep['Q'] is None else f"Q {ep['Q'][0]} x {ep['Q'][1]} " \
+                f"(chunks {ep['Q_chunks'][0]} x {ep['Q_chunks'][1]})"
+            lines.append(f"  {name}: {ep['n_samples']} samples, t = {ep['t_start']:.6f} .. "
+                         f"{ep['t_end']:.6f} s, dt = {ep['dt_mean'] * 1e3:.4g} ms, {q}"
+                         + (f", from {ep['source']}" if ep.get('source') else ''))
+    else:
+        lines.append(f"model {d['path']}: {d['class']} (method {d['method']}), r = {d['r']}, "
+                     f"state dimension {d['n_states']}, dt = {d['dt']:g} s")
+        lines.append(f"  inputs  (m = {len(d['input_names'])}): "
+                     f"{_fmt_names(d['input_names'], d['input_units'])}")
+        lines.append(f"  outputs (p = {len(d['output_names'])}): "
+                     f"{_fmt_names(d['output_names'], d['output_units'])}")
+        margin = d['stability_margin']
+        lines.append(f'  stability margin 1 - max|eig(A)| = {margin:.3e} '
+                     f"({'stable' if margin > 0 else 'NOT asymptotically stable'})")
+        meta = d.get('metadata') or {}
+        if meta:
+            text = json.dumps(meta, sort_keys=True, default=str)
+            lines.append('  metadata: ' + (text if len(text) <= 400 else text[:400] + ' ...'))
+    return '\n'.join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run ``info``; returns the exit code."""
+    out = [describe(p) for p in args.paths]
+    if args.json:
+        print(json.dumps(out if len(out) > 1 else out[0], indent=2, default=str))
+    else:
+        print('\n'.join(format_text(d) for d in out))
+    return 0
