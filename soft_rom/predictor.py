@@ -25,7 +25,9 @@ Bad inputs (defined behaviour, each counted in :attr:`Predictor.counters`)
 --------------------------------------------------------------------------
 * wrong length or channel index: dropped, counted ``wrong_length``; the held value stays.
 * NaN or Inf: dropped, counted ``nonfinite``; the held value stays.
-* stamp older than the channel's previous stamp: dropped, counted ``backwards``.
+* stamp older than the channel's previous stamp: dropped, counted ``backwards``; older by
+  more than ``clock_reset_s`` (a restarted clock, e.g. a bag played again): the predictor
+  resets and takes it, counted ``clock_reset``.
 * stamp older than the model time (another channel already advanced the model past it):
   the value is taken from the current model time on, counted ``late``.
 * a channel silent for longer than ``input_timeout_s``: its last value is held and the
@@ -83,7 +85,8 @@ __all__ = [
 
 Array = NDArray[np.float64]
 
-_COUNTERS = ('wrong_length', 'nonfinite', 'backwards', 'late', 'measured_dropped', 'diverged',
+_COUNTERS = ('wrong_length', 'nonfinite', 'backwards', 'clock_reset', 'late', 'measured_dropped',
+             'diverged',
              'steps', 'inputs', 'measurements', 'catchup_skipped')
 
 
@@ -130,6 +133,15 @@ class PredictorConfig:
         Most steps taken in one :meth:`Predictor.advance_to` call; beyond that the model
         time jumps forward with the state held (counted ``catchup_skipped``), so a stalled
         clock can never block the caller.
+    clock_reset_s : float
+        An input stamp older than the newest one by more than this is a restarted clock
+        (a bag played again): the predictor resets (counted ``clock_reset``) and takes it.
+        Smaller steps back are dropped (``backwards``). ``0`` disables the reset.
+
+    Notes
+    -----
+    The Kalman gain is designed for the integration step ``h`` and assumes about one
+    measurement per step; with rarer measurements it is conservative, not optimal.
     """
 
     stepping: str = 'fixed'
@@ -144,6 +156,7 @@ class PredictorConfig:
     process_noise: float = 1e-6
     measurement_noise: float = 1e-4
     max_catchup_steps: int = 10000
+    clock_reset_s: float = 1.0
 
     def __post_init__(self) -> None:
         def bad(name: str, expected: str) -> ConfigError:
@@ -156,7 +169,8 @@ class PredictorConfig:
             raise bad('error_metric', "'deviation' or 'absolute'")
         if self.initial_state not in ('reference', 'measured'):
             raise bad('initial_state', "'reference' or 'measured'")
-        for name in ('rate_hz', 'input_timeout_s', 'warn_threshold', 'error_threshold'):
+        for name in ('rate_hz', 'input_timeout_s', 'warn_threshold', 'error_threshold',
+                     'clock_reset_s'):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise bad(name, 'a finite number >= 0')
@@ -491,7 +505,8 @@ class Predictor:
         if not (math.isfinite(u.sum()) and math.isfinite(stamp)):
             return self._drop('nonfinite', stamp, 'input with NaN/Inf')
         if stamp < self._stamp.max():
-            return self._drop('backwards', stamp, 'input stamp went backwards')
+            if not self._clock_restarted(stamp):
+                return self._drop('backwards', stamp, 'input stamp went backwards')
         self._before_input(stamp)
         self.u[:] = u
         self._stamp[:] = stamp
@@ -509,7 +524,8 @@ class Predictor:
         if not (math.isfinite(value) and math.isfinite(stamp)):
             return self._drop('nonfinite', stamp, f'input {index} NaN/Inf')
         if stamp < self._stamp[index]:
-            return self._drop('backwards', stamp, f'input {index} stamp went backwards')
+            if not self._clock_restarted(stamp):
+                return self._drop('backwards', stamp, f'input {index} stamp went backwards')
         self._before_input(stamp)
         self.u[index] = value
         self._stamp[index] = stamp
@@ -517,6 +533,17 @@ class Predictor:
         self.counters['inputs'] += 1
         self._update_Bu()
         return True
+
+    def _clock_restarted(self, stamp: float) -> bool:
+        # A jump back by more than clock_reset_s is a restarted clock (bag played again,
+        # simulation restarted): start over instead of dropping every later message.
+        limit = self.config.clock_reset_s
+        last = self._stamp.max()
+        if limit > 0 and stamp < last - limit:
+            self.counters['clock_reset'] += 1
+            self.reset()
+            return True
+        return False
 
     def _before_input(self, stamp: float) -> None:
         # The previous input is held up to ``stamp`` (whole steps in 'fixed' stepping).

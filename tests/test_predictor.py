@@ -290,3 +290,18 @@ def test_set_config_keeps_state_unless_the_design_changes() -> None:
     pred.set_config(pred.config.replace(kalman=True))
     assert pred.info['r'] == model.r and np.all(pred.x == 0)
     assert pred.t == pytest.approx(0.02)
+
+
+def test_restarted_clock_resets_instead_of_dropping_forever() -> None:
+    pred = Predictor(_second_order(), PredictorConfig(clock_reset_s=1.0))
+    pred.set_input(np.ones(3), 50.0)
+    pred.set_input(np.ones(3), 60.0)
+    assert not pred.set_input(np.zeros(3), 59.5)        # small step back: dropped
+    assert pred.counters['backwards'] == 1
+    assert pred.set_input(np.full(3, 2.0), 0.0)         # bag played again from 0 s
+    assert pred.counters['clock_reset'] == 1
+    assert pred.t == 0.0 and np.all(pred.x == 0) and np.all(pred.u == 2.0)
+    strict = Predictor(_second_order(), PredictorConfig(clock_reset_s=0.0))
+    strict.set_input(np.ones(3), 50.0)
+    assert not strict.set_input(np.ones(3), 0.0)
+    assert strict.counters['backwards'] == 1

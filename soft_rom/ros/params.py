@@ -84,6 +84,9 @@ PARAMS: tuple[Param, ...] = (
           range=(1e-30, 1e30), read_only=False),
     Param('max_catchup_steps', 10000, 'Most integration steps in one update; beyond that '
           'model time jumps (counted).', range=(1, 10000000), read_only=False),
+    Param('clock_reset_s', 1.0, 'An input stamp this much older than the newest is a '
+          'restarted clock (bag replayed): reset and take it; 0 = never (drop as backwards).',
+          range=(0.0, 1e9), read_only=False),
 )
 
 _CONFIG_FIELDS = {f.name for f in fields(PredictorConfig)}
@@ -97,7 +100,7 @@ def predictor_config(values: Mapping[str, Any]) -> PredictorConfig:
         if name in kwargs:
             kwargs[name] = int(kwargs[name])
     for name in ('rate_hz', 'input_timeout_s', 'warn_threshold', 'error_threshold',
-                 'process_noise', 'measurement_noise'):
+                 'process_noise', 'measurement_noise', 'clock_reset_s'):
         if name in kwargs:
             kwargs[name] = float(kwargs[name])
     return PredictorConfig(**kwargs)
