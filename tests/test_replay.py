@@ -127,3 +127,31 @@ def test_kalman_option_reaches_the_core(tmp_path) -> None:
                         tmp_path / 'k', storage='sqlite3')
     assert res.summary['config']['kalman'] is True
     assert res.summary['relative_error'] <= 1e-9       # exact model: nothing to correct
+
+
+def test_cli_replay_with_params_file_and_kalman_comparison(tmp_path, capsys) -> None:
+    convert = pytest.importorskip('soft_rom.convert')
+    if not hasattr(convert, 'read_episode'):
+        pytest.skip('soft_rom.convert.read_episode not available yet')
+    from soft_rom.cli import main
+
+    true = _model()
+    wrong = SecondOrderModel(true.K * 1.3, true.C, true.B * 1.2, true.E, dt=true.dt,
+                             y_ref=true.y_ref)
+    path = wrong.save(tmp_path / 'wrong.npz')
+    bag = write_input_bag(tmp_path / 'in', _episode(true, k=300), storage='sqlite3')
+    params = tmp_path / 'p.yaml'
+    params.write_text('soft_rom_predictor:\n  ros__parameters:\n    publish_rate_hz: 100.0\n'
+                      '    measurement_noise: 1.0e-8\n')
+    summary = tmp_path / 's.json'
+    code = main(['replay', str(path), str(bag), '-o', str(tmp_path / 'pred'), '--config',
+                 str(params), '--kalman', '--compare', '--summary-json', str(summary)])
+    assert code == 0
+    assert 'Kalman' in capsys.readouterr().out
+    data = json.loads(summary.read_text())
+    assert data['config']['kalman'] is True and data['config']['measurement_noise'] == 1e-8
+    assert data['compare']['kalman'] <= 0.5 * data['compare']['open_loop']
+    count = Counter(tp for tp, _, _ in read_messages(tmp_path / 'pred'))
+    assert count[f'{NODE}/centerline'] == 30                 # 100 Hz from 1 kHz
+    assert main(['replay', str(tmp_path / 'nope.npz'), str(bag), '-o',
+                 str(tmp_path / 'x')]) == 2
