@@ -766,8 +766,16 @@ class _BagConverter:
             age = (t_ns - times[idx]) * 1e-9
             if age.size:
                 rep.max_hold_s = max(rep.max_hold_s, float(age.max()))
-                if math.isfinite(rep.period_s):
-                    rep.gaps_filled += int(np.sum(age > 1.5 * rep.period_s))
+            if math.isfinite(rep.period_s) and age.size:
+                # a sample lies in a gap when the held message is followed by a longer
+                # interval than 1.5 input periods (a message missing or dropped) and the
+                # sample is after the held message's stamp
+                limit = 1.5 * rep.period_s
+                has_next = idx < times.size - 1
+                interval = np.where(has_next, (times[np.minimum(idx + 1, times.size - 1)]
+                                               - times[idx]) * 1e-9, np.inf)
+                in_gap = (age > 0) & np.where(has_next, interval > limit, age > limit)
+                rep.gaps_filled += int(np.sum(in_gap))
         U = np.concatenate(blocks, axis=0)
         m = self.mapping
         mm = U.shape[0]

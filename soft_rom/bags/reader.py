@@ -196,7 +196,8 @@ class BagReader:
             reader = Reader(self.path)
             reader.open()
         except (ReaderError, OSError, ValueError, KeyError) as err:
-            raise BagError(f'cannot open bag {self.path} ({self.storage}): {err}. '
+            why = str(err).rstrip('.')
+            raise BagError(f'cannot open bag {self.path} ({self.storage}): {why}. '
                            'The bag may be truncated or corrupt (was the recorder killed?); '
                            'try `ros2 bag reindex` on it.') from err
         except Exception as err:  # noqa: BLE001 - storage backends raise many kinds

@@ -176,11 +176,17 @@ class EpisodeBagWriter:
         if self.path.exists() and not self.overwrite:
             raise BagError(f'{self.path} exists already; pass overwrite=True to replace it.')
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        # rosbags names the storage file after the bag directory, so the bag is written
+        # under its final name inside a hidden temporary parent directory.
         self._tmp = self.path.parent / f'.{self.path.name}.tmp-{uuid.uuid4().hex[:8]}'
+        self._tmp.mkdir()
         try:
-            self._writer = Writer(self._tmp, version=BAG_VERSION, storage_plugin=self._plugin)
+            self._writer = Writer(self._tmp / self.path.name, version=BAG_VERSION,
+                                  storage_plugin=self._plugin)
             self._writer.open()
         except WriterError as err:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            self._tmp = None
             raise BagError(f'cannot create bag {self.path}: {err}') from err
         return self
 
@@ -196,7 +202,8 @@ class EpisodeBagWriter:
             raise
         if self.path.exists():
             shutil.rmtree(self.path)
-        self._tmp.rename(self.path)
+        (self._tmp / self.path.name).rename(self.path)
+        self._tmp.rmdir()
         self._tmp = None
 
     def abort(self) -> None:
