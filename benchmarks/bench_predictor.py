@@ -7,7 +7,14 @@ from issue 5 where there is one). Message conversions are timed on plain attribu
 objects (no rclpy here); rclpy's checked setters add their own cost on top.
 """
 
+# ruff: noqa: E402  (thread settings must precede the numpy import)
 from __future__ import annotations
+
+import os
+
+# Tiny matrices: threaded BLAS only adds latency (and wrecks timings on a busy machine).
+for _var in ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS', 'MKL_NUM_THREADS'):
+    os.environ.setdefault(_var, '1')
 
 import argparse
 import array
@@ -127,6 +134,10 @@ def main() -> None:
          unit='ms', target='<= 200 ms')
     _row('  vs model.simulate (vectorised, no monitor)', ours,
          _best(lambda: model.simulate(U), 1, repeat=3), unit='ms')
+    c0 = time.process_time()
+    ours_replay()
+    print(f'  replay CPU time (process_time, robust to a busy machine): '
+          f'{(time.process_time() - c0) * 1e3:.1f} ms')
     res = replay_episode(Predictor(model), ep, measured=False)
     print(f'  replay vs simulate max abs difference: {np.abs(res.Y - ep.Y).max():.2e}')
 

@@ -41,6 +41,8 @@ def _node(context, *args, **kwargs):
         parameters=[params_file, overrides],
         output='screen',
         emulate_tty=True,
+        # small matrices: a threaded BLAS only adds latency to each step
+        additional_env={'OPENBLAS_NUM_THREADS': '1', 'OMP_NUM_THREADS': '1'},
     )]
 
 

@@ -90,6 +90,9 @@ _COUNTERS = ('wrong_length', 'nonfinite', 'backwards', 'clock_reset', 'late', 'm
              'steps', 'inputs', 'measurements', 'catchup_skipped')
 
 
+_TINY = float(np.finfo(float).tiny)
+
+
 class Level(enum.IntEnum):
     """Health level; values equal ``diagnostic_msgs/msg/DiagnosticStatus`` levels."""
 
@@ -380,9 +383,8 @@ class Predictor:
         self._stamp = np.full(rt.m, -np.inf)     # last accepted stamp per input channel
         self._arrival = np.full(rt.m, -np.inf)   # time of last accepted value per channel
         w = self.config.error_window
-        self._win = np.zeros((3, w))             # rows: |e|^2, |y|^2, |y - y_ref|^2
-        self._win_n = 0
-        self._win_i = 0
+        self._dev = np.zeros(rt.p)
+        self._clear_window(w)
         self._last_drop = -np.inf
         self._drop_reason = ''
         self._diverged = False
@@ -436,6 +438,7 @@ class Predictor:
         if old_u.shape == self.u.shape:
             self.u[:] = old_u
             self._stamp[:] = old_stamp
+            self._stamp_max = float(old_stamp.max())
             self._arrival[:] = old_arrival
         t = self.t
         self.reset()
@@ -458,8 +461,7 @@ class Predictor:
             return
         self.config = config
         if config.error_window != old.error_window:
-            self._win = np.zeros((3, config.error_window))
-            self._win_n = self._win_i = 0
+            self._clear_window(config.error_window)
 
     def reset(self) -> None:
         """Back to the initial state (reference, or next measurement); clears the monitor.
@@ -470,12 +472,11 @@ class Predictor:
         """
         self.x[:] = 0.0
         self._set_time(None)
-        self._win[:] = 0.0
-        self._win_n = 0
-        self._win_i = 0
+        self._clear_window(self.config.error_window)
         self._diverged = False
         self._awaiting_init = self.config.initial_state == 'measured'
         self._stamp[:] = -np.inf
+        self._stamp_max = -math.inf
         self._update_Bu()
 
     def _update_Bu(self) -> None:
@@ -504,12 +505,13 @@ class Predictor:
                               f'input of length {u.size}, expected {m}')
         if not (math.isfinite(u.sum()) and math.isfinite(stamp)):
             return self._drop('nonfinite', stamp, 'input with NaN/Inf')
-        if stamp < self._stamp.max():
+        if stamp < self._stamp_max:
             if not self._clock_restarted(stamp):
                 return self._drop('backwards', stamp, 'input stamp went backwards')
         self._before_input(stamp)
         self.u[:] = u
         self._stamp[:] = stamp
+        self._stamp_max = stamp
         self._arrival[:] = stamp
         self.counters['inputs'] += 1
         self._update_Bu()
@@ -529,6 +531,7 @@ class Predictor:
         self._before_input(stamp)
         self.u[index] = value
         self._stamp[index] = stamp
+        self._stamp_max = max(self._stamp_max, stamp)
         self._arrival[index] = stamp
         self.counters['inputs'] += 1
         self._update_Bu()
@@ -538,7 +541,7 @@ class Predictor:
         # A jump back by more than clock_reset_s is a restarted clock (bag played again,
         # simulation restarted): start over instead of dropping every later message.
         limit = self.config.clock_reset_s
-        last = self._stamp.max()
+        last = self._stamp_max
         if limit > 0 and stamp < last - limit:
             self.counters['clock_reset'] += 1
             self.reset()
@@ -646,26 +649,42 @@ class Predictor:
             self._awaiting_init = False
         yhat = self.output(self._y)
         np.subtract(y, yhat, out=self._dy)
-        e2 = float(self._dy @ self._dy)
-        i = self._win_i
-        self._win[0, i] = e2
-        self._win[1, i] = float(y @ y)
-        d = y - rt.y_ref
-        self._win[2, i] = float(d @ d)
-        self._win_i = (i + 1) % self._win.shape[1]
-        self._win_n = min(self._win_n + 1, self._win.shape[1])
+        np.subtract(y, rt.y_ref, out=self._dev)
+        self._push_window(float(self._dy @ self._dy), float(y @ y),
+                          float(self._dev @ self._dev))
         if rt.L is not None:
             self.x += rt.L @ self._dy
         self.counters['measurements'] += 1
         return self.windowed_error()
 
+    def _clear_window(self, w: int) -> None:
+        # Ring buffers of |e|^2, |y|^2, |y - y_ref|^2 with running sums (recomputed exactly
+        # each time the ring wraps, so rounding cannot accumulate).
+        self._we, self._wy, self._wd = [0.0] * w, [0.0] * w, [0.0] * w
+        self._se = self._sy = self._sd = 0.0
+        self._win_n = 0
+        self._win_i = 0
+
+    def _push_window(self, e2: float, y2: float, d2: float) -> None:
+        i = self._win_i
+        self._se += e2 - self._we[i]
+        self._sy += y2 - self._wy[i]
+        self._sd += d2 - self._wd[i]
+        self._we[i], self._wy[i], self._wd[i] = e2, y2, d2
+        i += 1
+        if i == len(self._we):
+            i = 0
+            self._se, self._sy, self._sd = sum(self._we), sum(self._wy), sum(self._wd)
+        self._win_i = i
+        if self._win_n < len(self._we):
+            self._win_n += 1
+
     def windowed_errors(self) -> tuple[float, float]:
         """``(absolute, deviation)`` windowed relative errors (``nan`` before a measurement)."""
         if self._win_n == 0:
             return math.nan, math.nan
-        s = self._win.sum(axis=1)
-        tiny = np.finfo(float).tiny
-        return math.sqrt(s[0] / max(s[1], tiny)), math.sqrt(s[0] / max(s[2], tiny))
+        se = max(self._se, 0.0)
+        return (math.sqrt(se / max(self._sy, _TINY)), math.sqrt(se / max(self._sd, _TINY)))
 
     def windowed_error(self) -> float:
         """The windowed relative error chosen by ``error_metric``."""
@@ -778,13 +797,14 @@ def replay_episode(predictor: Predictor, episode: Episode, *, measured: bool = T
     errors = np.full(k, np.nan)
     levels = np.zeros(k, dtype=np.int64) if track_health else None
     ybuf = np.empty(p)
-    for j in range(k):
-        tj = float(t[j])
+    Ut = np.ascontiguousarray(U.T)          # one contiguous row per sample
+    Yt = np.ascontiguousarray(Y.T) if measured else None
+    for j, tj in enumerate(t.tolist()):
         predictor.advance_to(tj)
-        predictor.set_input(U[:, j], tj)
+        predictor.set_input(Ut[j], tj)
         Yhat[:, j] = predictor.output(ybuf)
-        if measured:
-            e = predictor.measure(Y[:, j], tj)
+        if Yt is not None:
+            e = predictor.measure(Yt[j], tj)
             errors[j] = math.nan if e is None else e
         if levels is not None:
             levels[j] = int(predictor.health(tj).level)

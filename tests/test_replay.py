@@ -155,3 +155,37 @@ def test_cli_replay_with_params_file_and_kalman_comparison(tmp_path, capsys) -> 
     assert count[f'{NODE}/centerline'] == 30                 # 100 Hz from 1 kHz
     assert main(['replay', str(tmp_path / 'nope.npz'), str(bag), '-o',
                  str(tmp_path / 'x')]) == 2
+
+
+def test_cdr_templates_equal_direct_serialization() -> None:
+    from soft_rom.bags import replay_io as rio
+
+    rng = np.random.default_rng(3)
+    with_writer = rio.PredictionBagWriter.__new__(rio.PredictionBagWriter)
+    with_writer.frame_id, with_writer._templates = 'world', {}
+    with_writer.topics = {'centerline': (None, 'geometry_msgs/msg/PoseArray'),
+                          'marker': (None, 'visualization_msgs/msg/Marker'),
+                          'output': (None, 'std_msgs/msg/Float64MultiArray')}
+    for n in (1, 7, 20):
+        for t in (0.0, 12.345678901, 1.7e9 + 0.5):
+            pts = rng.standard_normal((n, 3))
+            direct = rio._TS.serialize_cdr(rio._pose_array(t, 'world', pts),
+                                           'geometry_msgs/msg/PoseArray')
+            assert with_writer._template('centerline', n).render(t, pts) == bytes(direct)
+            ns, mid, rgba, width = rio._MARKERS['measured']
+            direct = rio._TS.serialize_cdr(rio._marker(t, 'world', pts, ns, mid, rgba, width),
+                                           'visualization_msgs/msg/Marker')
+            tpl = with_writer._template('measured', n).render(t, pts)
+            # the texture header keeps the template's zero stamp; everything else is equal
+            msg = rio._TS.deserialize_cdr(tpl, 'visualization_msgs/msg/Marker')
+            ref = rio._TS.deserialize_cdr(bytes(direct), 'visualization_msgs/msg/Marker')
+            assert (msg.header.stamp.sec, msg.header.stamp.nanosec) == (
+                ref.header.stamp.sec, ref.header.stamp.nanosec)
+            assert [(p.x, p.y, p.z) for p in msg.points] == [(p.x, p.y, p.z)
+                                                              for p in ref.points]
+            assert (msg.ns, msg.id, msg.type, msg.scale.x) == (ns, mid, 4, width)
+            y = rng.standard_normal(2 * n)
+            direct = rio._TS.serialize_cdr(rio._float64_array(y, 'outputs'),
+                                           'std_msgs/msg/Float64MultiArray')
+            assert with_writer._template('output', 2 * n).render(t, y.reshape(-1, 1)) == bytes(
+                direct)

@@ -161,6 +161,51 @@ def _diagnostics(t: float, health: Health, name: str, hardware_id: str) -> Any:
     return _T['diagnostic_msgs/msg/DiagnosticArray'](header=_header(t, ''), status=[status])
 
 
+_MARKERS = {'predicted': ('predicted', 0, (0.1, 0.4, 1.0, 1.0), 0.004),
+            'measured': ('measured', 1, (1.0, 0.3, 0.1, 1.0), 0.003)}
+
+
+def _sentinel(n: int) -> Array:
+    """``(n, 3)`` distinctive doubles, located in a serialized template by their bytes."""
+    return (np.arange(3 * n, dtype=np.float64).reshape(n, 3) + 0.123456789) * -1.2345e-7 - 7e5
+
+
+class _CdrTemplate:
+    """A serialized message whose stamp and one block of doubles are patched per write.
+
+    The block (``n`` rows of ``stride`` doubles, the first ``values.shape[1]`` of each row
+    patched) is found by searching the serialized template for the sentinel values; CDR
+    lays out a sequence of fixed-size double structs contiguously, so patching it is exact.
+    The header stamp of a message starting with ``std_msgs/Header`` follows the 4-byte
+    encapsulation header (``int32 sec`` at byte 4, ``uint32 nanosec`` at byte 8).
+    """
+
+    def __init__(self, msg: Any, msgtype: str, sentinel: Array, *, stride: int,
+                 header: bool = True) -> None:
+        self.buf = bytearray(_TS.serialize_cdr(msg, msgtype))
+        if self.buf[:2] != b'\x00\x01':  # little-endian CDR only
+            raise BagError('unexpected CDR encapsulation in a message template.')
+        first = np.ascontiguousarray(sentinel[0, :1], dtype='<f8').tobytes()
+        offset = bytes(self.buf).find(first)
+        n, cols = sentinel.shape
+        if offset < 0:
+            raise BagError(f'cannot locate the data block of a {msgtype} template.')
+        self.block = np.frombuffer(self.buf, dtype='<f8', count=n * stride,
+                                   offset=offset).reshape(n, stride)
+        if not np.array_equal(self.block[:, :cols], sentinel):
+            raise BagError(f'the data block of a {msgtype} template is not contiguous.')
+        self.cols = cols
+        self.header = header
+        self.stamp = np.frombuffer(self.buf, dtype='<u4', count=2, offset=4) if header else None
+
+    def render(self, t: float, values: Array) -> bytes:
+        """Serialized message with stamp ``t`` and ``values`` (shape (n, cols))."""
+        if self.stamp is not None:
+            self.stamp[:] = sec_to_stamp(t)
+        self.block[:, :self.cols] = values
+        return bytes(self.buf)
+
+
 class PredictionBagWriter:
     """Write the predictor node's topics to a bag (a context manager).
 
@@ -195,6 +240,7 @@ class PredictionBagWriter:
             'diagnostics': ('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray'),
             'model_info': (f'{base}/model_info', 'std_msgs/msg/String'),
         }
+        self._templates: dict[tuple[str, int], _CdrTemplate] = {}
         self._conn = {}
         for key, (topic, msgtype) in self.topics.items():
             qos = _latched_qos() if key == 'model_info' else []
@@ -209,18 +255,46 @@ class PredictionBagWriter:
         """The latched JSON description of the model."""
         self._write('model_info', t, _T['std_msgs/msg/String'](data=model_info_json(info)))
 
+    def _template(self, kind: str, n: int) -> _CdrTemplate:
+        key = (kind, n)
+        tpl = self._templates.get(key)
+        if tpl is None:
+            sentinel = _sentinel(n)
+            if kind == 'centerline':
+                tpl = _CdrTemplate(_pose_array(0.0, self.frame_id, sentinel),
+                                   self.topics['centerline'][1], sentinel, stride=7)
+            elif kind == 'output':
+                flat = sentinel.reshape(-1)[:n]
+                tpl = _CdrTemplate(_float64_array(flat, 'outputs'), self.topics['output'][1],
+                                   flat.reshape(-1, 1), stride=1, header=False)
+            else:
+                ns, marker_id, rgba, width = _MARKERS[kind]
+                tpl = _CdrTemplate(_marker(0.0, self.frame_id, sentinel, ns, marker_id, rgba,
+                                           width), self.topics['marker'][1], sentinel,
+                                   stride=3)
+            self._templates[key] = tpl
+        return tpl
+
+    def _write_raw(self, key: str, t: float, data: bytes) -> None:
+        self._writer.write(self._conn[key], int(round(t * 1e9)), data)
+
     def write_prediction(self, t: float, y: Array, measured: Array | None = None) -> None:
-        """Centerline, marker(s) and raw output for one published step at ``t`` seconds."""
+        """Centerline, marker(s) and raw output for one published step at ``t`` seconds.
+
+        Messages are rendered from pre-serialized CDR templates (stamp and coordinates
+        patched in place), which is several times faster than serializing each message.
+        """
+        y = np.asarray(y, dtype=np.float64)
         check_components(self.components, y.size)
         pts = outputs_to_points(y, self.components, self.fill)
-        self._write('centerline', t, _pose_array(t, self.frame_id, pts))
-        self._write('marker', t, _marker(t, self.frame_id, pts, 'predicted', 0,
-                                         (0.1, 0.4, 1.0, 1.0), 0.004))
+        n = pts.shape[0]
+        self._write_raw('centerline', t, self._template('centerline', n).render(t, pts))
+        self._write_raw('marker', t, self._template('predicted', n).render(t, pts))
         if measured is not None:
             mpts = outputs_to_points(measured, self.components, self.fill)
-            self._write('marker', t, _marker(t, self.frame_id, mpts, 'measured', 1,
-                                             (1.0, 0.3, 0.1, 1.0), 0.003))
-        self._write('output', t, _float64_array(np.asarray(y, dtype=np.float64), 'outputs'))
+            self._write_raw('marker', t, self._template('measured', n).render(t, mpts))
+        self._write_raw('output', t, self._template('output', y.size).render(
+            t, y.reshape(-1, 1)))
 
     def write_error(self, t: float, error: float) -> None:
         """Windowed relative error (``std_msgs/Float64``)."""
