@@ -12,12 +12,10 @@ its values.
 
 from __future__ import annotations
 
-import os
-
-from ament_index_python.packages import get_package_share_directory
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
-from launch.substitutions import LaunchConfiguration
+from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
+from launch_ros.substitutions import FindPackageShare
 
 from launch import LaunchDescription
 
@@ -48,8 +46,8 @@ def _node(context, *args, **kwargs):
 
 def generate_launch_description() -> LaunchDescription:
     """Arguments: model_path, params_file, use_sim_time, kalman, node_name."""
-    default_params = os.path.join(get_package_share_directory('soft_rom'), 'config',
-                                  'predictor.yaml')
+    default_params = PathJoinSubstitution([FindPackageShare('soft_rom'), 'config',
+                                           'predictor.yaml'])
     return LaunchDescription([
         DeclareLaunchArgument('model_path', default_value='',
                               description='model file (.npz); empty: the params file value'),
