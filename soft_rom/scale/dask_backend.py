@@ -9,7 +9,8 @@ the result equals the local one (same kernels, same order of additions; what dif
 all is only BLAS-internal rounding, far below the 1e-10 agreement tested).
 
 Large shared operands (the range basis ``Q_b``, ``q_ref``) are scattered to every worker
-once per pass.
+once per pass, under fresh keys (``hash=False``: content-hashed keys would be shared between
+passes, and releasing one pass's copy could cancel the next pass's tasks).
 """
 
 from __future__ import annotations
@@ -95,8 +96,9 @@ class DaskExecutor:
         from dask import delayed
         arrays = self._arrays(snaps)
         per_block = per_block if per_block is not None else [()] * len(plan)
-        ref_f = self.client.scatter(snaps.q_ref, broadcast=True)
-        shared_f = [self.client.scatter(s, broadcast=True) if isinstance(s, np.ndarray)
+        ref_f = self.client.scatter(snaps.q_ref, broadcast=True, hash=False)
+        shared_f = [self.client.scatter(s, broadcast=True, hash=False)
+                    if isinstance(s, np.ndarray)
                     else s for s in shared]
         tasks = []
         for block, args in zip(plan, per_block):

@@ -317,6 +317,7 @@ def _reduced_kwargs(est: Any, td: TrainingData, red: ReducedData, r: int) -> dic
     s = red.pod.singular_values_
     extra['energy'] = float(np.sum(s[:r] ** 2) / red.pod.total_energy_)
     extra['energy_captured'] = extra['energy']
+    extra['time_ranges'] = [[float(ep.t[0]), float(ep.t[-1])] for ep in td.episodes]
     for key, value in extra.items():
         if key in params:
             out[key] = value
