@@ -67,9 +67,11 @@ def test_replay_bag_has_node_topics_and_exact_predictions(tmp_path, storage: str
     info = json.loads(next(m.data for tp, _, m in msgs if tp == f'{NODE}/model_info'))
     assert info['r'] == 4 and info['method'] == 'lopinf'
     assert info['sha256'] == file_sha256(path)
-    diag = next(m for tp, _, m in msgs if tp == '/diagnostics').status[0]
-    keys = {kv.key for kv in diag.values}
+    diags = [m.status[0] for tp, _, m in msgs if tp == '/diagnostics']
+    keys = {kv.key for kv in diags[0].values}
     assert {'error_deviation', 'nonfinite', 'backwards', 'wrong_length'} <= keys
+    rate = float(dict((kv.key, kv.value) for kv in diags[1].values)['input_rate_hz'])
+    assert rate == pytest.approx(1000.0, rel=0.03)                # one input per 1 ms
     errors = [m.data for tp, _, m in msgs if tp == f'{NODE}/error']
     assert max(errors) <= 1e-10
 

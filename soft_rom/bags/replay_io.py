@@ -153,11 +153,12 @@ def _float64_array(values: Array, label: str) -> Any:
                                                 data=np.array(values, dtype=np.float64))
 
 
-def _diagnostics(t: float, health: Health, name: str, hardware_id: str) -> Any:
+def _diagnostics(t: float, health: Health, name: str, hardware_id: str,
+                 extra: list[tuple[str, str]] | None = None) -> Any:
     KV = _T['diagnostic_msgs/msg/KeyValue']
     status = _T['diagnostic_msgs/msg/DiagnosticStatus'](
         level=int(health.level), name=name, message=health.message, hardware_id=hardware_id,
-        values=[KV(key=k, value=v) for k, v in health_key_values(health)])
+        values=[KV(key=k, value=v) for k, v in health_key_values(health) + (extra or [])])
     return _T['diagnostic_msgs/msg/DiagnosticArray'](header=_header(t, ''), status=[status])
 
 
@@ -300,10 +301,11 @@ class PredictionBagWriter:
         """Windowed relative error (``std_msgs/Float64``)."""
         self._write('error', t, _T['std_msgs/msg/Float64'](data=float(error)))
 
-    def write_diagnostics(self, t: float, health: Health) -> None:
-        """One ``DiagnosticArray`` with the predictor's status."""
+    def write_diagnostics(self, t: float, health: Health,
+                          extra: list[tuple[str, str]] | None = None) -> None:
+        """One ``DiagnosticArray`` with the predictor's status (plus ``extra`` key-values)."""
         self._write('diagnostics', t, _diagnostics(
-            t, health, f'{self.node_name}: prediction', self.node_name))
+            t, health, f'{self.node_name}: prediction', f'/{self.node_name}', extra))
 
     def close(self) -> None:
         """Finish the bag (writes its metadata)."""
@@ -337,6 +339,7 @@ def replay_to_bag(predictor: Predictor, episode: Episode, out: str | os.PathLike
         t0 = float(episode.t[0]) if episode.t.size else 0.0
         writer.write_model_info(t0, predictor.info)
         next_diag = [t0]
+        last = [math.nan, 0, 0]          # time, inputs, measurements at the last diagnostics
 
         def emit(j: int, t: float, yhat: Array, pred: Predictor) -> None:
             if j % publish_every == 0:
@@ -345,7 +348,13 @@ def replay_to_bag(predictor: Predictor, episode: Episode, out: str | os.PathLike
                 if measured and math.isfinite(err):
                     writer.write_error(t, err)
             if t >= next_diag[0]:
-                writer.write_diagnostics(t, pred.health(t))
+                n_in, n_meas = pred.counters['inputs'], pred.counters['measurements']
+                extra = []
+                if t > last[0]:      # same figures as the node
+                    extra = [('input_rate_hz', f'{(n_in - last[1]) / (t - last[0]):.4g}'),
+                             ('measured_rate_hz', f'{(n_meas - last[2]) / (t - last[0]):.4g}')]
+                writer.write_diagnostics(t, pred.health(t), extra)
+                last[:] = [t, n_in, n_meas]
                 next_diag[0] = t + diagnostics_period
             if progress is not None:
                 progress(j)
