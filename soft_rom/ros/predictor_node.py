@@ -398,7 +398,9 @@ class PredictorNode(Node):
         values = self._values(params)
         try:
             config = predictor_config(values)
-            if 'model_path' in names or self.predictor is None:
+            if self.predictor is None and 'model_path' not in names:
+                return SetParametersResult(successful=True)     # used when a model loads
+            if 'model_path' in names:
                 path = str(values['model_path'])
                 if not path:
                     if self.predictor is None:
