@@ -191,3 +191,49 @@ def test_cdr_templates_equal_direct_serialization() -> None:
                                            'std_msgs/msg/Float64MultiArray')
             assert with_writer._template('output', 2 * n).render(t, y.reshape(-1, 1)) == bytes(
                 direct)
+
+
+@pytest.mark.parametrize('stepping', ['fixed', 'input'])
+def test_stream_replay_feeds_messages_like_the_node(tmp_path, stepping: str) -> None:
+    from soft_rom.bags.replay_io import replay_stream_to_bag
+
+    model = _model()
+    ep = _episode(model, k=100)
+    topics = [f'/soft_robot/pressure/chamber_{i + 1}' for i in range(3)]
+    bag = write_input_bag(tmp_path / 'in', ep, storage='mcap', chamber_topics=topics)
+    out = tmp_path / 'pred'
+    summary = replay_stream_to_bag(Predictor(model, PredictorConfig(stepping=stepping)), bag,
+                                   out, input_topics=topics, publish_rate_hz=250.0,
+                                   diagnostics_period=0.05)
+    # input stepping has nothing to publish before the first input (like the node)
+    n_pub = 25 if stepping == 'fixed' else 24
+    assert summary['messages'] == {'inputs': 300, 'measured': 100, 'published': n_pub}
+    assert summary['relative_error'] <= 1e-12
+    assert summary['counters']['late'] == 0 and summary['counters']['backwards'] == 0
+    got = [(t, data_to_array(m.data)) for _, t, m in read_messages(out, [f'{NODE}/output'])]
+    assert len(got) == n_pub
+    # every 4th step, stamped with the model time (input stepping: the last input's)
+    offset = 0 if stepping == 'fixed' else 3
+    for t, y in got:
+        j = int(round((t - ep.t[0]) / model.dt))
+        assert j % 4 == offset
+        np.testing.assert_allclose(y, ep.Y[:, j], atol=1e-12)
+
+
+def test_cli_replay_stream(tmp_path, capsys) -> None:
+    from soft_rom.cli import main
+
+    model = _model()
+    path = model.save(tmp_path / 'm.npz')
+    ep = _episode(model, k=60)
+    bag = write_input_bag(tmp_path / 'in', ep, storage='sqlite3', per_chamber=False)
+    params = tmp_path / 'p.yaml'
+    params.write_text("soft_rom_predictor:\n  ros__parameters:\n    input_mode: 'array'\n"
+                      "    publish_rate_hz: 0.0\n")
+    summary = tmp_path / 's.json'
+    assert main(['replay', str(path), str(bag), '-o', str(tmp_path / 'pred'), '--stream',
+                 '--config', str(params), '--summary-json', str(summary)]) == 0
+    assert 'relative deviation error' in capsys.readouterr().out
+    data = json.loads(summary.read_text())
+    assert data['messages']['inputs'] == 60 and data['messages']['measured'] == 60
+    assert data['relative_error'] <= 1e-12

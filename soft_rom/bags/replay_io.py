@@ -47,6 +47,8 @@ from soft_rom.ros.conversions import (
     health_key_values,
     model_info_json,
     outputs_to_points,
+    points_to_outputs,
+    poses_to_points,
     sec_to_stamp,
 )
 
@@ -66,6 +68,7 @@ __all__ = [
     'DEFAULT_NODE_NAME',
     'PredictionBagWriter',
     'read_messages',
+    'replay_stream_to_bag',
     'replay_to_bag',
     'storage_plugin',
     'write_input_bag',
@@ -426,3 +429,112 @@ def read_messages(path: str | os.PathLike[str],
             yield conn.topic, ns * 1e-9, _TS.deserialize_cdr(raw, conn.msgtype)
     finally:
         reader.close()
+
+
+def replay_stream_to_bag(predictor: Predictor, bag: str | os.PathLike[str],
+                         out: str | os.PathLike[str], *, input_mode: str = 'per_chamber',
+                         input_topics: list[str] | None = None,
+                         array_topic: str = '/soft_robot/pressures', input_scale: float = 1.0,
+                         input_offset: float = 0.0,
+                         measured_topic: str = '/soft_robot/centerline',
+                         components: str = 'xz', publish_rate_hz: float = 0.0,
+                         diagnostics_period: float = 1.0, storage: str = 'mcap',
+                         node_name: str = DEFAULT_NODE_NAME, frame_id: str = 'world',
+                         overwrite: bool = False) -> dict[str, Any]:
+    """Replay a bag message by message, exactly as the node would see it played back.
+
+    Unlike :func:`replay_to_bag` (which runs over an :class:`Episode`, inputs already
+    aligned on the output stamps), this feeds every input and measured message to the
+    predictor in bag order with its own stamp, and emulates the node's publish timer on the
+    bag clock (``use_sim_time`` playback): ticks every ``round(1 / (rate h)) h`` seconds
+    advance the model (``'fixed'`` stepping) and publish. Parameters mirror the node's.
+
+    Returns
+    -------
+    dict
+        ``relative_error`` / ``relative_deviation_error`` of the predictions at the
+        measurement stamps (before any correction), message counts and predictor counters.
+    """
+    model = predictor.model
+    check_components(components, model.n_outputs)
+    topics = list(input_topics or [f'/soft_robot/pressure/chamber_{i + 1}'
+                                   for i in range(model.n_inputs)])
+    if input_mode == 'per_chamber':
+        if len(topics) != model.n_inputs:
+            raise BagError(f'the model has {model.n_inputs} inputs; {len(topics)} input '
+                           'topics given.')
+        index = {tp: i for i, tp in enumerate(topics)}
+        wanted = list(topics)
+    elif input_mode == 'array':
+        index, wanted = {}, [array_topic]
+    else:
+        raise BagError(f"input_mode must be 'per_chamber' or 'array'; got {input_mode!r}.")
+    if measured_topic:
+        wanted.append(measured_topic)
+    h = predictor.h
+    period = h if publish_rate_hz <= 0 else max(1, round(1.0 / (publish_rate_hz * h))) * h
+    fixed = predictor.config.stepping == 'fixed'
+    sums = np.zeros(3)
+    counts = {'inputs': 0, 'measured': 0, 'published': 0}
+    with PredictionBagWriter(out, storage=storage, node_name=node_name, frame_id=frame_id,
+                             components=components, overwrite=overwrite) as writer:
+        state: dict[str, Any] = {'tick': None, 'diag': None, 'measured': None}
+
+        def tick(now: float) -> None:
+            if fixed:
+                predictor.advance_to(now)
+            if predictor.t is None:
+                return
+            y = predictor.output()
+            writer.write_prediction(predictor.t, y, state['measured'])
+            err = predictor.windowed_error()
+            if math.isfinite(err):
+                writer.write_error(predictor.t, err)
+            counts['published'] += 1
+
+        def catch_up(now: float) -> None:
+            if state['tick'] is None:
+                state['tick'], state['diag'] = now, now
+                writer.write_model_info(now, predictor.info)
+            while state['tick'] <= now:
+                tick(state['tick'])
+                state['tick'] += period
+            while state['diag'] <= now:
+                writer.write_diagnostics(state['diag'], predictor.health(state['diag']))
+                state['diag'] += diagnostics_period
+
+        def stamp_of(msg: Any, log_time: float) -> float:
+            st = msg.header.stamp
+            return log_time if st.sec == 0 and st.nanosec == 0 else st.sec + st.nanosec * 1e-9
+
+        for topic, log_time, msg in read_messages(bag, wanted):
+            catch_up(log_time)
+            if topic == measured_topic:
+                y = points_to_outputs(poses_to_points(msg.poses), components)
+                t = stamp_of(msg, log_time)
+                predictor.advance_to(t)
+                yhat = predictor.output()
+                if predictor.measure(y, t) is not None:
+                    e = y - yhat
+                    d = y - model.y_ref
+                    sums += (e @ e, y @ y, d @ d)
+                    state['measured'] = y
+                    counts['measured'] += 1
+            elif topic in index:
+                value = input_scale * float(msg.fluid_pressure) + input_offset
+                predictor.set_channel(index[topic], value, stamp_of(msg, log_time))
+                counts['inputs'] += 1
+            else:
+                u = input_scale * np.asarray(msg.data, dtype=np.float64) + input_offset
+                predictor.set_input(u, log_time)
+                counts['inputs'] += 1
+    tiny = np.finfo(float).tiny
+    return {
+        'relative_error': math.sqrt(sums[0] / max(sums[1], tiny)) if counts['measured']
+        else math.nan,
+        'relative_deviation_error': math.sqrt(sums[0] / max(sums[2], tiny))
+        if counts['measured'] else math.nan,
+        'messages': counts,
+        'counters': dict(predictor.counters),
+        'model': predictor.info,
+    }
