@@ -17,9 +17,12 @@ topic                              type                                   when
 ================================== ====================================== =====================
 
 :func:`replay_to_bag` runs a :class:`~soft_rom.predictor.Predictor` over an episode and
-writes those topics; :func:`write_input_bag` writes an episode as the *inputs* of the
-bag contract (pressures per chamber or as one array, measured centerline), for tests and
-demos; :func:`read_messages` reads any bag back as deserialized messages.
+writes those topics; :func:`replay_stream_to_bag` feeds a bag's messages one by one with
+their own stamps and emulates the node's publish timer (what the node does under
+``ros2 bag play --clock`` with ``use_sim_time``); :func:`write_input_bag` writes an
+episode as the *inputs* of the bag contract (pressures per chamber or as one array,
+measured centerline), for tests and demos; :func:`read_messages` reads any bag back as
+deserialized messages.
 
 Both rosbag2 storage formats are supported: ``'sqlite3'`` and ``'mcap'`` (Jazzy's
 default). Bag time stamps are nanoseconds here and seconds everywhere else.

@@ -4,6 +4,10 @@ The bag's inputs (and measured centerline, when present) are read with
 :func:`soft_rom.convert.read_episode`; the same :class:`~soft_rom.predictor.Predictor` the
 node runs is stepped over them, and the node's topics are written to ``OUT``
 (:mod:`soft_rom.bags.replay_io`). A summary of the errors is printed.
+
+With ``--stream`` the bag is fed message by message instead (each pressure and measured
+centerline with its own stamp, the publish timer emulated on the bag clock), configured by
+the node's parameter file: the node's behaviour on multi-rate recordings, offline.
 """
 
 from __future__ import annotations
