@@ -1,0 +1,154 @@
+"""``soft-rom evaluate``: models x episodes -> both relative errors, plots, JSON.
+
+Examples::
+
+    soft-rom evaluate models/eel_*.npz --data eel.zarr --t-split 1.5 --plots figs/
+    soft-rom evaluate models/eel_lopinf_r10.npz --data eel.zarr --episodes ep3,ep4 --json e.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+import sys
+from typing import Any
+
+import numpy as np
+
+from soft_rom.cli.fit import open_training_set, select_episodes
+from soft_rom.data import Episode
+from soft_rom.errors import DimensionError
+from soft_rom.evaluation import evaluate
+from soft_rom.models import LinearROM, load_model
+
+__all__ = ['add_parser', 'plot_outputs', 'run']
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register ``evaluate``."""
+    parser = subparsers.add_parser(
+        'evaluate', help='errors of model files on a training/test set',
+        description='Simulate each model on the inputs of each episode (from the reference '
+                    'state) and report the relative output error ||Y - Yhat||/||Y|| and the same '
+                    'on deviations from y_ref, per model x episode and pooled; optionally on '
+                    't < T_SPLIT and t >= T_SPLIT separately.')
+    parser.add_argument('models', nargs='+', metavar='MODEL', help='model files (.npz)')
+    parser.add_argument('--data', required=True, metavar='TRAINING_SET',
+                        help='training set (.zarr) holding the episodes')
+    parser.add_argument('--episodes', default=None,
+                        help='comma-separated episode names (default all)')
+    parser.add_argument('--t-split', type=float, default=None,
+                        help='also report errors before/after this time (s from episode start)')
+    parser.add_argument('--initial', choices=('reference', 'output'), default='reference',
+                        help='initial state: the reference configuration (default) or fitted '
+                             'to the first measured output')
+    parser.add_argument('--plots', default=None, metavar='DIR',
+                        help='write PNG plots of output traces (measured vs predicted)')
+    parser.add_argument('--outputs', default=None,
+                        help='comma-separated output indices (0-based) or names to plot '
+                             '(default: 2 spread over the vector)')
+    parser.add_argument('--json', default=None, metavar='FILE', help='write all rows as JSON')
+    parser.set_defaults(func=run)
+    return parser
+
+
+def _check_layout(model: LinearROM, path: str, ts: Any) -> None:
+    m, p = len(ts.input_names), len(ts.output_names)
+    if model.n_inputs != m or model.n_outputs != p:
+        raise DimensionError(
+            f'{path}: the model has {model.n_inputs} inputs and {model.n_outputs} outputs but '
+            f'the data have {m} inputs and {p} outputs; evaluate it on data of the same layout.')
+
+
+def run(args: argparse.Namespace) -> int:
+    """Execute ``soft-rom evaluate``."""
+    models = []
+    for path in args.models:
+        models.append((path, load_model(path)))
+    ts = open_training_set(args.data)
+    episodes = select_episodes(ts, args.episodes)
+    for path, model in models:
+        _check_layout(model, path, ts)
+    rows: list[dict[str, Any]] = []
+    plots_dir = Path(args.plots) if args.plots else None
+    for path, model in models:
+        ev = evaluate(model, episodes, t_split=args.t_split, initial=args.initial,
+                      return_predictions=plots_dir is not None)
+        for row in ev.rows:
+            rows.append({'model': Path(path).name, 'method': model.method, 'r': model.r,
+                         **row})
+        if plots_dir is not None:
+            for ep in episodes:
+                plot_outputs(ep, ev.predictions[ep.name], model,
+                             plots_dir / f'{Path(path).stem}__{ep.name}.png',
+                             outputs=args.outputs, t_split=args.t_split)
+    print(format_table(rows))
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2) + '\n')
+    if plots_dir is not None:
+        print(f'plots written to {plots_dir}/', file=sys.stderr)
+    return 0
+
+
+def format_table(rows: list[dict[str, Any]]) -> str:
+    """Text table of the evaluation rows."""
+    w = max([len(r['model']) for r in rows] + [5])
+    head = (f'{"model":<{w}} {"episode":<10} {"segment":<7} {"samples":>7} '
+            f'{"err":>10} {"dev err":>10}')
+    lines = [head, '-' * len(head)]
+    for r in rows:
+        lines.append(f'{r["model"]:<{w}} {r["episode"]:<10} {r["segment"]:<7} '
+                     f'{r["n_samples"]:>7d} {r["relative_error"]:>10.3e} '
+                     f'{r["relative_deviation_error"]:>10.3e}')
+    return '\n'.join(lines)
+
+
+def _output_indices(spec: str | None, model: LinearROM) -> list[int]:
+    p = model.n_outputs
+    if spec is None:
+        return sorted({p // 4, (3 * p) // 4}) if p > 1 else [0]
+    out = []
+    for item in spec.split(','):
+        item = item.strip()
+        if item in model.output_names:
+            out.append(model.output_names.index(item))
+            continue
+        try:
+            i = int(item)
+        except ValueError as err:
+            raise DimensionError(f'--outputs: {item!r} is neither an index nor an output '
+                                 f'name.') from err
+        if not 0 <= i < p:
+            raise DimensionError(f'--outputs: index {i} out of range 0..{p - 1}.')
+        out.append(i)
+    return out
+
+
+def plot_outputs(ep: Episode, Y_hat: np.ndarray, model: LinearROM, path: str | Path, *,
+                 outputs: str | None = None, t_split: float | None = None) -> Path:
+    """PNG of measured vs predicted output traces of one episode."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    idx = _output_indices(outputs, model)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, axes = plt.subplots(len(idx), 1, figsize=(7, 2.2 * len(idx) + 0.6), sharex=True,
+                             squeeze=False)
+    t = ep.t - ep.t[0]
+    for ax, i in zip(axes[:, 0], idx):
+        unit = model.output_units[i]
+        ax.plot(t, ep.Y[i], 'k-', lw=1.2, label='data')
+        ax.plot(t, Y_hat[i], 'C1--', lw=1.2, label=f'{model.method} r={model.r}')
+        if t_split is not None:
+            ax.axvline(t_split, color='m', lw=1)
+        ax.set_ylabel(f'{model.output_names[i]}' + (f' [{unit}]' if unit else ''))
+    axes[0, 0].legend(loc='best', fontsize=8)
+    axes[-1, 0].set_xlabel('t [s]')
+    axes[0, 0].set_title(f'{ep.name}')
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
