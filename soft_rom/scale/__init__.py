@@ -1,1 +1,40 @@
-"""Fitting at scale: POD, projection and fits streamed from disk, locally or on Dask."""
+"""Fitting at scale: POD, projection and fits streamed from disk, locally or on Dask.
+
+Training sets larger than memory (the paper's 231,336-DOF FOM: 6 x 2,000 snapshots, 22 GB)
+are read in column blocks by a streaming POD (:class:`StreamingPOD`, a few passes, bounded
+memory) whose last pass also yields the reduced coordinates; LOpInf, DMDc and the output
+fits then run in memory on reduced data, and ERA/OKID needs inputs and outputs only.
+
+>>> from soft_rom.scale import fit_streaming                       # doctest: +SKIP
+>>> model = fit_streaming('train.zarr', 'lopinf', r=16)               # doctest: +SKIP
+>>> model = fit_streaming('train.zarr', 'dmdc', r=16,
+...                       client='tcp://scheduler:8786')              # doctest: +SKIP
+
+Several models from one pass over the data::
+
+    red = reduce_streaming('train.zarr', n_coords=60)
+    models = [fit_reduced_model(red, 'lopinf', r) for r in (4, 8, 16)]
+"""
+
+from soft_rom.scale.blocks import LocalExecutor, SnapshotSet
+from soft_rom.scale.fit import (
+    fit_reduced_model,
+    fit_streaming,
+    open_training_data,
+    reduce_streaming,
+    ReducedData,
+    TrainingData,
+)
+from soft_rom.scale.pod import StreamingPOD
+
+__all__ = [
+    'LocalExecutor',
+    'ReducedData',
+    'SnapshotSet',
+    'StreamingPOD',
+    'TrainingData',
+    'fit_reduced_model',
+    'fit_streaming',
+    'open_training_data',
+    'reduce_streaming',
+]

@@ -146,7 +146,13 @@ class SnapshotSet:
     def read_columns(self, block: Block) -> Array:
         """Read one column block and centre it: returns a fresh ``(n, c)`` array."""
         a = self.arrays[block.episode]
-        x = np.array(a[:, block.cols[0]:block.cols[1]], dtype=np.float64, order='C')
+        raw = a[:, block.cols[0]:block.cols[1]]
+        if (isinstance(a, np.ndarray) or not isinstance(raw, np.ndarray)
+                or raw.dtype != np.float64 or not raw.flags.c_contiguous
+                or not raw.flags.writeable):
+            x = np.array(raw, dtype=np.float64, order='C')  # never centre the caller's data
+        else:
+            x = raw  # a lazy array (zarr) handed us fresh memory: centre it in place
         x -= self.q_ref[:, None]
         return x
 
