@@ -84,13 +84,13 @@ def test_rest_stays_at_rest_and_head_stays_still(eel: EelModel) -> None:
     r = eel.simulate(np.zeros((6, 20)), 20)
     np.testing.assert_allclose(r.centerline, r.centerline[:, :, :1].repeat(20, axis=2),
                                atol=1e-14)
-    U = random_pressures(100, 1e-3, seed=3, episode=2, amplitude=30e3)
-    r = eel.simulate(U, 100)
+    U = random_pressures(60, 1e-3, seed=3, episode=2, amplitude=30e3)
+    r = eel.simulate(U, 60)
     assert np.all(r.centerline[0, :, :] == r.centerline[0, :, :1])    # clamped head point
     assert np.abs(r.centerline[-1, 2, :]).max() > 10 * np.abs(r.centerline[1, 2, :]).max()
-    assert r.t.shape == (100,) and r.pressures.shape == (6, 100)
-    assert r.centerline.shape == (20, 3, 100)
-    np.testing.assert_array_equal(r.t, np.arange(100) * 1e-3)
+    assert r.t.shape == (60,) and r.pressures.shape == (6, 60)
+    assert r.centerline.shape == (20, 3, 60)
+    np.testing.assert_array_equal(r.t, np.arange(60) * 1e-3)
 
 
 def test_linear_mode_is_the_exported_linearization(eel: EelModel) -> None:
@@ -116,7 +116,7 @@ def test_linear_mode_is_the_exported_linearization(eel: EelModel) -> None:
 
 
 def test_small_pressures_are_linear_large_ones_are_not(eel: EelModel) -> None:
-    k = 250
+    k = 150
     U = np.zeros((6, k))
     U[0::2] = np.linspace(0, 1, k)
     U[1::2] = -U[0::2]
@@ -134,12 +134,12 @@ def test_small_pressures_are_linear_large_ones_are_not(eel: EelModel) -> None:
 
 
 def test_corotated_and_rest_tangents_agree(eel: EelModel) -> None:
-    U = random_pressures(100, 1e-3, seed=1, episode=4, amplitude=30e3)
-    a = eel.simulate(U, 100, jacobian='rest')
-    b = eel.simulate(U, 100, jacobian='corotated', cg_rtol=1e-10)
+    U = random_pressures(60, 1e-3, seed=1, episode=4, amplitude=30e3)
+    a = eel.simulate(U, 60, jacobian='rest')
+    b = eel.simulate(U, 60, jacobian='corotated', cg_rtol=1e-10)
     assert b.info['cg_worst_residual'] <= 1e-10
     dev = np.abs(b.centerline - b.centerline[:, :, :1]).max()
-    assert dev > 1e-4
+    assert dev > 1e-5
     # both are first-order consistent discretizations of the same ODE
     assert np.abs(a.centerline - b.centerline).max() < 0.05 * dev
 
@@ -169,7 +169,7 @@ def test_episodes_are_reproducible_and_distinct() -> None:
     b = random_pressures(2000, 1e-3, seed=0, episode=2)
     assert not np.allclose(a, b)
     np.testing.assert_allclose(a[0::2], -a[1::2], rtol=0, atol=0)      # antagonistic pairs
-    assert np.abs(a).max() <= 30e3 and a[:, 0].max() < 30e3 * 0.1     # starts near zero
+    assert np.abs(a).max() <= 50e3 and a[:, 0].max() < 50e3 * 0.1     # starts near zero
     c = random_pressures(500, 1e-3, seed=0, episode=1, antagonistic=False, amplitude=1e4)
     assert c.min() >= 0 and c.max() <= 1e4
 

@@ -33,7 +33,7 @@ def test_bag_round_trip_is_bit_exact(tmp_path: Path, storage: str) -> None:
     k = 25
     side = record_episode(model, 2, tmp_path / 'ep2', seed=5, storage=storage, n_steps=k,
                           state=True)
-    U = random_pressures(k, 1e-3, seed=5, episode=2, amplitude=30e3)
+    U = random_pressures(k, 1e-3, seed=5, episode=2, amplitude=50e3)
     ref = model.simulate(U, k, store_states=True)
     bag = _read(tmp_path / 'ep2')
     types = bag.pop('__types__')[0]

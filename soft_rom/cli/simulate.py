@@ -32,7 +32,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         help='samples per episode (default: %(default)s)')
     parser.add_argument('--dt', type=float, default=1e-3,
                         help='time step in seconds (default: %(default)s)')
-    parser.add_argument('--amplitude', type=float, default=30e3,
+    parser.add_argument('--amplitude', type=float, default=50e3,
                         help='pressure amplitude in Pa (default: %(default)s)')
     parser.add_argument('--independent', action='store_true',
                         help='draw each chamber in [0, amplitude] instead of antagonistic pairs')

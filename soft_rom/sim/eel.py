@@ -1,34 +1,51 @@
-"""The embedded full-order model (FOM): a pneumatic anguilliform (eel) soft robot.
+r"""The embedded full-order model (FOM): a pneumatic anguilliform (eel) soft robot.
 
 A small cousin of the paper's SOFA eel (Sharma et al., section 3.1): a 1.2 m body along
 ``x``, with a soft unactuated head and tail, three soft body segments each carrying two
 antagonistic fluid chambers (above and below the neutral plane ``z = 0``, so pressure bends
 the body in the ``x``-``z`` plane), and stiffer couplers between segments. Linear-elastic
 material with geometric nonlinearity by the corotational formulation
-(:mod:`soft_rom.sim.fem`), Rayleigh damping ``C = alpha M + beta K_0``, dead pressure loads
-on the chamber walls, so that
+(:mod:`soft_rom.sim.fem`), Rayleigh damping ``C = alpha M + beta K_0``, chamber pressures
+acting on the chamber walls, so that
 
 .. math::
 
-    M \\ddot q + C \\dot q + \\frac{\\partial U}{\\partial q}(q) = B u .
+    M \ddot q + C \dot q + \frac{\partial U}{\partial q}(q) = B(q)\, u .
 
-**Boundary condition: the head is clamped** -- all nodes of the face ``x = 0`` are fixed
-(eliminated from the solve; their DOFs stay in the state vector with zero displacement).
+Choices, and why:
+
+* **Chambers are fiber-reinforced** (``fiber_reinforced=True``): the pressure loads the end
+  caps of each chamber (its walls normal to ``x``); the lateral walls' pressure is carried
+  by hoop fibers, as in real fluid elastomer actuators. Loading every wall of a 1-cell-thick
+  silicone chamber makes it balloon, and the second-order shortening of the ballooned walls
+  swamps the bending (measured: 50 % deviation from the linear model at 10 kPa).
+* **Pressure loads follow the walls** (``follower=True``), as SOFA's surface pressure
+  constraints: forces use the current wall area vectors. Dead axial cap forces would stay
+  parallel while the caps rotate with the bending and add a spurious moment (about 25 %
+  of the response at 40 kPa). The linearization uses ``B = B(q_ref)``; at ``u = 0`` the
+  load stiffness vanishes, so ``(M, C, K_0, B)`` is the exact linearization at rest.
+* **Boundary condition: the head is clamped** -- all nodes of the face ``x = 0`` are fixed
+  (eliminated from the solve; their DOFs stay in the state vector with zero displacement).
+* **No gravity**: the body is neutrally buoyant (the paper studies the soft body dynamics
+  in isolation), so the reference configuration ``q_ref`` is the undeformed rest shape.
 
 **Time stepping** is SOFA's ``EulerImplicitSolver``: one linearized backward-Euler solve per
 step,
 
 .. math::
 
-    (M + h C + h^2 K_t)\\, v_{n+1} = M v_n + h \\left(f(x_n) + B u_n\\right),
-    \\qquad x_{n+1} = x_n + h v_{n+1},
+    (M + h C + h^2 K_t)\, v_{n+1} = M v_n + h \left(f(x_n) + B(x_n) u_n\right),
+    \qquad x_{n+1} = x_n + h v_{n+1},
 
-with ``K_t`` either the warped corotational stiffness at ``x_n`` (``jacobian='corotated'``,
-default; solved by conjugate gradients preconditioned by the factorization of the rest
-matrix ``M + hC + h^2 K_0``, computed once) or the rest stiffness ``K_0`` itself
-(``jacobian='rest'``: one back-substitution per step). Input ``u_n`` is held over
-``[t_n, t_{n+1})``; sample ``n`` records ``(t_n, u_n, x_n)``, the convention of
-:mod:`soft_rom.models`.
+with ``K_t`` the rest stiffness ``K_0`` (``jacobian='rest'``, default: one
+back-substitution per step with the banded Cholesky factor of ``M + hC + h^2 K_0``, computed
+once) or SOFA's warped corotational stiffness at ``x_n`` (``jacobian='corotated'``: conjugate
+gradients preconditioned by that same factor, matrix-free products, 2-6 iterations per
+step). Both are consistent first-order schemes for the same ODE (the nonlinearity is
+entirely in ``f(x_n)``); on the default episodes they differ far less than either differs
+from a 4x finer time step (see ``benchmarks/bench_sim.py episodes``), and ``'rest'`` is
+about 5x cheaper, hence the default. Input ``u_n`` is held over ``[t_n, t_{n+1})``; sample
+``n`` records ``(t_n, u_n, x_n)``, the convention of :mod:`soft_rom.models`.
 
 Outputs: 20 centerline points from ``x = 0`` to the tail tip, each the mean of the nodes of
 the nearest grid cross-sections, linearly interpolated along ``x`` (a fixed sparse map of the
@@ -52,7 +69,7 @@ import scipy.sparse.linalg as spla
 from soft_rom.data import Episode
 from soft_rom.errors import ConfigError, DimensionError, SolverError
 from soft_rom.sim.fem import CorotationalFEM
-from soft_rom.sim.inputs import random_pressures
+from soft_rom.sim.inputs import DEFAULT_AMPLITUDE, random_pressures
 from soft_rom.sim.mesh import box_grid, cavity_faces, TetMesh, tetrahedralize
 
 __all__ = ['EelConfig', 'EelModel', 'Linearization', 'SimulationResult', 'StepCallback',
@@ -72,8 +89,8 @@ class EelConfig:
     ----------
     resolution : int
         Mesh refinement factor: the grid has ``(48 r, 4 r, 6 r)`` cells along ``(x, y, z)``.
-        ``r = 1`` (default, 5,145 DOF) keeps the demo quick; ``r = 4`` gives 231,333 DOF,
-        the paper's size (231,336).
+        ``r = 1`` (default, 5,145 DOF) keeps the demo quick; ``r = 2``: 33,237 DOF;
+        ``r = 3``: 103,305; ``r = 4``: 234,357 DOF, the paper's size (231,336).
     length, width, height : float
         Body box (m): ``x`` in ``[0, length]``, ``y`` and ``z`` centred on 0.
     segments : tuple of (float, float)
@@ -503,8 +520,9 @@ class EelModel:
 
 
 def simulate_episode(model: EelModel, episode: int, *, seed: int = 0, n_steps: int = 2000,
-                     dt: float = 1e-3, amplitude: float = 30e3, antagonistic: bool = True,
-                     bias: float = 0.0, **kwargs: Any) -> SimulationResult:
+                     dt: float = 1e-3, amplitude: float = DEFAULT_AMPLITUDE,
+                     antagonistic: bool = True, bias: float = 0.0,
+                     **kwargs: Any) -> SimulationResult:
     """Simulate episode ``Ep <episode>`` (random pressures from ``(seed, episode)``).
 
     Extra keyword arguments go to :meth:`EelModel.simulate` (``callback``,

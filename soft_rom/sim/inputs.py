@@ -18,12 +18,16 @@ from numpy.typing import NDArray
 
 from soft_rom.errors import ConfigError
 
-__all__ = ['random_pressures']
+__all__ = ['DEFAULT_AMPLITUDE', 'random_pressures']
+
+#: Default pressure amplitude (Pa): tail deflections of tens of mm on the default eel.
+DEFAULT_AMPLITUDE = 50e3
 
 
 def random_pressures(n_steps: int, dt: float, *, seed: int = 0, episode: int = 1,
-                     amplitude: float = 30e3, antagonistic: bool = True, bias: float = 0.0,
-                     hold: tuple[float, float] = (0.1, 0.4), smoothing: float = 0.02,
+                     amplitude: float = DEFAULT_AMPLITUDE, antagonistic: bool = True,
+                     bias: float = 0.0, hold: tuple[float, float] = (0.1, 0.4),
+                     smoothing: float = 0.02,
                      n_chambers: int = 6) -> NDArray[np.float64]:
     """Random smooth step pressures for one episode.
 

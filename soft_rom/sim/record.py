@@ -24,7 +24,7 @@ import numpy as np
 from soft_rom import __version__
 from soft_rom.errors import ConfigError
 from soft_rom.sim.eel import EelConfig, EelModel
-from soft_rom.sim.inputs import random_pressures
+from soft_rom.sim.inputs import DEFAULT_AMPLITUDE, random_pressures
 
 __all__ = ['SIDECAR_FORMAT', 'record_episode', 'record_episodes']
 
@@ -33,8 +33,9 @@ SIDECAR_FORMAT = 'soft_rom.sim_episode'
 
 def record_episode(model: EelModel, episode: int, path: str | Path, *, seed: int = 0,
                    storage: str = 'mcap', n_steps: int = 2000, dt: float = 1e-3,
-                   amplitude: float = 30e3, antagonistic: bool = True, bias: float = 0.0,
-                   state: bool = True, overwrite: bool = False, progress: bool = False,
+                   amplitude: float = DEFAULT_AMPLITUDE, antagonistic: bool = True,
+                   bias: float = 0.0, state: bool = True, overwrite: bool = False,
+                   progress: bool = False,
                    jacobian: str = 'rest') -> dict[str, Any]:
     """Simulate episode ``Ep <episode>`` and write it as a bag at ``path``.
 
