@@ -1,0 +1,171 @@
+"""DMDc against known truth: a random discrete LTI system observed through full states."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from soft_rom.data import Episode
+from soft_rom.errors import ConfigError, DimensionError, NotFittedError
+from soft_rom.learners.dmdc import channel_scale, DMDc, dmdc_from_gram
+from soft_rom.models import load_model
+
+
+def _system(n=8, m=3, p=5, seed=0, rho=0.9):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((n, n))
+    A *= rho / np.max(np.abs(np.linalg.eigvals(A)))
+    return A, rng.standard_normal((n, m)), rng.standard_normal((p, n)), rng
+
+
+def _episode(A, B, E, U, x0, q_ref, y_ref, name='ep', dt=1e-3):
+    n, k = A.shape[0], U.shape[1]
+    X = np.empty((n, k))
+    x = x0
+    for j in range(k):
+        X[:, j] = x
+        x = A @ x + B @ U[:, j]
+    return Episode(t=np.arange(k) * dt, U=U, Y=E @ X + y_ref[:, None],
+                   Q=X + q_ref[:, None], name=name)
+
+
+@pytest.fixture()
+def lti():
+    A, B, E, rng = _system()
+    q_ref, y_ref = rng.standard_normal(8), rng.standard_normal(5)
+    U = rng.standard_normal((3, 200))
+    ep = _episode(A, B, E, U, np.zeros(8), q_ref, y_ref)
+    return A, B, E, q_ref, y_ref, ep, rng
+
+
+def test_full_rank_recovers_operators_and_trajectories(lti):
+    A, B, E, q_ref, y_ref, ep, rng = lti
+    dmd = DMDc(r=8, p=11).fit(ep, q_ref=q_ref, y_ref=y_ref)
+    model, V = dmd.model_, dmd.basis_
+    # In the original coordinates (q = V x): V Ã Vᵀ = A, V B̃ = B, Ẽ Vᵀ = E.
+    np.testing.assert_allclose(V @ model.A @ V.T, A, atol=1e-10 * np.abs(A).max())
+    np.testing.assert_allclose(V @ model.B, B, atol=1e-10 * np.abs(B).max())
+    np.testing.assert_allclose(model.C @ V.T, E, atol=1e-10 * np.abs(E).max())
+    np.testing.assert_allclose(np.sort_complex(np.linalg.eigvals(model.A)),
+                               np.sort_complex(np.linalg.eigvals(A)), atol=1e-10)
+    # Trajectories on new inputs, from a new initial state.
+    U = rng.standard_normal((3, 300))
+    x0 = rng.standard_normal(8)
+    test = _episode(A, B, E, U, x0, q_ref, y_ref)
+    Y_hat = model.simulate(U, x0=dmd.reduce(test.Q[:, :1])[:, 0])
+    assert np.max(np.abs(Y_hat - test.Y)) <= 1e-10 * np.max(np.abs(test.Y))
+    assert model.method == 'dmdc' and np.all(model.D == 0)
+    assert model.metadata['p'] == 11 and model.metadata['r'] == 8
+
+
+def test_paper_output_fit_equals_reduced_fit_at_full_rank(lti):
+    A, B, E, q_ref, y_ref, ep, _ = lti
+    a = DMDc(r=8, output_fit='paper').fit(ep, q_ref, y_ref).model_
+    b = DMDc(r=8).fit(ep, q_ref, y_ref).model_
+    np.testing.assert_allclose(a.C, b.C, atol=1e-10 * np.abs(b.C).max())
+
+
+def test_pairs_never_straddle_episodes():
+    A, B, E, rng = _system(seed=3)
+    q_ref, y_ref = np.zeros(8), np.zeros(5)
+    ep1 = _episode(A, B, E, rng.standard_normal((3, 80)), rng.standard_normal(8) * 5,
+                   q_ref, y_ref, 'a')
+    ep2 = _episode(A, B, E, rng.standard_normal((3, 80)), rng.standard_normal(8) * 5,
+                   q_ref, y_ref, 'b')
+    dmd = DMDc(r=8, p=11).fit([ep1, ep2], q_ref, y_ref)
+    V = dmd.basis_
+    np.testing.assert_allclose(V @ dmd.model_.A @ V.T, A, atol=1e-10 * np.abs(A).max())
+    assert dmd.n_pairs_ == 2 * 79
+    # Gluing the two records into one episode creates a false pair at the seam: wrong A.
+    glued = Episode(t=np.arange(160) * 1e-3, U=np.hstack([ep1.U, ep2.U]),
+                    Y=np.hstack([ep1.Y, ep2.Y]), Q=np.hstack([ep1.Q, ep2.Q]))
+    bad = DMDc(r=8, p=11).fit(glued, q_ref, y_ref)
+    Vb = bad.basis_
+    assert np.max(np.abs(Vb @ bad.model_.A @ Vb.T - A)) > 1e-3
+
+
+def test_model_for_matches_fresh_fit_and_roundtrips(lti, tmp_path):
+    *_, q_ref, y_ref, ep, _ = lti
+    big = DMDc(r=8).fit(ep, q_ref, y_ref)
+    for r in (3, 5):
+        fresh = DMDc(r=r).fit(ep, q_ref, y_ref).model_
+        again = big.model_for(r)
+        np.testing.assert_allclose(again.A, fresh.A, atol=1e-12)
+        np.testing.assert_allclose(again.B, fresh.B, atol=1e-12)
+        np.testing.assert_allclose(again.C, fresh.C, atol=1e-12)
+    path = big.model_.save(tmp_path / 'd.npz')
+    loaded = load_model(path)
+    np.testing.assert_array_equal(loaded.A, big.model_.A)
+    assert loaded.metadata['singular_values_qp'][0] == big.singular_values_qp_[0]
+
+
+def test_energy_rule_and_truncated_fit_is_accurate():
+    # A system whose states live in a 4-dim subspace of R^30 (slow, well-excited modes).
+    rng = np.random.default_rng(5)
+    Vtrue, _ = np.linalg.qr(rng.standard_normal((30, 4)))
+    Ar = np.diag([0.99, 0.97, 0.95, 0.9])
+    Br = rng.standard_normal((4, 2))
+    U = rng.standard_normal((2, 400))
+    x, X = np.zeros(4), np.empty((4, 400))
+    for j in range(400):
+        X[:, j] = x
+        x = Ar @ x + Br @ U[:, j]
+    Q = Vtrue @ X
+    Y = rng.standard_normal((3, 30)) @ Q
+    ep = Episode(t=np.arange(400) * 1e-3, U=U, Y=Y, Q=Q)
+    dmd = DMDc(energy=0.999999).fit(ep, np.zeros(30), np.zeros(3))
+    assert dmd.model_.r == 4
+    Y_hat = dmd.model_.simulate(U)
+    assert np.linalg.norm(Y_hat - Y) <= 1e-9 * np.linalg.norm(Y)
+
+
+def test_rank_deficient_inputs_do_not_blow_up():
+    # Antagonistic chambers: u2 = -u1, so U has rank 1 and Ω has a zero singular value.
+    A, B, E, rng = _system(n=6, m=2, seed=7)
+    u = rng.standard_normal(300)
+    U = np.vstack([u, -u]) * 2e4
+    ep = _episode(A, B, E, U, np.zeros(6), np.zeros(6), np.zeros(5))
+    dmd = DMDc(r=6).fit(ep)
+    assert dmd.model_.metadata['p'] == 7 < dmd.model_.metadata['p_requested'] == 8
+    assert np.all(np.isfinite(dmd.model_.B))
+    Y_hat = dmd.model_.simulate(U)
+    assert np.linalg.norm(Y_hat - ep.Y) <= 1e-9 * np.linalg.norm(ep.Y)
+
+
+def test_gram_path_matches_svd_path():
+    A, B, E, rng = _system(n=10, m=2, p=4, seed=11, rho=0.95)
+    U = rng.standard_normal((2, 300))
+    ep = _episode(A, B, E, U, np.zeros(10), np.zeros(10), np.zeros(4))
+    r = 6
+    ref = DMDc(r=r).fit(ep).model_
+    X = ep.Q - ep.Q[:, :1]
+    s_q = channel_scale(X[:, :-1], per_channel=False)[0]
+    s_u = channel_scale(U[:, :-1])
+    Xs = X / s_q
+    out = dmdc_from_gram(Xs.T @ Xs, U / s_u[:, None], ep.Y - ep.Y[:, :1],
+                         np.arange(299), np.arange(1, 300), r=r)
+    # Same ROM up to the sign of the basis vectors: compare Markov parameters C A^k B.
+    Bg = out['B'] / s_u[None, :] * s_q
+    Cg = out['E'] / s_q
+    for k in range(10):
+        mk_ref = ref.C @ np.linalg.matrix_power(ref.A, k) @ ref.B
+        mk = Cg @ np.linalg.matrix_power(out['A'], k) @ Bg
+        np.testing.assert_allclose(mk, mk_ref, rtol=0, atol=1e-7 * np.abs(mk_ref).max())
+
+
+def test_errors():
+    with pytest.raises(NotFittedError):
+        DMDc().model_for(2)
+    ep = Episode(t=[0.0, 1.0, 2.0], U=np.ones((1, 3)), Y=np.ones((1, 3)))
+    with pytest.raises(DimensionError, match='no state snapshots'):
+        DMDc().fit(ep)
+    A, B, E, rng = _system()
+    good = _episode(A, B, E, rng.standard_normal((3, 50)), np.zeros(8), np.zeros(8),
+                    np.zeros(5))
+    with pytest.raises(ConfigError, match='r must be between'):
+        DMDc(r=50).fit(good)
+    with pytest.raises(ConfigError, match='output_fit'):
+        DMDc(output_fit='bogus').fit(good)
+    other = Episode(t=good.t, U=good.U[:2], Y=good.Y, Q=good.Q)
+    with pytest.raises(DimensionError, match='first episode'):
+        DMDc().fit([good, other])

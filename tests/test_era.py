@@ -1,0 +1,146 @@
+"""OKID and ERA against known truth (random LTI systems, exact data)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.linalg as sla
+
+from soft_rom.data import Episode
+from soft_rom.errors import ConfigError, DimensionError, NotFittedError
+from soft_rom.evaluation import evaluate, predict
+from soft_rom.learners.era import decimate, era, ERAOKID, hankel_rank, okid_markov
+
+
+def _lti(n=6, m=2, p=2, seed=1, rho=0.95):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((n, n))
+    A *= rho / np.max(np.abs(np.linalg.eigvals(A)))
+    return (A, rng.standard_normal((n, m)), rng.standard_normal((p, n)),
+            rng.standard_normal((p, m)), rng)
+
+
+def _markov(A, B, C, D, count):
+    out, P = [D], B
+    for _ in range(count):
+        out.append(C @ P)
+        P = A @ P
+    return np.array(out)
+
+
+def _response(A, B, C, D, U, x0):
+    x, Y = x0, np.empty((C.shape[0], U.shape[1]))
+    for k in range(U.shape[1]):
+        Y[:, k] = C @ x + D @ U[:, k]
+        x = A @ x + B @ U[:, k]
+    return Y
+
+
+def test_okid_recovers_first_20_markov_parameters():
+    A, B, C, D, rng = _lti()
+    U = rng.standard_normal((2, 400))
+    Y = _response(A, B, C, D, U, rng.standard_normal(6))    # arbitrary initial state
+    true = _markov(A, B, C, D, 20)
+    for order in (3, 5):                                     # l p >= n, exactly and above
+        markov, info = okid_markov(U, Y, observer_order=order, n_markov=20)
+        assert markov.shape == (21, 2, 2)
+        assert np.max(np.abs(markov - true)) <= 1e-8 * np.max(np.abs(true))
+        assert info['residual'] < 1e-10
+
+
+def test_era_on_exact_markov_parameters_reproduces_them():
+    A, B, C, D, _ = _lti(n=8, m=3, p=4, seed=2)
+    true = _markov(A, B, C, D, 60)
+    Ae, Be, Ce, De, hsv = era(true, 8)
+    assert hsv[8] <= 1e-10 * hsv[0] < hsv[7]
+    got = _markov(Ae, Be, Ce, De, 60)
+    assert np.max(np.abs(got - true)) <= 1e-8 * np.max(np.abs(true))
+    np.testing.assert_allclose(np.sort_complex(np.linalg.eigvals(Ae)),
+                               np.sort_complex(np.linalg.eigvals(A)), atol=1e-8)
+    # Default order rule finds the 8 states of exact data.
+    assert era(true)[0].shape == (8, 8)
+    assert hankel_rank(hsv, tol=1e-6) == 8
+
+
+def test_learner_exact_on_noise_free_data_and_unit_scaling():
+    A, B, C, D, rng = _lti(n=6, m=2, p=3, seed=4)
+    U = rng.standard_normal((2, 600)) * 3e4                  # pressures in Pa
+    y_ref = np.array([0.1, 0.2, 0.3])
+    Y = _response(A, B, C, D, U, np.zeros(6)) * 1e-3 + y_ref[:, None]
+    ep = Episode(t=np.arange(600) * 1e-3, U=U, Y=Y, name='ep1')
+    est = ERAOKID(r=6, n_markov=40, decimation=1).fit(ep, y_ref)
+    model = est.model_
+    assert model.method == 'era' and model.dt == pytest.approx(1e-3)
+    assert np.max(np.abs(model.simulate(U) - Y)) <= 1e-8 * np.max(np.abs(Y - y_ref[:, None]))
+    np.testing.assert_allclose(model.D, D * 1e-3, atol=1e-8 * np.abs(D).max() * 1e-3)
+    assert est.hankel_singular_values_[6] <= 1e-8 * est.hankel_singular_values_[0]
+    smaller = est.model_for(4)
+    assert smaller.r == 4 and smaller.dt == model.dt
+    assert model.metadata['observer_order'] == est.observer_order_
+
+
+def test_decimated_fit_and_prediction_at_model_times():
+    # A sampled system with inputs held for 5 samples: the 5x decimated data are exactly an
+    # LTI system (A^5, (A^4 + ... + I) B); predictions at block starts are exact.
+    A, B, C, _, rng = _lti(n=4, m=2, p=3, seed=6, rho=0.98)
+    D = np.zeros((3, 2))
+    k = 2000
+    U = np.repeat(rng.standard_normal((2, k // 5)), 5, axis=1)
+    Y = _response(A, B, C, D, U, np.zeros(4))
+    ep = Episode(t=np.arange(k) * 1e-3, U=U, Y=Y)
+    Ud, Yd = decimate(U, Y, 5)
+    np.testing.assert_array_equal(Yd, Y[:, ::5])
+    np.testing.assert_allclose(Ud, U[:, ::5])
+    est = ERAOKID(r=4, decimation=5, n_markov=30).fit(ep, np.zeros(3))
+    assert est.model_.dt == pytest.approx(5e-3)
+    Y_hat = predict(est.model_, ep)
+    assert Y_hat.shape == Y.shape
+    scale = np.max(np.abs(Y))
+    assert np.max(np.abs(Y_hat[:, ::5] - Y[:, ::5])) <= 1e-8 * scale
+    # Between model steps the state is interpolated linearly (D = 0 here).
+    np.testing.assert_allclose(Y_hat[:, 7], 0.6 * Y_hat[:, 5] + 0.4 * Y_hat[:, 10],
+                               atol=1e-12 * scale)
+
+
+def test_defaults_on_realistic_lightly_damped_data():
+    """40 outputs at 1 kHz, slow modes of a few Hz, 1.5 s of training data, 0.1 % noise."""
+    rng = np.random.default_rng(0)
+    nm, m, p, h = 8, 6, 40, 1e-3
+    w = 2 * np.pi * np.geomspace(2.0, 40.0, nm)
+    z = rng.uniform(0.02, 0.05, nm)
+    Ac = np.block([[np.zeros((nm, nm)), np.eye(nm)], [-np.diag(w ** 2), -np.diag(2 * z * w)]])
+    Bc = np.vstack([np.zeros((nm, m)), rng.standard_normal((nm, m))])
+    Mx = np.zeros((2 * nm + m,) * 2)
+    Mx[:2 * nm, :2 * nm], Mx[:2 * nm, 2 * nm:] = Ac * h, Bc * h
+    F = sla.expm(Mx)
+    Ad, Bd = F[:2 * nm, :2 * nm], F[:2 * nm, 2 * nm:]
+    Cd = np.hstack([rng.standard_normal((p, nm)) * 1e-5, np.zeros((p, nm))])
+    k = 2001
+    base = np.repeat(rng.uniform(-1, 1, (3, k // 100 + 1)), 100, axis=1)[:, :k]
+    U = np.repeat(base, 2, axis=0) * np.array([1, -1] * 3)[:, None] * 3e4  # antagonistic
+    Y = _response(Ad, Bd, Cd, np.zeros((p, m)), U, np.zeros(2 * nm)) + 0.3
+    Y += 1e-3 * np.std(Y) * rng.standard_normal(Y.shape)
+    ep = Episode(t=np.arange(k) * h, U=U, Y=Y)
+    est = ERAOKID().fit(ep.time_slice(0, 1.5))
+    ev = evaluate(est.model_, ep, t_split=1.5)
+    assert est.model_.dt == pytest.approx(5 * h)
+    assert ev.get('*', 'train')['relative_deviation_error'] < 0.05
+    assert ev.get('*', 'test')['relative_deviation_error'] < 0.15
+    assert est.model_.stability_margin() > 0
+
+
+def test_errors():
+    A, B, C, D, rng = _lti()
+    U = rng.standard_normal((2, 30))
+    Y = _response(A, B, C, D, U, np.zeros(6))
+    with pytest.raises(ConfigError, match='observer_order'):
+        okid_markov(U, Y, observer_order=8, n_markov=10)
+    ep = Episode(t=np.arange(30) * 1e-3, U=U, Y=Y, name='a')
+    with pytest.raises(DimensionError, match='one episode'):
+        ERAOKID().fit([ep, ep])
+    with pytest.raises(NotFittedError):
+        ERAOKID().model_for(2)
+    with pytest.raises(ConfigError, match='Hankel blocks'):
+        era(_markov(A, B, C, D, 10), 2, n_block_rows=8, n_block_cols=8)
+    with pytest.raises(ConfigError, match='decimation'):
+        decimate(U, Y, 0)

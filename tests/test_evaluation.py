@@ -1,0 +1,125 @@
+"""predict / evaluate: sample-time handling, initial states, metrics per episode and split."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from soft_rom.data import Episode
+from soft_rom.errors import ConfigError, DimensionError
+from soft_rom.evaluation import evaluate, predict
+from soft_rom.metrics import output_errors
+from soft_rom.models import DiscreteModel, SecondOrderModel
+
+
+def _discrete(dt=1e-3, seed=0):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((4, 4))
+    A *= 0.9 / np.max(np.abs(np.linalg.eigvals(A)))
+    return DiscreteModel(A, rng.standard_normal((4, 2)), rng.standard_normal((3, 4)),
+                         rng.standard_normal((3, 2)), dt=dt, method='era',
+                         y_ref=[1.0, 2.0, 3.0]), rng
+
+
+def _second_order(dt=1e-3):
+    K = np.array([[40.0, -5.0], [-5.0, 30.0]])
+    C = np.array([[0.5, 0.0], [0.0, 0.4]])
+    return SecondOrderModel(K, C, np.array([[1.0], [0.5]]), np.array([[1.0, 0.0],
+                                                                      [0.3, 1.0]]),
+                            dt=dt, y_ref=[0.5, -0.5])
+
+
+def test_same_rate_equals_simulate():
+    model, rng = _discrete()
+    U = rng.standard_normal((2, 100))
+    ep = Episode(t=np.arange(100) * 1e-3, U=U, Y=np.zeros((3, 100)))
+    np.testing.assert_allclose(predict(model, ep), model.simulate(U), rtol=1e-13, atol=1e-13)
+
+
+def test_coarser_data_steps_whole_multiples():
+    model, rng = _discrete(dt=1e-3)
+    U = rng.standard_normal((2, 50))
+    ep = Episode(t=np.arange(50) * 3e-3, U=U, Y=np.zeros((3, 50)))
+    fine = model.simulate(np.repeat(U, 3, axis=1))
+    np.testing.assert_allclose(predict(model, ep), fine[:, ::3] - model.D @ np.repeat(
+        U, 3, axis=1)[:, ::3] + model.D @ U, rtol=1e-12, atol=1e-12)
+
+
+def test_continuous_model_discretized_at_data_rate_and_initial_output():
+    model = _second_order(dt=1e-3)
+    U = np.sin(np.linspace(0, 6, 400))[None, :]
+    ep = Episode(t=np.arange(400) * 2e-3, U=U, Y=np.zeros((2, 400)))
+    A, B, Cm, Dm, _ = model.discretize(2e-3)
+    x, Y = np.zeros(4), np.empty((2, 400))
+    for j in range(400):
+        Y[:, j] = Cm @ x + model.y_ref
+        x = A @ x + B @ U[:, j]
+    np.testing.assert_allclose(predict(model, ep), Y, rtol=1e-12, atol=1e-12)
+    # initial='output': the state reproduces the first measured output.
+    q0 = np.array([0.01, -0.02])
+    y0 = model.E @ q0 + model.y_ref
+    ep2 = Episode(t=ep.t, U=U, Y=np.repeat(y0[:, None], 400, axis=1))
+    Y_hat = predict(model, ep2, initial='output')
+    np.testing.assert_allclose(Y_hat[:, 0], y0, atol=1e-14)
+
+
+def test_decimated_model_block_means_and_interpolation():
+    model, rng = _discrete(dt=4e-3)
+    k = 18                                           # 4 full blocks and one of 2 samples
+    U = rng.standard_normal((2, k))
+    ep = Episode(t=np.arange(k) * 1e-3, U=U, Y=np.zeros((3, k)))
+    Y_hat = predict(model, ep)
+    blocks = [U[:, a:a + 4].mean(axis=1) for a in range(0, k, 4)]
+    _, X = model.simulate(np.column_stack(blocks), return_states=True)
+    X = np.column_stack([X, model.A @ X[:, -1] + model.B @ blocks[-1]])
+    for i in range(k):
+        j, w = divmod(i, 4)
+        x = X[:, j] * (1 - w / 4) + X[:, j + 1] * (w / 4)
+        np.testing.assert_allclose(Y_hat[:, i], model.C @ x + model.D @ U[:, i] + model.y_ref,
+                                   rtol=1e-12, atol=1e-12)
+
+
+def test_evaluate_rows_match_metrics_and_split():
+    model, rng = _discrete()
+    eps = []
+    for i in range(2):
+        U = rng.standard_normal((2, 300))
+        Y = model.simulate(U) + 0.01 * rng.standard_normal((3, 300))
+        eps.append(Episode(t=10.0 + np.arange(300) * 1e-3, U=U, Y=Y, name=f'e{i}'))
+    ev = evaluate(model, eps, t_split=0.2, return_predictions=True)
+    assert len(ev.rows) == 3 * 3
+    for ep in eps:
+        Y_hat = ev.predictions[ep.name]
+        want = output_errors(ep.Y, Y_hat, model.y_ref)
+        row = ev.get(ep.name, 'all')
+        assert row['relative_error'] == pytest.approx(want['relative_error'], rel=1e-12)
+        assert row['relative_deviation_error'] == pytest.approx(
+            want['relative_deviation_error'], rel=1e-12)
+        # t_split counts from the episode's first sample (t starts at 10 s here).
+        tr = output_errors(ep.Y[:, :200], Y_hat[:, :200], model.y_ref)
+        te = output_errors(ep.Y[:, 200:], Y_hat[:, 200:], model.y_ref)
+        assert ev.get(ep.name, 'train')['n_samples'] == 200
+        assert ev.get(ep.name, 'train')['relative_error'] == pytest.approx(
+            tr['relative_error'], rel=1e-12)
+        assert ev.get(ep.name, 'test')['relative_deviation_error'] == pytest.approx(
+            te['relative_deviation_error'], rel=1e-12)
+    Yall = np.hstack([ep.Y for ep in eps])
+    Yh = np.hstack([ev.predictions[ep.name] for ep in eps])
+    pooled = output_errors(Yall, Yh, model.y_ref)
+    assert ev.get('*', 'all')['relative_error'] == pytest.approx(pooled['relative_error'],
+                                                                  rel=1e-12)
+    assert ev.to_dict()['model']['method'] == 'era'
+
+
+def test_errors():
+    model, rng = _discrete(dt=1e-3)
+    ep = Episode(t=np.arange(10) * 1e-3, U=np.zeros((3, 10)), Y=np.zeros((3, 10)))
+    with pytest.raises(DimensionError, match='expects 2 inputs'):
+        predict(model, ep)
+    ep = Episode(t=np.arange(10) * 1.5e-3, U=np.zeros((2, 10)), Y=np.zeros((3, 10)))
+    with pytest.raises(DimensionError, match='whole multiple'):
+        predict(model, ep)
+    with pytest.raises(ConfigError, match='initial'):
+        predict(model, ep, initial='zero')
+    with pytest.raises(DimensionError):
+        evaluate(model, [])
