@@ -499,7 +499,14 @@ class FastSPDSolver:
                     break  # quadratic convergence regime: one more step would be ~1e-12
             if final:
                 break
-            t_new = min(t * self.mu, nu / (self.rtol * max(f, floor)))
+            cap = nu / (self.rtol * max(f, floor))
+            if t * self.mu >= cap:
+                t_new, final = max(cap, t), True   # the next centring is the last one
+            else:
+                t_new = t * self.mu
+            if centrings > 200:
+                raise SolverError('LOpInf barrier solver: too many centrings; check the data '
+                                  'for NaN/huge values.')
             # Predictor: follow the tangent of the central path, dθ/dt = -H⁻¹ ∇f, from the
             # (nearly) centred point, reusing the last factorization; keep it only if it stays
             # feasible and lowers the barrier objective at the new t.

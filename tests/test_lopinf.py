@@ -1,0 +1,232 @@
+"""Tests of LOpInf and its operator solvers against known truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.integrate as sint
+import scipy.linalg as sla
+
+from soft_rom.data import Episode
+from soft_rom.errors import DimensionError, NotFittedError
+from soft_rom.learners.lopinf import LOpInf
+from soft_rom.learners.lopinf_solvers import (
+    CvxpySolver,
+    DEFAULT_EPS,
+    FastSPDSolver,
+    objective,
+    OperatorSolver,
+    reduce_data,
+)
+from soft_rom.models import load_model
+
+
+def _spd(rng, r, lo, hi):
+    Qm, _ = np.linalg.qr(rng.standard_normal((r, r)))
+    return (Qm * np.linspace(lo, hi, r)) @ Qm.T
+
+
+def _rel(a, b):
+    return np.linalg.norm(a - b) / np.linalg.norm(b)
+
+
+def _chain_episodes(n=30, m=4, k=1500, dt=1e-3, noise=1e-3, seeds=(1, 2, 3)):
+    """Damped chain driven by antagonistic pairs (u2 = -u1, u4 = -u3); noisy states."""
+    kk = 4e3 * np.linspace(1.0, 0.2, n)
+    Kf = np.diag(kk + np.r_[kk[1:], 0.0]) - np.diag(kk[1:], 1) - np.diag(kk[1:], -1)
+    Cf = 0.5 * np.eye(n) + 2e-3 * Kf
+    Bf = np.zeros((n, m))
+    Bf[n // 3:n // 3 + 3, 0] = 50.0
+    Bf[n // 3 + 3:n // 3 + 6, 1] = -40.0
+    Bf[2 * n // 3:2 * n // 3 + 3, 2] = 50.0
+    Bf[2 * n // 3 + 3:2 * n // 3 + 6, 3] = -40.0
+    M = np.zeros((2 * n + m, 2 * n + m))
+    M[:n, n:2 * n] = np.eye(n) * dt
+    M[n:2 * n, :n] = -Kf * dt
+    M[n:2 * n, n:2 * n] = -Cf * dt
+    M[n:2 * n, 2 * n:] = Bf * dt
+    E = sla.expm(M)
+    Ad, Bd = E[:2 * n, :2 * n], E[:2 * n, 2 * n:]
+    q0 = np.linspace(0.0, 0.3, n)
+    out = []
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        t = np.arange(k) * dt
+        U = np.zeros((m, k))
+        for i in (0, 2):
+            U[i] = 1e3 * sum(np.sin(2 * np.pi * rng.uniform(0.5, 4) * t + rng.uniform(0, 6))
+                             for _ in range(3))
+            U[i + 1] = -U[i]
+        X = np.zeros((2 * n, k))
+        for j in range(k - 1):
+            X[:, j + 1] = Ad @ X[:, j] + Bd @ U[:, j]
+        Q = q0[:, None] + X[:n] + noise * np.std(X[:n]) * rng.standard_normal((n, k))
+        out.append(Episode(t=t, U=U, Y=Q[[5, 15, n - 1]], Q=Q, name=f'ep{seed}',
+                           metadata={'input_names': [f'p{i}' for i in range(m)],
+                                     'input_units': ['Pa'] * m}))
+    return out
+
+
+def test_solver_recovers_exact_operators():
+    rng = np.random.default_rng(0)
+    r, m, k = 6, 3, 400
+    K, C = _spd(rng, r, 1.0, 50.0), _spd(rng, r, 0.1, 5.0)
+    B = rng.standard_normal((r, m))
+    Q, Qd, U = (rng.standard_normal((r, k)), rng.standard_normal((r, k)),
+                rng.standard_normal((m, k)))
+    Qdd = B @ U - C @ Qd - K @ Q
+    Ks, Cs, Bs, info = FastSPDSolver().solve(Q, Qd, Qdd, U)
+    assert isinstance(FastSPDSolver(), OperatorSolver)
+    assert info['method'] == 'symmetric-least-squares'
+    assert _rel(Ks, K) < 1e-8 and _rel(Cs, C) < 1e-8 and _rel(Bs, B) < 1e-8
+
+
+def test_lopinf_recovers_operators_from_exact_derivative_data():
+    # Polynomial trajectories of degree 8: 8th-order central differences are exact.
+    rng = np.random.default_rng(1)
+    r, n, dt, k = 3, 20, 0.01, 60
+    K, C = _spd(rng, r, 2.0, 30.0), _spd(rng, r, 0.5, 4.0)
+    B = rng.standard_normal((r, r)) + 3 * np.eye(r)
+    Phi, _ = np.linalg.qr(rng.standard_normal((n, r)))
+    q_ref = rng.standard_normal(n)
+    t = np.arange(k) * dt
+    episodes = []
+    for j in range(4):
+        polys = [np.polynomial.Polynomial(rng.standard_normal(9)) for _ in range(r)]
+        q = np.array([p(t) for p in polys])
+        qd = np.array([p.deriv(1)(t) for p in polys])
+        qdd = np.array([p.deriv(2)(t) for p in polys])
+        U = np.linalg.solve(B, qdd + C @ qd + K @ q)
+        Qf = q_ref[:, None] + Phi @ q
+        episodes.append(Episode(t=t, U=U, Y=Qf[:4], Q=Qf, name=f'p{j}'))
+    est = LOpInf(r=r).fit(episodes, q_ref=q_ref, y_ref=q_ref[:4])
+    R = est.basis_.basis_.T @ Phi                    # q̂ = R q, R orthogonal
+    assert _rel(est.K_, R @ K @ R.T) < 1e-8
+    assert _rel(est.C_, R @ C @ R.T) < 1e-8
+    assert _rel(est.B_, R @ B) < 1e-8
+    assert _rel(est.E_, Phi[:4] @ R.T) < 1e-8
+    assert est.solver_info_['method'] == 'symmetric-least-squares'
+
+
+def _noisy_indefinite(seed=3, r=6, m=4, k=400, rank_deficient=False):
+    rng = np.random.default_rng(seed)
+    K, C = _spd(rng, r, 1e-3, 10.0), _spd(rng, r, 1e-3, 2.0)
+    B = rng.standard_normal((r, m))
+    Q, Qd, U = (rng.standard_normal((r, k)), rng.standard_normal((r, k)),
+                rng.standard_normal((m, k)))
+    if rank_deficient:
+        U[m // 2:] = -U[:m // 2]
+    Qdd = B @ U - C @ Qd - K @ Q + 3.0 * rng.standard_normal((r, k))
+    return Q, Qd, Qdd, U
+
+
+@pytest.mark.parametrize('rank_deficient', [False, True])
+def test_constrained_fit_is_spd_and_matches_clarabel(rank_deficient):
+    Q, Qd, Qdd, U = _noisy_indefinite(rank_deficient=rank_deficient)
+    # The symmetric least-squares fit is indefinite: the constraints are active.
+    r = Q.shape[0]
+    D = np.vstack([Qd, Q, U])
+    W, *_ = np.linalg.lstsq(D.T, -Qdd.T, rcond=None)
+    W = W.T
+    lam = min(np.linalg.eigvalsh(0.5 * (W[:, :r] + W[:, :r].T))[0],
+              np.linalg.eigvalsh(0.5 * (W[:, r:2 * r] + W[:, r:2 * r].T))[0])
+    assert lam < 0
+    fast = FastSPDSolver().solve(Q, Qd, Qdd, U)
+    assert fast.info['method'] == 'log-barrier-newton'
+    for M in (fast.K, fast.C):
+        np.testing.assert_array_equal(M, M.T)
+        assert np.linalg.eigvalsh(M)[0] >= DEFAULT_EPS * (1 - 1e-9)
+    o_fast = objective(*fast[:3], Q, Qd, Qdd, U)
+    for form in ('reduced', 'raw'):
+        ref = CvxpySolver('CLARABEL', formulation=form).solve(Q, Qd, Qdd, U)
+        o_ref = objective(*ref[:3], Q, Qd, Qdd, U)
+        assert (o_fast - o_ref) / o_ref <= 1e-6, (form, o_fast, o_ref)   # not worse
+        assert abs(o_fast - o_ref) / o_ref <= 1e-6
+    assert abs(fast.info['objective'] - o_fast) <= 1e-9 * o_fast
+
+
+def test_rank_deficient_inputs_give_minimum_norm_B():
+    rng = np.random.default_rng(4)
+    r, m, k = 4, 4, 300
+    K, C = _spd(rng, r, 1.0, 20.0), _spd(rng, r, 0.2, 3.0)
+    B = rng.standard_normal((r, m))
+    Q, Qd = rng.standard_normal((r, k)), rng.standard_normal((r, k))
+    U = rng.standard_normal((m, k))
+    U[2:] = -U[:2]                                    # antagonistic pairs: rank 2
+    Qdd = B @ U - C @ Qd - K @ Q
+    Ks, Cs, Bs, info = FastSPDSolver().solve(Q, Qd, Qdd, U)
+    assert info['rank_u'] == 2
+    assert np.all(np.isfinite(Bs))
+    assert _rel(Ks, K) < 1e-8 and _rel(Cs, C) < 1e-8
+    assert _rel(Bs @ U, B @ U) < 1e-8
+    # Minimum norm: the two columns of a pair share the effect equally, with opposite signs.
+    np.testing.assert_allclose(Bs[:, 2:], -Bs[:, :2], atol=1e-8 * np.abs(B).max())
+    np.testing.assert_allclose(Bs[:, :2], 0.5 * (B[:, :2] - B[:, 2:]), rtol=1e-8, atol=1e-10)
+    prob = reduce_data(Q, Qd, Qdd, U)
+    assert prob.A.shape == (2 * r, 3 * r) and prob.G.shape == (r, 3 * r)
+
+
+def test_zoh_model_matches_fine_ode_solution():
+    episodes = _chain_episodes(seeds=(1,), k=800)
+    est = LOpInf(r=4).fit(episodes)
+    model = est.model_
+    U = episodes[0].U[:, :120]
+    Y = model.simulate(U)
+    Ac, Bc, Cc = model.first_order()
+    x = np.zeros(2 * model.r)
+    Y_ode = np.empty_like(Y)
+    for j in range(U.shape[1]):
+        Y_ode[:, j] = Cc @ x + model.y_ref
+        sol = sint.solve_ivp(lambda _t, z, u=U[:, j]: Ac @ z + Bc @ u, (0.0, model.dt), x,
+                             method='DOP853', rtol=1e-12, atol=1e-14 * (1 + np.abs(x).max()))
+        x = sol.y[:, -1]
+    dev = Y - model.y_ref[:, None]
+    assert np.linalg.norm(Y - Y_ode) / np.linalg.norm(dev) < 1e-6
+
+
+def test_unit_invariance_and_metadata(tmp_path):
+    episodes = _chain_episodes(noise=3e-2)
+    est = LOpInf(r=8).fit(episodes[:2])
+    # Heavy noise makes the constraints active, so the barrier path is what is tested here.
+    assert est.solver_info_['method'] == 'log-barrier-newton'
+    test = episodes[2]
+    Y = est.predict(test.U)
+    # Pa -> kPa for the inputs, m -> mm for the states and outputs.
+    scaled = [Episode(t=e.t, U=e.U / 1e3, Y=e.Y * 1e3, Q=e.Q * 1e3, name=e.name)
+              for e in episodes[:2]]
+    Y2 = LOpInf(r=8).fit(scaled).predict(test.U / 1e3) / 1e3
+    dev = Y - est.y_ref_[:, None]
+    assert np.linalg.norm(Y2 - Y) / np.linalg.norm(dev) < 1e-6
+    model = est.model_
+    assert model.input_names == ['p0', 'p1', 'p2', 'p3'] and model.input_units[0] == 'Pa'
+    diag = model.metadata['diagnostics']
+    assert diag['eps'] == DEFAULT_EPS and min(diag['eigenvalues_K']) >= DEFAULT_EPS * 0.999
+    assert model.metadata['provenance']['episodes'] == ['ep1', 'ep2']
+    assert model.stability_margin() > 0
+    path = tmp_path / 'rom.npz'
+    model.save(path)
+    loaded = load_model(path)
+    np.testing.assert_array_equal(loaded.K, model.K)
+    np.testing.assert_array_equal(loaded.simulate(test.U[:, :50]), model.simulate(test.U[:, :50]))
+
+
+class _Lazy:
+    def __init__(self, data):
+        self._data = data
+        self.shape = data.shape
+
+    def __getitem__(self, key):
+        return self._data[key].copy()
+
+
+def test_lazy_states_and_errors():
+    episodes = _chain_episodes(seeds=(5,), k=400, noise=1e-3)
+    ep = episodes[0]
+    lazy = Episode(t=ep.t, U=ep.U, Y=ep.Y, Q=_Lazy(ep.Q), name='lazy')
+    a = LOpInf(r=3, ddt=6).fit([ep])
+    b = LOpInf(r=3, ddt=6).fit([lazy])
+    np.testing.assert_allclose(b.K_, a.K_, rtol=1e-10)
+    with pytest.raises(NotFittedError):
+        LOpInf().predict(ep.U)
+    with pytest.raises(DimensionError):
+        LOpInf().fit([Episode(t=ep.t, U=ep.U, Y=ep.Y)])
