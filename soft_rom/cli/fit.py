@@ -74,7 +74,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     era.add_argument('--decimation', type=int, default=None,
                      help='fit at DECIMATION x the data sample time (default 5)')
     era.add_argument('--n-markov', type=int, default=None,
-                     help='number of Markov parameters in the Hankel matrices (default 200)')
+                     help='number of Markov parameters in the Hankel matrices (default 100)')
     era.add_argument('--observer-order', type=int, default=None,
                      help='OKID observer order (default: automatic, at most 10)')
     era.add_argument('--hsv-tol', type=float, default=None,
