@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib.util
+
 import numpy as np
 import pytest
 
@@ -206,9 +208,16 @@ def test_dask_pod_equals_local(tmp_path, dask_client, method):
 def test_dask_fit_equals_local(tmp_path, dask_client):
     eps, q_ref, y_ref = _system_episodes(noise=1e-8)
     ts = _training_set(tmp_path, eps, q_ref, y_ref)
-    local = fit_streaming(ts, 'dmdc', r=8, n_coords=20)
-    dist = fit_streaming(ts, 'dmdc', r=8, n_coords=20, client=dask_client)
+    # t_max keeps Q lazy (a column window) on the workers too.
+    local = fit_streaming(ts, 'dmdc', r=8, n_coords=20, t_max=1.5)
+    dist = fit_streaming(ts, 'dmdc', r=8, n_coords=20, t_max=1.5, client=dask_client)
     for name in ('A', 'B', 'C'):
         a, b = getattr(dist, name), getattr(local, name)
         assert np.linalg.norm(a - b) <= 1e-10 * np.linalg.norm(b)
     assert dist.metadata['scale']['backend'] == 'DaskExecutor'
+    if importlib.util.find_spec('soft_rom.learners.lopinf') is not None:
+        local = fit_streaming(ts, 'lopinf', r=6, n_coords=20)
+        dist = fit_streaming(ts, 'lopinf', r=6, n_coords=20, client=dask_client)
+        for name in ('K', 'C', 'B', 'E'):
+            a, b = getattr(dist, name), getattr(local, name)
+            assert np.linalg.norm(a - b) <= 1e-10 * np.linalg.norm(b)

@@ -73,7 +73,9 @@ class DaskExecutor:
         import dask.array as da
         out = []
         for a in snaps.arrays:
-            if type(a).__module__.startswith('zarr'):
+            if hasattr(a, 'to_dask'):  # a lazy window (t_max) on a zarr array
+                out.append(a.to_dask())
+            elif type(a).__module__.startswith('zarr'):
                 out.append(da.from_zarr(a))
             elif isinstance(a, da.Array):
                 out.append(a)
