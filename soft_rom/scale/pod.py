@@ -20,7 +20,14 @@ the *coordinates* of every snapshot in the leading ``l`` modes (so that the proj
     costs accuracy only in modes with :math:`\\sigma_i / \\sigma_1 \\lesssim 10^{-7}`), but
     :math:`O(n K^2)` flops and :math:`K^2` memory: for 12,000 snapshots 1.2 GB and ~3 min
     of BLAS-3 on 2 cores; it needs storage chunked in rows (memmap or zarr chunks with
-    fewer than ``n`` rows).
+    fewer than ``n`` rows), and a row block spans whole chunks: with the training set's
+    ``(32768, 32)`` chunks that is ``32768 x K`` values (3.1 GB at K = 12,000).
+
+Choice (measured, ``benchmarks/bench_scale.py``): at K = 1,500 snapshots of 231,336 DOF
+the Gram method is cheaper (2 passes, 33 CPU-s vs 50 CPU-s for 3 randomized passes) and
+exact; at the paper's K = 12,000 it would need ~8 GB and :math:`1.7 \\cdot 10^{13}` flops,
+while the randomized passes stay I/O-bound in ~1.2 GB. Hence ``'randomized'`` is the
+default and ``'gram'`` the exact option for moderate K.
 
 Reference: Sharma et al., *Data-driven Model Reduction for Soft Robots via Lagrangian
 Operator Inference*, section 2.2 (POD of the centred snapshots; ``r`` for 95 % energy).
