@@ -122,3 +122,20 @@ def test_bad_material_is_refused() -> None:
     mesh, _ = _beam(nx=2, n=1)
     with pytest.raises(ConfigError):
         CorotationalFEM(mesh.nodes, mesh.tets, young=1e6, poisson=0.5, density=1.0)
+
+
+def test_warped_stiffness_is_the_tangent_of_a_rotated_body() -> None:
+    """At a rigidly rotated (stress-free) state the exact tangent is R K_0 R^T."""
+    mesh, fem = _beam()
+    Q = Rotation.from_rotvec([0.4, -1.1, 0.7]).as_matrix()
+    x = mesh.nodes @ Q.T + [0.1, 0.2, -0.3]
+    _, R = fem.elastic_force(x, return_rotations=True)
+    np.testing.assert_allclose(R, np.broadcast_to(Q, R.shape), atol=1e-12)
+    rng = np.random.default_rng(5)
+    dx = rng.standard_normal(x.shape)
+    kw = fem.warped_matvec(R, dx)
+    np.testing.assert_allclose(kw, ((fem.stiffness() @ (dx @ Q).ravel()).reshape(-1, 3)) @ Q.T,
+                               atol=1e-9 * np.abs(kw).max())
+    eps = 1e-7
+    fd = (fem.elastic_force(x + eps * dx) - fem.elastic_force(x - eps * dx)) / (2 * eps)
+    np.testing.assert_allclose(-fd, kw, atol=1e-5 * np.abs(kw).max())

@@ -489,7 +489,8 @@ class EelModel:
                 f = -(K0f @ (x - X).ravel()[free])
                 R = None
             elif jacobian == 'corotated':
-                f_all, R = fem.elastic_force(x, return_rotations=True)
+                f_all, R3 = fem.elastic_force(x, return_rotations=True)
+                R = fem.rotation_entries(R3)
                 f = f_all.ravel()[free]
             else:
                 f = fem.elastic_force(x).ravel()[free]

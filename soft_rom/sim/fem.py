@@ -251,14 +251,15 @@ class CorotationalFEM:
         dev = np.einsum('eij,eij->e', F - R, F - R)
         return float(np.sum(self.volume * (self.mu * dev + 0.5 * self.lam * tr ** 2)))
 
-    def warped_matvec(self, R: NDArray[np.float64],
+    def warped_matvec(self, R: NDArray[np.float64] | list,
                       dx: NDArray[np.float64]) -> NDArray[np.float64]:
         """Product ``K_w dx`` with the warped stiffness ``sum_e R_e K_e R_e^T``.
 
         Parameters
         ----------
-        R : ndarray, shape (n_tets, 3, 3)
-            Element rotations (from :meth:`elastic_force`).
+        R : ndarray, shape (n_tets, 3, 3), or list
+            Element rotations (from :meth:`elastic_force`), or their nine entries as 1-D
+            arrays (:meth:`rotation_entries`, faster when applied many times).
         dx : ndarray, shape (n_nodes, 3)
             Nodal displacement increment.
 
@@ -266,15 +267,36 @@ class CorotationalFEM:
         -------
         ndarray, shape (n_nodes, 3)
         """
-        dF = np.transpose(dx[self.tets], (0, 2, 1)) @ self.grad
-        E = np.transpose(R, (0, 2, 1)) @ dF           # R^T dF
-        E = 0.5 * (E + np.transpose(E, (0, 2, 1)))
-        tr = np.einsum('eii->e', E)
-        S = 2 * self.mu[:, None, None] * E
-        S[:, [0, 1, 2], [0, 1, 2]] += (self.lam * tr)[:, None]
-        P = R @ S
-        P *= self.volume[:, None, None]
-        return self._scatter(self.grad @ np.transpose(P, (0, 2, 1)))
+        Rl = R if isinstance(R, list) else self.rotation_entries(R)
+        dF = self._F_soa(dx + 0.0)
+        # E = sym(R^T dF)
+        G = [sum(Rl[3 * k + i] * dF[3 * k + j] for k in range(3))
+             for i in range(3) for j in range(3)]
+        two_mu = 2.0 * self.volume * self.mu
+        lam_tr = self.volume * self.lam * (G[0] + G[4] + G[8])
+        S = [None] * 9
+        for i in range(3):
+            S[4 * i] = two_mu * G[4 * i] + lam_tr
+            for j in range(i + 1, 3):
+                S[3 * i + j] = S[3 * j + i] = 0.5 * two_mu * (G[3 * i + j] + G[3 * j + i])
+        P = [sum(Rl[3 * i + k] * S[3 * k + j] for k in range(3))
+             for i in range(3) for j in range(3)]              # V R S
+        Di = self._Dinv
+        out = np.empty((len(self.volume), 4, 3))
+        for i in range(3):
+            P0, P1, P2 = P[3 * i], P[3 * i + 1], P[3 * i + 2]
+            acc = 0.0
+            for a in range(3):
+                fa = P0 * Di[a][0] + P1 * Di[a][1] + P2 * Di[a][2]
+                out[:, a + 1, i] = fa
+                acc = acc + fa
+            out[:, 0, i] = -acc
+        return self._scatter(out)
+
+    @staticmethod
+    def rotation_entries(R: NDArray[np.float64]) -> list:
+        """The nine entries ``[R00, R01, ..., R22]`` of a batch of rotations as 1-D arrays."""
+        return [np.ascontiguousarray(R[:, i, j]) for i in range(3) for j in range(3)]
 
     def stiffness(self) -> sp.csr_matrix:
         """Linear (rest) stiffness matrix ``K_0``, shape (n_dof, n_dof), symmetric PSD.
