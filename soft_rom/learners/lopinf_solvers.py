@@ -276,33 +276,29 @@ class _SymIndex:
 
 
 class _Factor:
-    """Jacobi-scaled Cholesky factor of a symmetric positive (semi)definite matrix."""
+    """Cholesky factor of a symmetric positive (semi)definite matrix.
+
+    Cholesky needs no diagonal pre-scaling (its accuracy is invariant to it); if the matrix
+    is numerically singular, a Jacobi-scaled eigendecomposition gives minimum-norm solutions.
+    """
 
     def __init__(self, H: Array) -> None:
-        d = np.sqrt(np.clip(np.diag(H), 0.0, None))
-        d[d == 0] = 1.0
-        self.d = d
-        Hs = H / d[:, None] / d[None, :]
         try:
-            self.cho = sla.cho_factor(Hs, lower=True, check_finite=False)
+            self.cho = sla.cho_factor(H, lower=True, check_finite=False)
             self.eig = None
-        except np.linalg.LinAlgError:  # singular: minimum-norm solutions
-            lam, V = np.linalg.eigh(Hs)
+        except np.linalg.LinAlgError:
+            d = np.sqrt(np.clip(np.diag(H), 0.0, None))
+            d[d == 0] = 1.0
+            lam, V = np.linalg.eigh(H * np.outer(1.0 / d, 1.0 / d))
             keep = lam > 1e-13 * max(lam[-1], 1e-300)
             self.cho = None
-            self.eig = (lam[keep], V[:, keep])
+            self.eig = (lam[keep], V[:, keep], d)
 
     def solve(self, g: Array) -> Array:
-        gs = g / self.d
         if self.cho is not None:
-            return sla.cho_solve(self.cho, gs, check_finite=False) / self.d
-        lam, V = self.eig
-        return (V @ ((V.T @ gs) / lam)) / self.d
-
-
-def _spd_solve(H: Array, g: Array) -> Array:
-    """Solve ``H x = g`` for symmetric PSD ``H`` with Jacobi scaling; min-norm if singular."""
-    return _Factor(H).solve(g)
+            return sla.cho_solve(self.cho, g, check_finite=False)
+        lam, V, d = self.eig
+        return (V @ ((V.T @ (g / d)) / lam)) / d
 
 
 def _lift(M: Array, floor: float) -> Array:
@@ -398,8 +394,9 @@ class FastSPDSolver:
 
         # Symmetric least squares (closed form) + two refinement steps on the exact gradient.
         theta = np.zeros(2 * idx.n)
+        hf_factor = _Factor(Hf)
         for _ in range(3):
-            theta = theta - _spd_solve(Hf, fgrad(theta))
+            theta = theta - hf_factor.solve(fgrad(theta))
         f_ls = fval(theta)
         C, K = idx.split(theta)
         lam_c, lam_k = np.linalg.eigvalsh(C)[0], np.linalg.eigvalsh(K)[0]
