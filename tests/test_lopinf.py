@@ -8,6 +8,7 @@ import scipy.integrate as sint
 import scipy.linalg as sla
 
 from soft_rom.data import Episode
+from soft_rom.ddt import FiniteDifference
 from soft_rom.errors import DimensionError, NotFittedError
 from soft_rom.learners.lopinf import LOpInf
 from soft_rom.learners.lopinf_solvers import (
@@ -230,3 +231,22 @@ def test_lazy_states_and_errors():
         LOpInf().predict(ep.U)
     with pytest.raises(DimensionError):
         LOpInf().fit([Episode(t=ep.t, U=ep.U, Y=ep.Y)])
+
+
+def test_fast_solver_on_ill_conditioned_pod_data_matches_clarabel():
+    # Reduced data as LOpInf builds them from a noisy simulated body (POD, 8th-order FD):
+    # ill-conditioned, antagonistic inputs (rank-deficient U), constraints active.
+    episodes = _chain_episodes(noise=3e-2, seeds=(6, 7))
+    est = LOpInf(r=8).fit(episodes)
+    V, q_ref = est.basis_.basis_, est.q_ref_
+    Qhat = [V.T @ (e.Q - q_ref[:, None]) for e in episodes]
+    Q, Qd, Qdd, (U,) = FiniteDifference(8).episodes(Qhat, 1e-3, [[e.U for e in episodes]])
+    assert np.linalg.cond(np.vstack([Qd, Q])) > 1e2
+    tight = dict(tol_gap_abs=1e-10, tol_gap_rel=1e-10, tol_feas=1e-10)
+    ref = CvxpySolver('CLARABEL', **tight).solve(Q, Qd, Qdd, U)
+    fast = FastSPDSolver().solve(Q, Qd, Qdd, U)
+    assert fast.info['method'] == 'log-barrier-newton' and fast.info['rank_u'] == 2
+    o_ref = objective(*ref[:3], Q, Qd, Qdd, U)
+    o_fast = objective(*fast[:3], Q, Qd, Qdd, U)
+    assert abs(o_fast - o_ref) / o_ref < 1e-6
+    assert min(np.linalg.eigvalsh(fast.K)[0], np.linalg.eigvalsh(fast.C)[0]) >= DEFAULT_EPS
