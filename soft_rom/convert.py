@@ -639,7 +639,7 @@ class _BagConverter:
         elif q.size != self.state_size:
             rep.drop(f'{q.size} values instead of {self.state_size}', t)
             return None
-        if not np.all(np.isfinite(q)):
+        if not _all_finite(q):
             rep.drop('NaN/Inf', t)
             return None
         if self.state_last is not None and t <= self.state_last:
@@ -726,7 +726,7 @@ class _BagConverter:
         seg.Y.append(np.array(y, dtype=np.float64))
         if q is not None:
             if seg.writer is not None:
-                seg.writer.append_states(q.reshape(-1, 1), check_finite=False)
+                seg.writer.append_states(q.reshape(-1, 1), check_finite=False, copy=False)
             elif seg.Q is not None:
                 seg.Q.append(np.array(q, dtype=np.float64))
 
@@ -825,6 +825,13 @@ class _BagConverter:
     def output_names(self) -> list[str]:
         """Output names after the bag was read."""
         return self.mapping.output.names(self.out_points or 0)
+
+
+def _all_finite(v: NDArray[Any]) -> bool:
+    """True if every value is finite; one pass without a temporary in the common case."""
+    with np.errstate(all='ignore'):
+        total = np.add.reduce(v, axis=None)
+    return bool(np.isfinite(total)) or bool(np.all(np.isfinite(v)))
 
 
 def _per_input(name: str, values: Sequence[Any], m: int) -> list[Any]:

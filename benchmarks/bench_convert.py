@@ -1,0 +1,192 @@
+"""Benchmark: bag -> training-set conversion against a plain rosbags read of the same bag.
+
+Writes a simulator-like bag (``--messages`` samples of ``--n-dof`` float64 state values plus
+six ``FluidPressure`` and one 20-point ``PoseArray`` per sample) under ``--dir``, then, each in
+a fresh child process so that peak memory (``ru_maxrss``) is per phase:
+
+1. ``read``: a plain rosbags read of the whole bag (every message read and deserialised);
+2. ``convert``: :func:`soft_rom.convert.convert` to a zarr training set (with ``Q``);
+3. ``read`` again (the page cache is then as warm as it was for the conversion).
+
+It prints throughput (state messages/s and MB/s of bag), the ratio conversion / plain read
+(target >= 0.5) and the peak memory of the conversion (target <= 1 GB), then deletes the
+bag and the training set (unless ``--keep``). The full run needs about 2 x 3.7 GB of disk.
+
+Usage::
+
+    .venv/bin/python benchmarks/bench_convert.py            # 2,000 x 231,336 DOF (~3.7 GB)
+    .venv/bin/python benchmarks/bench_convert.py --small    # 300 x 23,136 DOF (seconds)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+from pathlib import Path
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+
+def _maxrss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _cpu() -> float:
+    """CPU seconds of this process, all threads (less sensitive to a loaded machine)."""
+    ru = resource.getrusage(resource.RUSAGE_SELF)
+    return ru.ru_utime + ru.ru_stime
+
+
+def phase_write(bag: Path, n_dof: int, messages: int, storage: str) -> dict:
+    from soft_rom.bags import EpisodeBagWriter
+
+    n_nodes = n_dof // 3
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(n_nodes, 3))
+    cl = rng.normal(size=(20, 3))
+    t0 = time.perf_counter()
+    with EpisodeBagWriter(bag, storage=storage, n_chambers=6, n_nodes=n_nodes) as w:
+        for j in range(messages):
+            base[j % n_nodes, j % 3] += 1e-3          # every snapshot differs
+            w.write(0.001 * (j + 1), np.full(6, float(j)), cl + 1e-4 * j, base)
+    return {'seconds': time.perf_counter() - t0, 'maxrss_mb': _maxrss_mb()}
+
+
+def phase_read(bag: Path) -> dict:
+    """Plain rosbags: iterate every message and deserialise it (the rosbags API directly)."""
+    from soft_rom.bags.reader import BagReader
+    from soft_rom.bags.writer import typestore
+
+    ts = typestore()
+    t0, c0 = time.perf_counter(), _cpu()
+    n_state = 0
+    nbytes = 0
+    checksum = 0.0
+    with BagReader(bag) as wrapped:
+        reader = wrapped.reader                       # rosbags.rosbag2.Reader
+        for conn, _, raw in reader.messages():
+            msg = ts.deserialize_cdr(raw, conn.msgtype)
+            nbytes += len(raw)
+            if conn.topic == '/soft_robot/state':
+                n_state += 1
+                checksum += float(msg.data[0])       # touch the data
+    return {'seconds': time.perf_counter() - t0, 'cpu': _cpu() - c0, 'state_messages': n_state,
+            'bytes': nbytes, 'maxrss_mb': _maxrss_mb(), 'checksum': checksum}
+
+
+def phase_copy(bag: Path, out: Path) -> dict:
+    """I/O floor: the plain read above plus writing every state payload to one flat file."""
+    from soft_rom.bags.reader import BagReader
+    from soft_rom.bags.writer import typestore
+
+    ts = typestore()
+    t0, c0 = time.perf_counter(), _cpu()
+    n_state = 0
+    out.mkdir(parents=True, exist_ok=True)
+    with BagReader(bag) as wrapped, open(out / 'flat.f8', 'wb') as fh:
+        for conn, _, raw in wrapped.reader.messages():
+            msg = ts.deserialize_cdr(raw, conn.msgtype)
+            if conn.topic == '/soft_robot/state':
+                n_state += 1
+                fh.write(memoryview(msg.data).cast('B'))
+    seconds = time.perf_counter() - t0
+    shutil.rmtree(out, ignore_errors=True)
+    return {'seconds': seconds, 'cpu': _cpu() - c0, 'state_messages': n_state,
+            'maxrss_mb': _maxrss_mb()}
+
+
+def phase_convert(bag: Path, out: Path) -> dict:
+    from soft_rom.convert import convert
+
+    t0, c0 = time.perf_counter(), _cpu()
+    ts, reports = convert([bag], out, progress=False, overwrite=True)
+    seconds, cpu = time.perf_counter() - t0, _cpu() - c0
+    q = ts.q_array(ts.episode_names[0])
+    shutil.rmtree(out, ignore_errors=True)
+    return {'seconds': seconds, 'cpu': cpu, 'state_messages': reports[0].n_samples,
+            'Q_shape': list(q.shape), 'Q_chunks': list(q.chunks), 'maxrss_mb': _maxrss_mb()}
+
+
+def _child(phase: str, args: argparse.Namespace, bag: Path, out: Path) -> dict:
+    cmd = [sys.executable, __file__, '--phase', phase, '--bag', str(bag), '--out', str(out),
+           '--n-dof', str(args.n_dof), '--messages', str(args.messages),
+           '--storage', args.storage]
+    res = subprocess.run(cmd, check=True, capture_output=True, text=True)
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--n-dof', type=int, default=231336)
+    parser.add_argument('--messages', type=int, default=2000)
+    parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
+    parser.add_argument('--dir', default=tempfile.gettempdir())
+    parser.add_argument('--small', action='store_true', help='300 x 23,136 DOF preset')
+    parser.add_argument('--keep', action='store_true', help='keep the bag and training set')
+    parser.add_argument('--phase', choices=('write', 'read', 'copy', 'convert'),
+                        help=argparse.SUPPRESS)
+    parser.add_argument('--bag', help=argparse.SUPPRESS)
+    parser.add_argument('--out', help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.small:
+        args.n_dof, args.messages = 23136, 300
+    if args.phase:
+        bag, out = Path(args.bag), Path(args.out)
+        if args.phase == 'write':
+            res = phase_write(bag, args.n_dof, args.messages, args.storage)
+        elif args.phase == 'read':
+            res = phase_read(bag)
+        elif args.phase == 'copy':
+            res = phase_copy(bag, out)
+        else:
+            res = phase_convert(bag, out)
+        print(json.dumps(res))
+        return 0
+
+    work = Path(tempfile.mkdtemp(prefix='soft_rom_bench_convert_', dir=args.dir))
+    bag, out = work / 'bench_bag', work / 'bench.zarr'
+    try:
+        print(f'bag: {args.messages} state messages x {args.n_dof} float64 ({args.storage}) '
+              f'under {work}')
+        w = _child('write', args, bag, out)
+        size = sum(f.stat().st_size for f in bag.iterdir())
+        print(f'write   : {w["seconds"]:8.2f} s  {size / 1e9:6.2f} GB  '
+              f'{size / 1e6 / w["seconds"]:8.1f} MB/s  peak {w["maxrss_mb"]:7.1f} MB')
+        r1 = _child('read', args, bag, out)
+        c = _child('convert', args, bag, out)
+        r2 = _child('read', args, bag, out)
+        f = _child('copy', args, bag, out)
+        read_s = min(r1['seconds'], r2['seconds'])
+        read_cpu = min(r1['cpu'], r2['cpu'])
+        for label, r in (('read #1', r1), ('read #2', r2), ('convert', c), ('io floor', f)):
+            print(f'{label:8s}: {r["seconds"]:7.2f} s wall {r["cpu"]:7.2f} s cpu  '
+                  f'{r["state_messages"] / r["seconds"]:7.1f} state msg/s  '
+                  f'{size / 1e6 / r["seconds"]:7.1f} MB/s  peak {r["maxrss_mb"]:7.1f} MB')
+        print('  read = plain rosbags read + deserialise of every message; io floor = the same '
+              'read + writing the state payloads to one flat file')
+        print(f'  convert: Q {c["Q_shape"]} chunks {c["Q_chunks"]}')
+        ratio = read_s / c['seconds']
+        print(f'throughput ratio convert / plain read, wall: {ratio:.2f} (target >= 0.5) -> '
+              f'{"PASS" if ratio >= 0.5 else "FAIL"};  cpu: {read_cpu / c["cpu"]:.2f};  '
+              f'convert / io floor, wall: {f["seconds"] / c["seconds"]:.2f}')
+        print(f'conversion peak memory: {c["maxrss_mb"]:.0f} MB (target <= 1024 MB) -> '
+              f'{"PASS" if c["maxrss_mb"] <= 1024 else "FAIL"}')
+        print(f'machine load average during the run: {os.getloadavg()[0]:.1f} '
+              f'on {os.cpu_count()} cores')
+    finally:
+        if args.keep:
+            print(f'kept {work}')
+        else:
+            shutil.rmtree(work, ignore_errors=True)
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
