@@ -15,13 +15,15 @@ Layout (zarr format 2 on disk, so zarr 2.16+ and zarr 3.x both read and write it
             Q      (n, k)          optional full states, absolute, float64
 
 Arrays follow the package convention ``(n_channels, n_samples)``, float64. ``Q`` is chunked in
-blocks of ``(min(n, 32768), 32)`` (8 MiB, uncompressed): a column block of 32 snapshots reads
-``ceil(n / 32768)`` whole chunks (the streaming POD's randomized range finder) and a row block
-reads whole chunks too (its Gram pass), so both access patterns of
-:mod:`soft_rom.scale` read every stored byte once per pass. Compression is off for ``Q``:
-nodal positions in float64 barely compress (zstd: about 0.9 of the size) and it halved the
-write throughput in our measurements. The writer holds at most one chunk column
-(``n x 32`` values) of ``Q`` in memory.
+blocks of ``(min(n, 32768), 32)`` (8 MiB), uncompressed, Fortran order inside a chunk: a column
+block of 32 snapshots reads ``ceil(n / 32768)`` whole chunks (the streaming POD's randomized
+range finder) and a row block reads whole chunks too (its Gram pass), so both access patterns
+of :mod:`soft_rom.scale` read every stored byte once per pass. Fortran order makes each
+snapshot contiguous on disk, so the writer stores snapshots straight from the buffers they
+arrived in (:class:`_ChunkFileWriter`); compression is off because it would cost a CPU pass
+per snapshot on a 2-core machine for data (float64 positions) that compresses poorly. The
+writer holds at most four chunk columns of ``Q`` (``4 x n x 32`` values: one filling, two
+queued, one being written).
 
 A training set is written atomically: into a hidden temporary directory next to the target,
 renamed into place only when :class:`TrainingSetWriter` exits without an exception.

@@ -134,3 +134,20 @@ def test_open_refuses_missing_foreign_and_unknown_version(tmp_path):
     (tmp_path / 'junk' / '.zgroup').write_text('{not json')
     with pytest.raises(DatasetError):
         TrainingSet.open(tmp_path / 'junk')
+
+
+def test_zarr_api_fallback_writes_the_same(tmp_path, monkeypatch):
+    from soft_rom import dataset
+    ep = _episode(45, n=9)
+    direct = TrainingSet.from_episodes(tmp_path / 'a.zarr', [ep], q_chunks=(4, 8))
+    monkeypatch.setattr(dataset.EpisodeWriter, '_direct_writer', lambda self, n, chunks: None)
+    plain = TrainingSet.from_episodes(tmp_path / 'b.zarr', [ep], q_chunks=(4, 8))
+    for ts in (direct, plain):
+        np.testing.assert_array_equal(np.asarray(ts.q_array('ep')[...]), ep.Q)
+    a = sorted(p.name for p in (tmp_path / 'a.zarr/episodes/ep/Q').iterdir())
+    b = sorted(p.name for p in (tmp_path / 'b.zarr/episodes/ep/Q').iterdir())
+    assert a == b
+    for name in a:
+        if name != '.zarray':
+            assert (tmp_path / 'a.zarr/episodes/ep/Q' / name).read_bytes() == \
+                (tmp_path / 'b.zarr/episodes/ep/Q' / name).read_bytes()
