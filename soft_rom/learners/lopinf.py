@@ -163,6 +163,7 @@ class LOpInf:
         if not callable(getattr(builder, 'fit', None)):
             raise ConfigError(f'basis must be a BasisBuilder object (fit, basis_, '
                               f'singular_values_); got {type(builder).__name__}.')
+        dt = self._common_dt(eps_list)          # validate before the expensive POD
         t0 = time.perf_counter()
         builder.fit([ep.Q for ep in eps_list], q_ref)
         if not isinstance(builder, BasisBuilder):
@@ -184,7 +185,7 @@ class LOpInf:
                                                   input_units=input_units,
                                                   output_units=output_units))
         self.fit_reduced(Qhat, [ep.U for ep in eps_list], [ep.Y for ep in eps_list],
-                         self._common_dt(eps_list), y_ref,
+                         dt, y_ref,
                          names=[ep.name for ep in eps_list], energy_captured=captured,
                          time_ranges=[[float(ep.t[0]), float(ep.t[-1])] for ep in eps_list],
                          metadata=metadata, **meta)
