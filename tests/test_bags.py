@@ -105,3 +105,34 @@ def test_custom_topics(tmp_path):
                           topics=topics) as w:
         w.write(1.5, [1.0, 2.0], np.ones((3, 3)), np.ones((1, 3)))
     assert set(describe_bag(tmp_path / 'b')['topics']) == {'/p1', '/p2', '/cl', '/x'}
+
+
+@pytest.mark.parametrize('frame_id', ['', 'w', 'world', 'abcdefg', 'abcdefgh'])
+@pytest.mark.parametrize('n_points', [0, 1, 20])
+def test_fast_cdr_parsers_match_rosbags(frame_id, n_points):
+    from soft_rom.bags.reader import _fast_fluid_pressure, _fast_pose_array, decode
+    from soft_rom.bags.writer import typestore
+    ts = typestore()
+    T = ts.types
+    header = T['std_msgs/msg/Header'](
+        stamp=T['builtin_interfaces/msg/Time'](sec=1_700_000_000, nanosec=999_999_999),
+        frame_id=frame_id)
+    fp = T['sensor_msgs/msg/FluidPressure'](header=header, fluid_pressure=-1.25e5, variance=3.0)
+    raw = bytes(ts.serialize_cdr(fp, 'sensor_msgs/msg/FluidPressure'))
+    ref = decode('sensor_msgs/msg/FluidPressure',
+                 ts.deserialize_cdr(raw, 'sensor_msgs/msg/FluidPressure'))
+    got = _fast_fluid_pressure(raw)
+    assert got[0] == ref[0] == 1_700_000_000_999_999_999
+    np.testing.assert_array_equal(got[1], ref[1])
+    pts = np.random.default_rng(n_points).normal(size=(n_points, 3))
+    P, Pt = T['geometry_msgs/msg/Pose'], T['geometry_msgs/msg/Point']
+    Q = T['geometry_msgs/msg/Quaternion']
+    pa = T['geometry_msgs/msg/PoseArray'](header=header, poses=[
+        P(position=Pt(x=a, y=b, z=c), orientation=Q(x=0.1, y=0.2, z=0.3, w=0.9))
+        for a, b, c in pts])
+    raw = bytes(ts.serialize_cdr(pa, 'geometry_msgs/msg/PoseArray'))
+    got = _fast_pose_array(raw)
+    assert got[0] == ref[0]
+    np.testing.assert_array_equal(got[1], pts.reshape(-1, 3))
+    assert _fast_pose_array(raw[:-8]) is None          # truncated: generic path decides
+    assert _fast_fluid_pressure(b'\x00\x00' + raw[2:]) is None   # big-endian: generic path
