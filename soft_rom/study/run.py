@@ -1,0 +1,499 @@
+"""The paper's two studies end to end on the embedded eel FOM, and the one-command demo.
+
+Pipeline (every step goes through the same public pieces a user calls):
+
+1. :mod:`soft_rom.sim` simulates Ep 1 … Ep N and records each as a ROS 2 bag
+   (:class:`soft_rom.bags.EpisodeBagWriter`, the SPEC's bag contract);
+2. :mod:`soft_rom.convert` turns the bags into a zarr training set;
+3. the learners fit LOpInf / DMDc / ERA-OKID ROMs over ranges of ``r``;
+4. :mod:`soft_rom.evaluation` predicts and scores them (both metrics);
+5. figures and a Markdown report with the paper's numbers beside ours.
+
+Study 1 (time extrapolation, paper section 3.2): train on Ep 1 up to ``t_train`` = 1.5 s,
+test on the rest of Ep 1; errors against ``r``; traces of two outputs.
+Study 2 (unseen inputs, paper section 3.3): train on Ep 1 + Ep 2, test on Ep 3 – Ep 6; ROMs
+chosen by training error; ERA/OKID from the better single episode; bar chart and centerline
+shapes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field
+import json
+import logging
+from pathlib import Path
+import re
+import time
+from typing import Any
+
+import numpy as np
+
+from soft_rom.data import Episode
+from soft_rom.errors import ConfigError
+from soft_rom.metrics import relative_deviation_error, relative_error
+from soft_rom.models import LinearROM
+from soft_rom.study import figures, paper
+from soft_rom.study.report import study_report
+
+__all__ = ['StudyConfig', 'run_study', 'simulate_bags']
+
+LOG = logging.getLogger(__name__)
+METHODS = ('lopinf', 'dmdc', 'era')
+
+
+@dataclass(frozen=True)
+class StudyConfig:
+    """What the studies run.
+
+    Parameters
+    ----------
+    resolution : int
+        Mesh resolution of the eel FOM (1 = the fast default).
+    n_episodes : int
+        Episodes simulated (the paper: 6).
+    seed : int
+        Seed of the random pressure sequences (episode ``i`` uses ``[seed, i]``).
+    duration, dt : float
+        Episode length and time step (s): 2 s at 1 ms in the paper.
+    storage : str
+        Bag storage, ``'mcap'`` or ``'sqlite3'``.
+    record_state : bool
+        Record the full FEM state in the bags (needed by LOpInf and DMDc).
+    t_train : float
+        End of training in study 1 (s).
+    r_lopinf, r_dmdc, r_era : tuple of int
+        Reduced dimensions swept.
+    shape_times : tuple of float
+        Times of the centerline-shape figure.
+    jobs : int
+        Processes used to simulate episodes.
+    """
+
+    resolution: int = 1
+    n_episodes: int = 6
+    seed: int = 0
+    duration: float = 2.0
+    dt: float = 1e-3
+    storage: str = 'mcap'
+    record_state: bool = True
+    t_train: float = 1.5
+    r_lopinf: tuple[int, ...] = tuple(range(2, 23, 2))
+    r_dmdc: tuple[int, ...] = tuple(range(2, 23, 2))
+    r_era: tuple[int, ...] = tuple(range(20, 43, 2))
+    shape_times: tuple[float, ...] = (0.5, 1.0, 2.0)
+    jobs: int = 2
+    sim_options: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.n_episodes < 2:
+            raise ConfigError('the studies need at least 2 episodes (6 for study 2).')
+        if not 0 < self.t_train < self.duration:
+            raise ConfigError(f't_train must lie in (0, {self.duration}); got {self.t_train}.')
+
+
+# ----------------------------------------------------------------------------- simulation
+def simulate_bags(bag_dir: Path, cfg: StudyConfig, *, progress: bool = True) -> list[Path]:
+    """Simulate Ep 1 … Ep N and write one bag per episode (``bag_dir/ep<i>``).
+
+    Bags already present are reused (their JSON sidecar must show the same settings).
+    """
+    from soft_rom.sim.record import record_episodes
+    bag_dir.mkdir(parents=True, exist_ok=True)
+    n_steps = int(round(cfg.duration / cfg.dt))
+    wanted = dict(seed=cfg.seed, storage=cfg.storage, n_steps=n_steps, dt=cfg.dt,
+                  state=cfg.record_state, **cfg.sim_options)
+    todo = []
+    for i in range(1, cfg.n_episodes + 1):
+        sidecar = bag_dir / f'ep{i}.json'
+        if (bag_dir / f'ep{i}').exists() and sidecar.exists():
+            meta = json.loads(sidecar.read_text())
+            if _same_recording(meta, wanted, cfg.resolution):
+                continue
+            raise ConfigError(
+                f'{bag_dir / f"ep{i}"} exists but was recorded with other settings; '
+                'remove it or use another --bags folder.')
+        todo.append(i)
+    if todo:
+        record_episodes(bag_dir, todo, resolution=cfg.resolution, jobs=cfg.jobs,
+                        progress=progress, **wanted)
+    return [bag_dir / f'ep{i}' for i in range(1, cfg.n_episodes + 1)]
+
+
+def _same_recording(meta: dict[str, Any], wanted: dict[str, Any], resolution: int) -> bool:
+    flat = dict(meta)
+    for key in ('settings', 'simulation', 'recording', 'config', 'model'):
+        if isinstance(meta.get(key), dict):
+            flat.update(meta[key])
+    checks = dict(wanted, resolution=resolution)
+    return all(flat.get(k, v) == v for k, v in checks.items()
+               if k in ('seed', 'storage', 'n_steps', 'dt', 'resolution'))
+
+
+# ----------------------------------------------------------------------------- fitting
+def sweep(method: str, rs: Sequence[int], episodes: Sequence[Episode], q_ref: Any,
+          y_ref: Any, *, names: Any = None) -> dict[int, LinearROM]:
+    """ROMs of one method for several ``r``, sharing the expensive part of the fit.
+
+    LOpInf: one POD of rank ``max(rs)``; each ROM is fitted on the leading ``r`` POD
+    coordinates (:meth:`LOpInf.fit_reduced`), exactly what ``LOpInf(r).fit`` computes.
+    DMDc: one pair of SVDs, truncated per ``r`` (:meth:`DMDc.model_for`). ERA/OKID: one OKID
+    and Hankel SVD (one episode), truncated per ``r`` (:meth:`ERAOKID.model_for`).
+    """
+    rs = sorted(set(int(r) for r in rs))
+    names = names or {}
+    if method == 'era':
+        if len(episodes) != 1:
+            raise ConfigError('ERA/OKID fits one episode.')
+        from soft_rom.learners.era import ERAOKID
+        learner = ERAOKID(r=max(rs)).fit(episodes[0], y_ref=y_ref)
+        return {r: learner.model_for(r) for r in rs}
+    if method == 'dmdc':
+        from soft_rom.learners.dmdc import DMDc
+        learner = DMDc(r=max(rs)).fit(list(episodes), q_ref=q_ref, y_ref=y_ref, **names)
+        return {r: learner.model_for(r) for r in rs}
+    if method == 'lopinf':
+        from soft_rom.basis import POD
+        from soft_rom.learners.lopinf import LOpInf
+        pod = POD(r=max(rs)).fit([ep.Q for ep in episodes], q_ref)
+        Qhat = [pod.project(ep.Q) for ep in episodes]
+        out = {}
+        for r in rs:
+            out[r] = LOpInf(r=r).fit_reduced(
+                [Qh[:r] for Qh in Qhat], [ep.U for ep in episodes], [ep.Y for ep in episodes],
+                episodes[0].dt, y_ref, names=[ep.name for ep in episodes],
+                energy_captured=float(pod.energy_[r - 1]),
+                time_ranges=[[float(ep.t[0]), float(ep.t[-1])] for ep in episodes],
+                **names).model_
+        return out
+    raise ConfigError(f'unknown method {method!r}')
+
+
+def _in_memory(ep: Episode, limit_bytes: float = 2e9) -> Episode:
+    """Load a lazy ``Q`` into memory when it is small (the default mesh): fits read it often."""
+    if ep.Q is None or isinstance(ep.Q, np.ndarray):
+        return ep
+    n, k = ep.Q.shape
+    if n * k * 8 > limit_bytes:
+        return ep
+    return Episode(t=ep.t, U=ep.U, Y=ep.Y, Q=np.asarray(ep.Q[:, :], dtype=np.float64),
+                   name=ep.name, metadata=ep.metadata)
+
+
+def _names(ts: Any) -> dict[str, Any]:
+    return {'input_names': ts.input_names, 'output_names': ts.output_names,
+            'input_units': ts.input_units, 'output_units': ts.output_units}
+
+
+def _predict(model: LinearROM, episode: Episode) -> np.ndarray:
+    from soft_rom.evaluation import predict
+    return predict(model, episode)
+
+
+def _errors(Y: np.ndarray, Yh: np.ndarray, y_ref: np.ndarray) -> tuple[float, float]:
+    return relative_error(Y, Yh), relative_deviation_error(Y, Yh, y_ref)
+
+
+def _output_index(names: Sequence[str]) -> dict[tuple[str, int], int]:
+    """Map ``(component, point)`` to the row of each output name (``x3``, ``z_3``, ``p3.z``)."""
+    index: dict[tuple[str, int], int] = {}
+    for row, name in enumerate(names):
+        m = (re.search(r'(?<![a-z])([xyz])[_.]?(\d+)$', name)
+             or re.search(r'(\d+)[_.]([xyz])$', name))
+        if m is None:
+            continue
+        a, b = m.groups()
+        comp, point = (a, int(b)) if a in 'xyz' else (b, int(a))
+        index[(comp, point)] = row
+    return index
+
+
+def _shape(index: dict[tuple[str, int], int], y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    points = sorted({p for (_c, p) in index})
+    x = np.array([y[index[('x', p)]] for p in points])
+    z = np.array([y[index[('z', p)]] for p in points])
+    return x, z
+
+
+# ----------------------------------------------------------------------------- studies
+def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
+                             tick: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Study 1: fit on Ep 1 up to ``t_train``, test on the rest; errors vs r; traces."""
+    ep1 = _in_memory(ts['ep1'])
+    train = ep1.time_slice(None, cfg.t_train)
+    k_train = train.n_samples
+    y_ref, q_ref = ts.y_ref, ts.q_ref
+    curves: dict[str, dict[str, list[float]]] = {}
+    predictions: dict[str, dict[int, np.ndarray]] = {}
+    grids = {'lopinf': cfg.r_lopinf, 'dmdc': cfg.r_dmdc, 'era': cfg.r_era}
+    for method in METHODS:
+        c: dict[str, list[Any]] = {k: [] for k in (
+            'r', 'train', 'test', 'train_dev', 'test_dev', 'stability_margin', 'fit_seconds')}
+        predictions[method] = {}
+        t0 = time.perf_counter()
+        try:
+            models = sweep(method, grids[method], [train], q_ref, y_ref, names=_names(ts))
+        except Exception as err:  # a failed fit is a result to report, not a crash
+            LOG.warning('study 1: %s failed: %s', method, err)
+            models = {}
+        fit_s = (time.perf_counter() - t0) / max(len(models), 1)
+        for r, model in models.items():
+            Yh = _predict(model, ep1)
+            tr = _errors(ep1.Y[:, :k_train], Yh[:, :k_train], y_ref)
+            te = _errors(ep1.Y[:, k_train:], Yh[:, k_train:], y_ref)
+            for key, v in zip(('r', 'train', 'test', 'train_dev', 'test_dev', 'stability_margin',
+                               'fit_seconds'),
+                              (r, tr[0], te[0], tr[1], te[1], model.stability_margin(), fit_s)):
+                c[key].append(v)
+            predictions[method][r] = Yh
+            if tick:
+                tick(f'{method} r={r}')
+        curves[method] = c
+    best = {}
+    for method, c in curves.items():
+        if not c['r']:
+            continue
+        i = int(np.nanargmin(c['train']))
+        best[method] = {k: c[k][i] for k in ('r', 'train', 'test', 'train_dev', 'test_dev')}
+    figures.errors_vs_r(out / 'errors_vs_r.png', curves, paper=paper.TIME_EXTRAPOLATION)
+    figures.errors_vs_r(out / 'errors_vs_r_deviation.png',
+                        {m: {'r': c['r'], 'train': c['train_dev'], 'test': c['test_dev']}
+                         for m, c in curves.items()},
+                        metric_label='Relative error on deviations')
+    # The paper's y10 and y20 "at different scales": z of the mid-body point and of the tail.
+    names = ts.output_names
+    index = _output_index(names)
+    n_pts = max((p for (_c, p) in index), default=0)
+    rows = [index.get(('z', n_pts // 2), min(9, len(names) - 1)),
+            index.get(('z', n_pts), min(19, len(names) - 1))]
+    figures.output_traces(out / 'traces.png', ep1.t, ep1.Y,
+                          {m: predictions[m][b['r']] for m, b in best.items()}, rows,
+                          [names[i] for i in rows], t_split=cfg.t_train,
+                          rom_labels={m: f'{figures.LABELS[m]} r={b["r"]}'
+                                      for m, b in best.items()})
+    return {'t_train': cfg.t_train, 't_end': float(ep1.t[-1] + ep1.dt), 'curves': curves,
+            'best': best, 'trace_names': [names[i] for i in rows]}
+
+
+def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
+                        tick: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Study 2: fit on Ep 1 + Ep 2, test on Ep 3 … Ep N; bars and centerline shapes."""
+    names = ts.episode_names
+    train_eps = [_in_memory(ts['ep1']), _in_memory(ts['ep2'])]
+    test_names = [n for n in names if n not in ('ep1', 'ep2')]
+    tests = [ts[n] for n in test_names]
+    y_ref, q_ref = ts.y_ref, ts.q_ref
+    grids = {'lopinf': cfg.r_lopinf, 'dmdc': cfg.r_dmdc, 'era': cfg.r_era}
+
+    def train_error(model: LinearROM, eps: Sequence[Episode]) -> float:
+        Y = np.concatenate([e.Y for e in eps], axis=1)
+        Yh = np.concatenate([_predict(model, e) for e in eps], axis=1)
+        return relative_error(Y, Yh)
+
+    def pick(method: str, eps: Sequence[Episode]) -> tuple[float, int, LinearROM] | None:
+        try:
+            models = sweep(method, grids[method], eps, q_ref, y_ref, names=_names(ts))
+        except Exception as err:
+            LOG.warning('study 2: %s on %s failed: %s', method, [e.name for e in eps], err)
+            return None
+        best = None
+        for r, model in models.items():
+            e = train_error(model, eps)
+            if tick:
+                tick(f'{method} r={r}')
+            if np.isfinite(e) and (best is None or e < best[0]):
+                best = (e, r, model)
+        return best
+
+    chosen: dict[str, dict[str, Any]] = {}
+    models: dict[str, LinearROM] = {}
+    for method in ('lopinf', 'dmdc'):
+        best = pick(method, train_eps)
+        if best is not None:
+            chosen[method] = {'r': best[1], 'train': best[0]}
+            models[method] = best[2]
+    era_candidates = {}
+    for ep in train_eps:
+        best = pick('era', [ep])
+        if best is not None:
+            test_err = relative_error(np.concatenate([t.Y for t in tests], axis=1),
+                                      np.concatenate([_predict(best[2], t) for t in tests], 1))
+            era_candidates[ep.name] = (test_err, best)
+    era_episode = None
+    if era_candidates:
+        era_episode = min(era_candidates, key=lambda k: era_candidates[k][0])
+        _e, (e_train, r, model) = era_candidates[era_episode]
+        chosen['era'] = {'r': r, 'train': e_train, 'episode': era_episode}
+        models['era'] = model
+    test, test_dev, preds = {}, {}, {}
+    for method, model in models.items():
+        test[method], test_dev[method], preds[method] = {}, {}, {}
+        for ep in tests:
+            Yh = _predict(model, ep)
+            preds[method][ep.name] = Yh
+            test[method][ep.name], test_dev[method][ep.name] = _errors(ep.Y, Yh, y_ref)
+    labels = {m: f'{figures.LABELS[m]} r={c["r"]}' for m, c in chosen.items()}
+    figures.error_bars(out / 'bars.png', test, paper=paper.UNSEEN_INPUTS, rom_labels=labels)
+    figures.error_bars(out / 'bars_deviation.png', test_dev, rom_labels=labels,
+                       metric_label='Relative error on deviations')
+    shape_ep = tests[0]
+    index = _output_index(ts.output_names)
+    shapes: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {'fom': []}
+    cols = [min(int(round(tt / shape_ep.dt)), shape_ep.n_samples - 1) for tt in cfg.shape_times]
+    shapes['fom'] = [_shape(index, shape_ep.Y[:, j]) for j in cols]
+    for method in models:
+        shapes[method] = [_shape(index, preds[method][shape_ep.name][:, j]) for j in cols]
+    shapes_png = f'centerline_{shape_ep.name}.png'
+    if index:
+        figures.centerline_shapes(out / shapes_png, cfg.shape_times, shapes, rom_labels=labels)
+    for method, model in models.items():
+        model.save(out / 'models' / f'eel_{method}_r{chosen[method]["r"]}.npz')
+    return {'chosen': chosen, 'era_episode': era_episode, 'test': test, 'test_dev': test_dev,
+            'shape_episode': shape_ep.name, 'shape_times': list(cfg.shape_times),
+            'shapes_png': shapes_png}
+
+
+def _conclusions(s1: dict[str, Any] | None, s2: dict[str, Any] | None) -> list[str]:
+    out = []
+    if s1 and {'lopinf', 'dmdc'} <= set(s1['best']):
+        lo, dm = s1['best']['lopinf'], s1['best']['dmdc']
+        verdict = 'holds' if lo['test'] < dm['test'] else 'does NOT hold'
+        out.append(f'Time extrapolation, LOpInf vs DMDc (best-on-training ROMs): test error '
+                   f'{lo["test"]:.4f} (r={lo["r"]}) vs {dm["test"]:.4f} (r={dm["r"]}); '
+                   f'on deviations {lo["test_dev"]:.3f} vs {dm["test_dev"]:.3f}. '
+                   f'"LOpInf generalizes better than DMDc" {verdict} here.')
+        if 'era' in s1['best']:
+            er = s1['best']['era']
+            out.append(f'ERA/OKID (r={er["r"]}): train {er["train"]:.4f}, test {er["test"]:.4f} '
+                       f'(dev. {er["test_dev"]:.3f}). The paper finds ERA/OKID best on training '
+                       f'and LOpInf best on test: here ERA/OKID is '
+                       f'{"better" if er["train"] < lo["train"] else "worse"} than LOpInf on '
+                       f'training and {"better" if er["test"] < lo["test"] else "worse"} on test.')
+    if s2 and s2['test']:
+        eps = list(next(iter(s2['test'].values())).keys())
+        if {'lopinf', 'dmdc'} <= set(s2['test']):
+            wins = sum(s2['test']['lopinf'][e] < s2['test']['dmdc'][e] for e in eps)
+            out.append(f'Unseen inputs: LOpInf beats DMDc on {wins} of {len(eps)} test episodes '
+                       f'(paper: 4 of 4); mean test error LOpInf '
+                       f'{np.mean([s2["test"]["lopinf"][e] for e in eps]):.4f}, DMDc '
+                       f'{np.mean([s2["test"]["dmdc"][e] for e in eps]):.4f}.')
+        if {'lopinf', 'era'} <= set(s2['test']):
+            wins = sum(s2['test']['lopinf'][e] < s2['test']['era'][e] for e in eps)
+            out.append(f'Unseen inputs: LOpInf beats ERA/OKID on {wins} of {len(eps)} test '
+                       f'episodes (paper: 4 of 4); mean ERA/OKID '
+                       f'{np.mean([s2["test"]["era"][e] for e in eps]):.4f}.')
+    return out
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, (np.floating, np.integer)):
+        return obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def run_study(out_dir: str | Path, cfg: StudyConfig | None = None, *, progress: bool = True,
+              studies: Sequence[int] = (1, 2), replay: bool = False,
+              bag_dir: str | Path | None = None) -> dict[str, Any]:
+    """Run the studies end to end; returns the summary (also written as ``summary.json``).
+
+    Parameters
+    ----------
+    out_dir : path
+        Report folder: ``report.md``, PNG figures, ``summary.json``, ``models/``; bags under
+        ``bags/`` and the training set ``data.zarr`` unless given.
+    cfg : StudyConfig
+    studies : sequence of int
+        Which studies (1: time extrapolation, 2: unseen inputs).
+    replay : bool
+        Also replay a test bag through the predictor core (the demo does).
+    bag_dir : path, optional
+        Reuse bags from here (simulated there if missing).
+    """
+    from tqdm import tqdm
+
+    from soft_rom.convert import convert
+    from soft_rom.dataset import TrainingSet
+
+    cfg = cfg or StudyConfig()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    bags = simulate_bags(Path(bag_dir) if bag_dir else out / 'bags', cfg, progress=progress)
+    timings['simulate (bags)'] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    data_path = out / 'data.zarr'
+    if not data_path.exists():
+        convert(bags, data_path, progress=progress)
+    ts = TrainingSet.open(data_path)
+    timings['convert'] = time.perf_counter() - t0
+    n_fits = ((len(cfg.r_lopinf) + len(cfg.r_dmdc) + len(cfg.r_era)) * (1 in studies)
+              + (len(cfg.r_lopinf) + len(cfg.r_dmdc) + 2 * len(cfg.r_era)) * (2 in studies))
+    bar = tqdm(total=n_fits, desc='fit + evaluate', unit='ROM', disable=not progress)
+
+    def tick(label: str) -> None:
+        bar.set_postfix_str(label)
+        bar.update()
+
+    summary: dict[str, Any] = {'config': asdict(cfg)}
+    ep1 = ts['ep1']
+    summary['fom'] = {
+        'episodes': len(ts.episode_names), 'samples per episode': ep1.n_samples,
+        'dt [s]': ep1.dt, 'state DOF n': None if ts.q_ref is None else int(ts.q_ref.size),
+        'inputs m': ep1.U.shape[0], 'outputs p': ep1.Y.shape[0],
+        'max |tail deviation| Ep 1 [mm]': float(
+            np.max(np.abs(ep1.Y - ts.y_ref[:, None])) * 1e3),
+        'storage': cfg.storage,
+    }
+    if 1 in studies:
+        t0 = time.perf_counter()
+        summary['study1'] = study_time_extrapolation(ts, cfg, out, tick)
+        timings['study 1 (fit + evaluate)'] = time.perf_counter() - t0
+    if 2 in studies and len(ts.episode_names) >= 3:
+        t0 = time.perf_counter()
+        summary['study2'] = study_unseen_inputs(ts, cfg, out, tick)
+        timings['study 2 (fit + evaluate)'] = time.perf_counter() - t0
+    bar.close()
+    if replay and 'study2' in summary:
+        t0 = time.perf_counter()
+        summary['replay'] = _replay(out, bags, summary['study2'])
+        timings['replay'] = time.perf_counter() - t0
+    summary['conclusions'] = _conclusions(summary.get('study1'), summary.get('study2'))
+    summary['timings'] = timings
+    (out / 'summary.json').write_text(json.dumps(_jsonable(summary), indent=2))
+    (out / 'report.md').write_text(study_report(summary))
+    return summary
+
+
+def _replay(out: Path, bags: Sequence[Path], s2: dict[str, Any]) -> dict[str, Any]:
+    """Replay the study-2 LOpInf ROM over a test bag through the predictor core.
+
+    Runs ``soft-rom replay --compare`` (the node's core, offline): the prediction bag has the
+    node's topics; the summary has the errors open loop and with the Kalman filter.
+    """
+    from soft_rom.cli import main as cli_main
+    chosen = s2['chosen']['lopinf']
+    model_path = out / 'models' / f'eel_lopinf_r{chosen["r"]}.npz'
+    bag = next(b for b in bags if b.name == s2['shape_episode'])
+    out_bag = out / f'replay_{bag.name}'
+    summary_path = out / f'replay_{bag.name}.json'
+    code = cli_main(['replay', str(model_path), str(bag), '-o', str(out_bag), '--compare',
+                     '--overwrite', '--summary-json', str(summary_path)])
+    if code != 0:
+        return {'error': f'soft-rom replay exited with {code}'}
+    summary = json.loads(summary_path.read_text())
+    keep = {'model': model_path.name, 'bag': bag.name, 'output bag': out_bag.name}
+    for key in ('samples', 'relative_error', 'relative_deviation_error', 'final_status',
+                'wall_seconds'):
+        if key in summary:
+            keep[key] = summary[key]
+    if 'compare' in summary:
+        keep['open-loop deviation error'] = summary['compare'].get('open_loop')
+        keep['Kalman deviation error'] = summary['compare'].get('kalman')
+    return keep
