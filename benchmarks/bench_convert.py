@@ -103,6 +103,9 @@ def phase_copy(bag: Path, out: Path) -> dict:
 
 
 def phase_convert(bag: Path, out: Path) -> dict:
+    import tqdm  # noqa: F401 - imported before the clock starts, like rosbags for the read
+    import zarr  # noqa: F401
+
     from soft_rom.convert import convert
 
     t0, c0 = time.perf_counter(), _cpu()
