@@ -79,6 +79,23 @@ def test_learner_exact_on_noise_free_data_and_unit_scaling():
     assert model.metadata['observer_order'] == est.observer_order_
 
 
+def test_output_rank_identifies_on_principal_outputs():
+    # 12 outputs that are combinations of 3: identification on 3 components is exact.
+    A, B, C3, _, rng = _lti(n=6, m=2, p=3, seed=8)
+    mix = rng.standard_normal((12, 3))
+    C, D = mix @ C3, np.zeros((12, 2))
+    U = rng.standard_normal((2, 500))
+    Y = _response(A, B, C, D, U, np.zeros(6))
+    ep = Episode(t=np.arange(500) * 1e-3, U=U, Y=Y)
+    est = ERAOKID(r=6, decimation=1, n_markov=40, output_rank=3).fit(ep, np.zeros(12))
+    assert est.output_basis_.shape == (12, 3)
+    assert est.model_.C.shape == (12, 6)
+    assert np.max(np.abs(est.model_.simulate(U) - Y)) <= 1e-8 * np.max(np.abs(Y))
+    np.testing.assert_allclose(est.model_for(6).C, est.model_.C, atol=1e-12)
+    with pytest.raises(ConfigError, match='output_rank'):
+        ERAOKID(output_rank=13, decimation=1).fit(ep)
+
+
 def test_decimated_fit_and_prediction_at_model_times():
     # A sampled system with inputs held for 5 samples: the 5x decimated data are exactly an
     # LTI system (A^5, (A^4 + ... + I) B); predictions at block starts are exact.

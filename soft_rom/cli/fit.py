@@ -77,6 +77,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                      help='number of Markov parameters in the Hankel matrices (default 100)')
     era.add_argument('--observer-order', type=int, default=None,
                      help='OKID observer order (default: automatic, at most 10)')
+    era.add_argument('--output-rank', type=int, default=None,
+                     help='identify on this many principal components of the outputs '
+                          '(fewer OKID unknowns; e.g. 4 for a centerline)')
+    era.add_argument('--okid-rcond', type=float, default=None,
+                     help='relative cut-off of the OKID least-squares solve')
     era.add_argument('--hsv-tol', type=float, default=None,
                      help='relative Hankel singular value threshold when r is automatic')
     parser.add_argument('-o', '--output', required=True, metavar='OUTDIR',
@@ -271,7 +276,8 @@ def run(args: argparse.Namespace) -> int:
         provenance['source'] = str(provenance['source'])
     era_options = {'episode': args.era_episode, 'decimation': args.decimation,
                    'n_markov': args.n_markov, 'observer_order': args.observer_order,
-                   'hsv_tol': args.hsv_tol}
+                   'hsv_tol': args.hsv_tol, 'output_rank': args.output_rank,
+                   'okid_rcond': args.okid_rcond}
     rows: list[dict[str, Any]] = []
     for method in args.method:
         fitted = fit_models(ts, method, r_values=args.r, energy=args.energy,

@@ -269,6 +269,14 @@ class ERAOKID:
         Threshold of the default order rule.
     max_observer_order : int
         Cap for the automatic observer order.
+    output_rank : int, optional
+        Identify on the leading ``output_rank`` principal components of the scaled outputs
+        (``Y_s ≈ P Z``, ``P`` orthonormal ``(p, q)``) and lift ``C = P C_Z``, ``D = P D_Z``.
+        With strongly correlated outputs (the 20 centerline points of a soft body) this cuts
+        the OKID unknowns from ``m + l (m + p)`` to ``m + l (m + q)``, so a much longer
+        observer fits in the same data. ``None``: all ``p`` outputs.
+    okid_rcond : float, optional
+        Relative singular-value cut-off of the OKID least-squares solve (regularisation).
 
     How the defaults were chosen (``decimation=5``, ``n_markov=100``, automatic observer
     order): a lightly damped second-order system (12 modes, 1.5 to 60 Hz, damping 2 to 5 %),
@@ -305,6 +313,8 @@ class ERAOKID:
     observer_order_ : int
     okid_residual_ : float
         Relative residual of the observer fit.
+    output_basis_ : ndarray, shape (p, q) or None
+        Output principal directions used when ``output_rank`` is set.
     y_ref_ : ndarray, shape (p,)
     input_scale_, output_scale_ : ndarray
     """
@@ -312,7 +322,8 @@ class ERAOKID:
     def __init__(self, r: int | None = None, *, n_markov: int = 100,
                  observer_order: int | None = None, decimation: int = 5,
                  n_block_rows: int | None = None, n_block_cols: int | None = None,
-                 hsv_tol: float = 1e-3, max_observer_order: int = 10) -> None:
+                 hsv_tol: float = 1e-3, max_observer_order: int = 10,
+                 output_rank: int | None = None, okid_rcond: float | None = None) -> None:
         self.r = r
         self.n_markov = n_markov
         self.observer_order = observer_order
@@ -321,6 +332,8 @@ class ERAOKID:
         self.n_block_cols = n_block_cols
         self.hsv_tol = hsv_tol
         self.max_observer_order = max_observer_order
+        self.output_rank = output_rank
+        self.okid_rcond = okid_rcond
 
     def fit(self, episode: Episode | Sequence[Episode], y_ref: ArrayLike | None = None, *,
             input_names: Sequence[str] | None = None,
@@ -364,21 +377,33 @@ class ERAOKID:
         s_u = channel_scale(Ud)
         s_y = channel_scale(Yd)
         Us, Ys = Ud / s_u[:, None], Yd / s_y[:, None]
+        P = None
+        if self.output_rank is not None:
+            q = int(self.output_rank)
+            if not 1 <= q <= p:
+                raise ConfigError(f'output_rank must be between 1 and p = {p}; got {q}.')
+            P = np.linalg.svd(Ys, full_matrices=False)[0][:, :q]     # (p, q), orthonormal
+            Ys = P.T @ Ys
+        p_id = Ys.shape[0]
         K = Us.shape[1]
         if self.observer_order is None:
             # Keep at least 2 equations per unknown: near-square regressions fit the noise
             # and give unstable Markov sequences (see the sweep in the class docstring).
-            lo = min(int(self.max_observer_order), (K // 2 - m) // (m + p))
+            lo = min(int(self.max_observer_order), (K // 2 - m) // (m + p_id))
             if lo < 1:
                 raise DimensionError(
                     f'episode {ep.name!r} has {K} samples after decimation {d}: too few for '
-                    f'OKID with m={m}, p={p} (needs at least {2 * (2 * m + p)}). Use less '
+                    f'OKID with m={m}, p={p_id} (needs at least {2 * (2 * m + p_id)}). Use less '
                     'decimation or a longer episode.')
         else:
             lo = int(self.observer_order)
-        markov, info = okid_markov(Us, Ys, observer_order=lo, n_markov=int(self.n_markov))
+        markov, info = okid_markov(Us, Ys, observer_order=lo, n_markov=int(self.n_markov),
+                                   rcond=self.okid_rcond)
         A, Bs, Cs, Ds, hsv = era(markov, self.r, n_block_rows=self.n_block_rows,
                                  n_block_cols=self.n_block_cols, tol=self.hsv_tol)
+        if P is not None:
+            Cs, Ds = P @ Cs, P @ Ds
+        self.output_basis_ = P
         B = Bs / s_u[None, :]
         C = s_y[:, None] * Cs
         D = s_y[:, None] * Ds / s_u[None, :]
@@ -400,7 +425,8 @@ class ERAOKID:
             'observer_order': lo, 'okid_residual': info['residual'],
             'okid_rank': info['rank'], 'okid_unknowns': info['n_unknowns'],
             'n_block_rows': self.n_block_rows, 'n_block_cols': self.n_block_cols,
-            'hsv_tol': self.hsv_tol,
+            'hsv_tol': self.hsv_tol, 'output_rank': self.output_rank,
+            'okid_rcond': self.okid_rcond,
             'hankel_singular_values': hsv[:200].tolist(),
             'input_scale': s_u.tolist(), 'output_scale': s_y.tolist(),
             'eigenvalues_real': ev.real.tolist(), 'eigenvalues_imag': ev.imag.tolist(),
@@ -419,6 +445,8 @@ class ERAOKID:
             raise NotFittedError('this ERAOKID is not fitted yet; call fit(episode) first.')
         A, Bs, Cs, Ds, _ = era(self.markov_, int(r), n_block_rows=self.n_block_rows,
                                n_block_cols=self.n_block_cols, tol=self.hsv_tol)
+        if self.output_basis_ is not None:
+            Cs, Ds = self.output_basis_ @ Cs, self.output_basis_ @ Ds
         s_u, s_y = self.input_scale_, self.output_scale_
         old = self.model_
         ev = np.linalg.eigvals(A)
