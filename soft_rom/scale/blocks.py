@@ -146,15 +146,8 @@ class SnapshotSet:
     def read_columns(self, block: Block) -> Array:
         """Read one column block and centre it: returns a fresh ``(n, c)`` array."""
         a = self.arrays[block.episode]
-        raw = a[:, block.cols[0]:block.cols[1]]
-        if (isinstance(a, np.ndarray) or not isinstance(raw, np.ndarray)
-                or raw.dtype != np.float64 or not raw.flags.c_contiguous
-                or not raw.flags.writeable):
-            x = np.array(raw, dtype=np.float64, order='C')  # never centre the caller's data
-        else:
-            x = raw  # a lazy array (zarr) handed us fresh memory: centre it in place
-        x -= self.q_ref[:, None]
-        return x
+        return centre_block(a[:, block.cols[0]:block.cols[1]], self.q_ref,
+                            fresh=not isinstance(a, np.ndarray))
 
     def read_rows(self, block: Block) -> Array:
         """Read rows ``block.rows`` of every episode, centred: returns ``(rows, K)``."""
@@ -164,6 +157,23 @@ class SnapshotSet:
             out[:, off:off + k] = np.asarray(a[r0:r1, :], dtype=np.float64)
         out -= self.q_ref[r0:r1, None]
         return out
+
+
+def centre_block(raw: Any, ref: Array, *, fresh: bool) -> Array:
+    """Return the block ``raw - ref[:, None]`` as float64.
+
+    ``fresh`` says that ``raw`` is memory nobody else holds (what a zarr read returns); it
+    is then centred in place when it is a contiguous float64 array (zarr hands back
+    Fortran-ordered blocks: copying them to C order cost more CPU than the kernels).
+    Otherwise (numpy arrays, memmaps: the caller's data) a copy is centred.
+    """
+    if (fresh and isinstance(raw, np.ndarray) and raw.dtype == np.float64
+            and raw.flags.writeable and (raw.flags.c_contiguous or raw.flags.f_contiguous)):
+        x = raw
+    else:
+        x = np.array(raw, dtype=np.float64, order='K')
+    x -= ref[:, None]
+    return x
 
 
 def _aligned(target: int, chunk: int | None, total: int) -> int:

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from soft_rom.errors import ConfigError
-from soft_rom.scale.blocks import Block, Kernel, SnapshotSet
+from soft_rom.scale.blocks import Block, centre_block, Kernel, SnapshotSet
 
 __all__ = ['DaskExecutor', 'connect']
 
@@ -31,9 +31,7 @@ Array = NDArray[np.float64]
 
 def _centred_call(raw: Any, ref: Array, kernel: Kernel, *args: Any) -> Any:
     """Centre a raw block on the worker exactly as :meth:`SnapshotSet.read_columns` does."""
-    x = np.array(raw, dtype=np.float64, order='C')
-    x -= ref[:, None]
-    return kernel(x, *args)
+    return kernel(centre_block(np.asarray(raw), ref, fresh=False), *args)
 
 
 def _add(a: Any, b: Any) -> Any:
