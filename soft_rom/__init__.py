@@ -11,7 +11,7 @@ from __future__ import annotations
 __version__ = '0.1.0'
 
 from soft_rom.data import Episode  # noqa: E402
-from soft_rom.models import DiscreteModel, LinearROM, SecondOrderModel, load_model  # noqa: E402
+from soft_rom.models import DiscreteModel, LinearROM, load_model, SecondOrderModel  # noqa: E402
 
 __all__ = ['DiscreteModel', 'Episode', 'LinearROM', 'SecondOrderModel', 'load_model',
            '__version__']

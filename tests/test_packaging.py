@@ -73,7 +73,8 @@ def test_colcon_build_installs_executables_and_marker(tmp_path) -> None:
     install = tmp_path / 'install' / 'soft_rom'
     for exe in ('predictor', 'soft-rom'):
         assert (install / 'lib' / 'soft_rom' / exe).is_file(), exe
-    assert (install / 'share' / 'ament_index' / 'resource_index' / 'packages' / 'soft_rom').is_file()
+    index = install / 'share' / 'ament_index' / 'resource_index' / 'packages'
+    assert (index / 'soft_rom').is_file()
     assert (install / 'share' / 'soft_rom' / 'package.xml').is_file()
     assert list((install / 'share' / 'soft_rom' / 'config').glob('*.yaml'))
     assert list((install / 'share' / 'soft_rom' / 'launch').glob('*.launch.py'))

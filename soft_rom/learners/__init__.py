@@ -7,8 +7,8 @@
 
 from __future__ import annotations
 
-from soft_rom.learners.dmdc import DMDc
-from soft_rom.learners.era import ERAOKID
+from soft_rom.learners.dmdc import channel_scale, DMDc, dmdc_from_gram, dmdc_reduced_operators
+from soft_rom.learners.era import decimate, era, ERAOKID, hankel_rank, okid_markov
 from soft_rom.learners.lopinf import LOpInf
 from soft_rom.learners.lopinf_solvers import (
     CvxpySolver,
@@ -19,4 +19,5 @@ from soft_rom.learners.lopinf_solvers import (
 )
 
 __all__ = ['CvxpySolver', 'DEFAULT_EPS', 'DMDc', 'ERAOKID', 'FastSPDSolver', 'LOpInf',
-           'LOpInfSolution', 'OperatorSolver']
+           'LOpInfSolution', 'OperatorSolver', 'channel_scale', 'decimate', 'dmdc_from_gram',
+           'dmdc_reduced_operators', 'era', 'hankel_rank', 'okid_markov']

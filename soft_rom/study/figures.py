@@ -162,6 +162,12 @@ def centerline_shapes(path: Path, times: Sequence[float],
             label = (rom_labels or {}).get(key, LABELS.get(key, key))
             ax.plot(np.asarray(x) * scale, np.asarray(z) * scale, markers.get(key, '-'),
                     color=COLORS.get(key), lw=1.5, ms=4, label=label)
+        fx, fz = (np.asarray(a) * scale for a in shapes['fom'][i]) if 'fom' in shapes else (
+            np.zeros(1), np.zeros(1))
+        zpad = max(float(np.max(np.abs(fz))), 1e-3 * scale * 5)
+        ax.set_ylim(-2.0 * zpad, 2.0 * zpad)  # a diverging ROM must not hide the FOM
+        ax.set_xlim(float(np.min(fx)) - 0.05 * np.ptp(fx) - 1, float(np.max(fx))
+                    + 0.05 * np.ptp(fx) + 1)
         ax.set_title(f't = {tt:g} s', fontsize=9)
         ax.set_ylabel('z [mm]')
         ax.grid(True, alpha=0.3)

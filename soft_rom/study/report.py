@@ -13,7 +13,9 @@ __all__ = ['markdown_table', 'study_report']
 
 def _fmt(v: Any) -> str:
     if isinstance(v, float):
-        return f'{v:.4f}' if abs(v) >= 1e-3 or v == 0 else f'{v:.2e}'
+        if v != v or v in (float('inf'), float('-inf')):
+            return str(v)
+        return f'{v:.4f}' if 1e-3 <= abs(v) < 1e3 or v == 0 else f'{v:.2e}'
     return str(v)
 
 

@@ -41,6 +41,13 @@ __all__ = ['StudyConfig', 'run_study', 'simulate_bags']
 LOG = logging.getLogger(__name__)
 METHODS = ('lopinf', 'dmdc', 'era')
 
+#: ERA/OKID settings that work on the eel data (1 kHz, 40 outputs, slow lightly damped modes):
+#: identify on the 4 leading output principal components at the full rate with a 36-step
+#: observer and 500 Markov parameters (0.5 s). The learner's own defaults, tuned on a linear
+#: system, give unstable realizations on these noise-free nonlinear simulations.
+ERA_EEL_OPTIONS: dict[str, Any] = {'decimation': 1, 'output_rank': 4, 'observer_order': 36,
+                                   'n_markov': 500}
+
 
 @dataclass(frozen=True)
 class StudyConfig:
@@ -68,6 +75,11 @@ class StudyConfig:
         Times of the centerline-shape figure.
     jobs : int
         Processes used to simulate episodes.
+    sim_options : dict
+        Extra keywords of :func:`soft_rom.sim.record.record_episodes` (e.g. ``amplitude``).
+    era_options : dict
+        Hyperparameters of :class:`~soft_rom.learners.era.ERAOKID` (default
+        :data:`ERA_EEL_OPTIONS`).
     """
 
     resolution: int = 1
@@ -84,6 +96,7 @@ class StudyConfig:
     shape_times: tuple[float, ...] = (0.5, 1.0, 2.0)
     jobs: int = 2
     sim_options: dict[str, Any] = field(default_factory=dict)
+    era_options: dict[str, Any] = field(default_factory=lambda: dict(ERA_EEL_OPTIONS))
 
     def __post_init__(self) -> None:
         if self.n_episodes < 2:
@@ -132,7 +145,8 @@ def _same_recording(meta: dict[str, Any], wanted: dict[str, Any], resolution: in
 
 # ----------------------------------------------------------------------------- fitting
 def sweep(method: str, rs: Sequence[int], episodes: Sequence[Episode], q_ref: Any,
-          y_ref: Any, *, names: Any = None) -> dict[int, LinearROM]:
+          y_ref: Any, *, names: Any = None,
+          era_options: dict[str, Any] | None = None) -> dict[int, LinearROM]:
     """ROMs of one method for several ``r``, sharing the expensive part of the fit.
 
     LOpInf: one POD of rank ``max(rs)``; each ROM is fitted on the leading ``r`` POD
@@ -146,7 +160,7 @@ def sweep(method: str, rs: Sequence[int], episodes: Sequence[Episode], q_ref: An
         if len(episodes) != 1:
             raise ConfigError('ERA/OKID fits one episode.')
         from soft_rom.learners.era import ERAOKID
-        learner = ERAOKID(r=max(rs)).fit(episodes[0], y_ref=y_ref)
+        learner = ERAOKID(r=max(rs), **(era_options or {})).fit(episodes[0], y_ref=y_ref)
         return {r: learner.model_for(r) for r in rs}
     if method == 'dmdc':
         from soft_rom.learners.dmdc import DMDc
@@ -232,7 +246,8 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
         predictions[method] = {}
         t0 = time.perf_counter()
         try:
-            models = sweep(method, grids[method], [train], q_ref, y_ref, names=_names(ts))
+            models = sweep(method, grids[method], [train], q_ref, y_ref, names=_names(ts),
+                           era_options=cfg.era_options)
         except Exception as err:  # a failed fit is a result to report, not a crash
             LOG.warning('study 1: %s failed: %s', method, err)
             models = {}
@@ -292,7 +307,8 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
 
     def pick(method: str, eps: Sequence[Episode]) -> tuple[float, int, LinearROM] | None:
         try:
-            models = sweep(method, grids[method], eps, q_ref, y_ref, names=_names(ts))
+            models = sweep(method, grids[method], eps, q_ref, y_ref, names=_names(ts),
+                           era_options=cfg.era_options)
         except Exception as err:
             LOG.warning('study 2: %s on %s failed: %s', method, [e.name for e in eps], err)
             return None
