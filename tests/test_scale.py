@@ -113,12 +113,12 @@ def test_each_chunk_read_once_per_pass(tmp_path):
     assert np.allclose(pod.project(arrays[0]), pod.basis_.T @ (arrays[0] - q_ref[:, None]),
                        atol=1e-12)
     # Gram refuses storage in full-height chunks (it would re-read every chunk per row block).
-    ts2 = TrainingSetFull = _training_set(tmp_path / 'b', eps, q_ref, np.zeros(1),
-                                          chunks=(4096, 32))
-    del TrainingSetFull
+    ts2 = _training_set(tmp_path / 'b', eps, q_ref, np.zeros(1), chunks=(4096, 32))
     snaps2 = SnapshotSet([ts2.q_array(n) for n in ts2.episode_names], ts2.q_ref)
     with pytest.raises(ConfigError, match='randomized'):
         StreamingPOD(r=5, method='gram', block_bytes=1000).fit(snaps2)
+    with pytest.raises(ConfigError, match='memory_limit'):
+        StreamingPOD(r=5, method='gram', memory_limit=2 ** 20).fit(snaps)
 
 
 @pytest.mark.parametrize('pod_method', ['randomized', 'gram'])

@@ -128,6 +128,9 @@ class StreamingPOD:
         rounded to whole storage chunks.
     seed : int
         Seed of the Gaussian test matrix (results are reproducible).
+    memory_limit : int, optional
+        Bytes that ``'gram'`` may hold (Gram matrix, row blocks); it refuses to start
+        beyond (default 4 GiB; ``None``: no limit).
     executor : Executor, optional
         Where passes run: default :class:`~soft_rom.scale.blocks.LocalExecutor`; a
         :class:`~soft_rom.scale.dask_backend.DaskExecutor` runs them on a cluster.
@@ -161,6 +164,7 @@ class StreamingPOD:
                  oversample: int = 10, power_iters: int = 1, compute_basis: bool = True,
                  block_cols: int | None = None, block_rows: int | None = None,
                  block_bytes: int = DEFAULT_BLOCK_BYTES, seed: int = 0,
+                 memory_limit: int | None = 4 * 2 ** 30,
                  executor: Executor | None = None,
                  progress: Callable[[int], Any] | None = None) -> None:
         self.r = r
@@ -174,6 +178,7 @@ class StreamingPOD:
         self.block_rows = block_rows
         self.block_bytes = block_bytes
         self.seed = seed
+        self.memory_limit = memory_limit
         self.executor = executor
         self.progress = progress
 
@@ -280,6 +285,13 @@ class StreamingPOD:
                 'method="randomized" (reads column blocks) or store Q in row-split chunks.')
         K = snaps.n_total
         plan = row_plan(snaps, block_rows=self.block_rows, block_bytes=self.block_bytes)
+        rows = max(b.rows[1] - b.rows[0] for b in plan)
+        need = 8 * (2 * rows * K + 2 * K * K)  # two row blocks (read-ahead), G and a term
+        if self.memory_limit is not None and need > self.memory_limit:
+            raise ConfigError(
+                f'method="gram" would hold about {need / 2 ** 30:.1f} GiB ({K} snapshots, row '
+                f'blocks of {rows} rows), over memory_limit={self.memory_limit / 2 ** 30:.1f} '
+                'GiB; use method="randomized" (memory O(n l)) or raise memory_limit.')
         G = ex.sum(snaps, plan, kernels.gram_rows)
         total = float(np.trace(G))
         lam, V = sla.eigh(G, subset_by_index=[K - l, K - 1])
