@@ -127,3 +127,32 @@ def test_bad_input_gives_clear_errors(training_set, tmp_path, capsys, argv, mess
     assert rc == 2
     err = capsys.readouterr().err
     assert message in err
+
+
+@pytest.mark.parametrize('backend', ['streaming', 'dask'])
+def test_fit_streaming_and_dask_equal_in_memory(training_set, tmp_path, backend):
+    """``--streaming`` / ``--dask ADDRESS`` give the in-memory models (streamed POD)."""
+    args = ['fit', str(training_set), '--method', 'lopinf,dmdc', '--r', '4',
+            '--episodes', 'ep1,ep2', '--no-progress']
+    assert main(args + ['-o', str(tmp_path / 'mem')]) == 0
+    extra = ['--streaming']
+    cluster = client = None
+    if backend == 'dask':
+        distributed = pytest.importorskip('distributed')
+        cluster = distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                           dashboard_address=None)
+        client = distributed.Client(cluster)
+        extra = ['--dask', cluster.scheduler_address]
+    try:
+        assert main(args + extra + ['-o', str(tmp_path / 'str')]) == 0
+    finally:
+        if client is not None:
+            client.close()
+            cluster.close()
+    for name in ('chain_lopinf_r4.npz', 'chain_dmdc_r4.npz'):
+        a = load_model(tmp_path / 'mem' / name)
+        b = load_model(tmp_path / 'str' / name)
+        U = np.random.default_rng(0).normal(size=(a.n_inputs, 300))
+        Ya, Yb = a.simulate(U), b.simulate(U)
+        dev = np.linalg.norm(Ya - a.y_ref[:, None])
+        assert np.linalg.norm(Ya - Yb) <= 1e-6 * dev, name

@@ -16,10 +16,10 @@ from typing import Any
 
 import numpy as np
 
-from soft_rom.cli.fit import open_training_set, select_episodes
 from soft_rom.data import Episode
 from soft_rom.errors import DimensionError
 from soft_rom.evaluation import evaluate
+from soft_rom.fitting import open_training_set, select_episodes
 from soft_rom.models import LinearROM, load_model
 
 __all__ = ['add_parser', 'plot_outputs', 'run']

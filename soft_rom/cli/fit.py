@@ -15,18 +15,12 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-import sys
-import time
 from typing import Any
 
-import numpy as np
-
 from soft_rom.cli._common import parse_r_list
-from soft_rom.data import Episode
-from soft_rom.errors import ConfigError, DatasetError
-from soft_rom.models import LinearROM
+from soft_rom.fitting import fit_models, fit_models_streaming, open_training_set, select_episodes
 
-__all__ = ['add_parser', 'fit_models', 'open_training_set', 'run', 'select_episodes']
+__all__ = ['add_parser', 'run']
 
 METHODS = ('lopinf', 'dmdc', 'era')
 
@@ -84,6 +78,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                      help='relative cut-off of the OKID least-squares solve')
     era.add_argument('--hsv-tol', type=float, default=None,
                      help='relative Hankel singular value threshold when r is automatic')
+    parser.add_argument('--streaming', action='store_true',
+                        help='stream the snapshots from disk with bounded memory (streamed '
+                             'randomized POD; for training sets larger than RAM)')
+    parser.add_argument('--dask', metavar='ADDRESS', default=None,
+                        help='fit on a dask.distributed cluster (scheduler address, e.g. '
+                             'tcp://host:8786); implies --streaming')
     parser.add_argument('-o', '--output', required=True, metavar='OUTDIR',
                         help='directory for the model files (created if missing)')
     parser.add_argument('--prefix', default=None,
@@ -95,175 +95,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return parser
 
 
-def open_training_set(path: str | Path) -> Any:
-    """Open a training set (:class:`soft_rom.dataset.TrainingSet`); clear error if missing."""
-    p = Path(path)
-    if not p.exists():
-        raise FileNotFoundError(f'training set {p} does not exist; create it with '
-                                '`soft-rom convert BAG... -o OUT.zarr`.')
-    from soft_rom.dataset import TrainingSet
-    return TrainingSet.open(p)
-
-
-def select_episodes(ts: Any, names: str | list[str] | None,
-                    t_max: float | None = None) -> list[Episode]:
-    """Episodes ``names`` (comma-separated or list; default all), cut at ``t_max`` seconds."""
-    available = list(ts.episode_names)
-    if names is None:
-        wanted = available
-    else:
-        wanted = [n.strip() for n in (names.split(',') if isinstance(names, str) else names)
-                  if n.strip()]
-    missing = [n for n in wanted if n not in available]
-    if missing:
-        raise DatasetError(f'unknown episode(s) {missing} in {getattr(ts, "path", "")}; '
-                           f'available: {available}.')
-    if not wanted:
-        raise DatasetError('no episodes selected.')
-    eps = [ts[n] for n in wanted]
-    if t_max is not None:
-        if t_max <= 0:
-            raise ConfigError(f'--t-max must be positive; got {t_max}.')
-        eps = [ep.time_slice(None, ep.t[0] + t_max) if ep.n_samples else ep for ep in eps]
-        short = [ep.name for ep in eps if ep.n_samples < 3]
-        if short:
-            raise DatasetError(f'episodes {short} have fewer than 3 samples before t_max = '
-                               f'{t_max} s.')
-    return eps
-
-
-def _names(ts: Any) -> dict[str, Any]:
-    return dict(input_names=list(ts.input_names), output_names=list(ts.output_names),
-                input_units=list(ts.input_units), output_units=list(ts.output_units))
-
-
-def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
-               energy: float | None, episodes: list[Episode], provenance: dict[str, Any],
-               solver: str = 'fast', ddt_order: int = 8, dmdc_p: int | None = None,
-               era_options: dict[str, Any] | None = None,
-               progress: bool = True) -> list[tuple[LinearROM, float]]:
-    """Fit ``method`` for each r; returns ``[(model, seconds), ...]``.
-
-    The expensive step is shared between the r values (module docstring).
-    """
-    names = _names(ts)
-    out: list[tuple[LinearROM, float]] = []
-    bar = _progress(len(r_values) if r_values else 1, f'fit {method}', progress)
-    q_ref = getattr(ts, 'q_ref', None)
-    y_ref = ts.y_ref
-    try:
-        if method == 'lopinf':
-            from soft_rom.basis import POD, project
-            from soft_rom.learners.lopinf import LOpInf
-            from soft_rom.learners.lopinf_solvers import CvxpySolver, FastSPDSolver
-            _need_states(episodes, 'LOpInf')
-            t0 = time.perf_counter()
-            q_ref = _q_ref(q_ref, episodes)
-            r_max = max(r_values) if r_values else None
-            pod = POD(r=r_max, energy=0.95 if energy is None else energy).fit(
-                [ep.Q for ep in episodes], q_ref)
-            Qhat = [project(ep.Q, pod.basis_, q_ref) for ep in episodes]
-            t_basis = time.perf_counter() - t0
-            dt = episodes[0].dt
-            for r in (r_values or (pod.r_,)):
-                t1 = time.perf_counter()
-                slv = FastSPDSolver() if solver == 'fast' else CvxpySolver()
-                learner = LOpInf(r=r, ddt=ddt_order, solver=slv)
-                learner.fit_reduced(
-                    [q[:r] for q in Qhat], [ep.U for ep in episodes],
-                    [ep.Y for ep in episodes], dt, y_ref, names=[ep.name for ep in episodes],
-                    energy_captured=float(pod.energy_[r - 1]),
-                    time_ranges=[[float(ep.t[0]), float(ep.t[-1])] for ep in episodes],
-                    metadata={'training': provenance,
-                              'pod_singular_values': pod.singular_values_[:100].tolist()},
-                    **names)
-                out.append((learner.model_, t_basis / len(r_values or (1,))
-                            + time.perf_counter() - t1))
-                bar.update(1)
-        elif method == 'dmdc':
-            from soft_rom.learners.dmdc import DMDc
-            _need_states(episodes, 'DMDc')
-            t0 = time.perf_counter()
-            r0 = r_values[0] if r_values else None
-            learner = DMDc(r=r0, p=dmdc_p, energy=0.95 if energy is None else energy).fit(
-                episodes, _q_ref(q_ref, episodes), y_ref, metadata={'training': provenance},
-                **names)
-            t_svd = time.perf_counter() - t0
-            for r in (r_values or (None,)):
-                t1 = time.perf_counter()
-                model = learner.model_ if r == r0 else learner.model_for(r, dmdc_p)
-                out.append((model, t_svd / len(r_values or (1,)) + time.perf_counter() - t1))
-                bar.update(1)
-        elif method == 'era':
-            from soft_rom.learners.era import ERAOKID
-            opts = {k: v for k, v in (era_options or {}).items() if v is not None}
-            ep_name = opts.pop('episode', None)
-            if ep_name is None:
-                ep = episodes[0]
-                if len(episodes) > 1:
-                    print(f'note: ERA/OKID fits one episode; using {ep.name!r} '
-                          '(choose with --era-episode).', file=sys.stderr)
-            else:
-                match = [e for e in episodes if e.name == ep_name]
-                if not match:
-                    raise DatasetError(f'--era-episode {ep_name!r} is not among the selected '
-                                       f'episodes {[e.name for e in episodes]}.')
-                ep = match[0]
-            t0 = time.perf_counter()
-            r0 = r_values[0] if r_values else None
-            learner = ERAOKID(r=r0, **opts).fit(
-                ep, y_ref, metadata={'training': {**provenance, 'episodes': [ep.name]}},
-                **names)
-            t_okid = time.perf_counter() - t0
-            for r in (r_values or (None,)):
-                t1 = time.perf_counter()
-                model = learner.model_ if r == r0 else learner.model_for(r)
-                out.append((model, t_okid / len(r_values or (1,)) + time.perf_counter() - t1))
-                bar.update(1)
-        else:  # pragma: no cover - argparse restricts the choices
-            raise ConfigError(f'unknown method {method!r}.')
-    finally:
-        bar.close()
-    return out
-
-
-def _need_states(episodes: list[Episode], what: str) -> None:
-    missing = [ep.name for ep in episodes if ep.Q is None]
-    if missing:
-        raise DatasetError(f'{what} needs full states Q but episodes {missing} have none '
-                           '(converted with --no-state?). ERA/OKID needs inputs/outputs only.')
-
-
-def _q_ref(q_ref: Any, episodes: list[Episode]) -> np.ndarray:
-    if q_ref is not None:
-        return np.asarray(q_ref, dtype=np.float64)
-    return np.asarray(episodes[0].Q[:, 0:1], dtype=np.float64)[:, 0]
-
-
-class _NoBar:
-    def update(self, n: int = 1) -> None:
-        pass
-
-    def close(self) -> None:
-        pass
-
-
-def _progress(total: int, desc: str, enabled: bool) -> Any:
-    if not enabled or total <= 1:
-        return _NoBar()
-    try:
-        from tqdm import tqdm
-    except ImportError:  # pragma: no cover
-        return _NoBar()
-    return tqdm(total=total, desc=desc, unit='model', file=sys.stderr, leave=False)
-
-
 def run(args: argparse.Namespace) -> int:
     """Execute ``soft-rom fit``."""
     from soft_rom.evaluation import evaluate
 
     ts = open_training_set(args.training_set)
     episodes = select_episodes(ts, args.episodes, args.t_max)
+    streaming = args.streaming or args.dask is not None
     outdir = Path(args.output)
     outdir.mkdir(parents=True, exist_ok=True)
     prefix = args.prefix or Path(str(args.training_set).rstrip('/')).stem or 'model'
@@ -280,10 +118,17 @@ def run(args: argparse.Namespace) -> int:
                    'okid_rcond': args.okid_rcond}
     rows: list[dict[str, Any]] = []
     for method in args.method:
-        fitted = fit_models(ts, method, r_values=args.r, energy=args.energy,
-                            episodes=episodes, provenance=provenance, solver=args.solver,
-                            ddt_order=args.ddt_order, dmdc_p=args.dmdc_p,
-                            era_options=era_options, progress=not args.no_progress)
+        if streaming:
+            fitted = fit_models_streaming(
+                ts, method, r_values=args.r, energy=args.energy,
+                episodes=[ep.name for ep in episodes], t_max=args.t_max,
+                provenance=provenance, dmdc_p=args.dmdc_p, era_options=era_options,
+                client=args.dask, progress=not args.no_progress)
+        else:
+            fitted = fit_models(ts, method, r_values=args.r, energy=args.energy,
+                                episodes=episodes, provenance=provenance, solver=args.solver,
+                                ddt_order=args.ddt_order, dmdc_p=args.dmdc_p,
+                                era_options=era_options, progress=not args.no_progress)
         for model, seconds in fitted:
             path = model.save(outdir / f'{prefix}_{method}_r{model.r}.npz')
             train_eps = episodes

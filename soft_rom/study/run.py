@@ -144,43 +144,26 @@ def _same_recording(meta: dict[str, Any], wanted: dict[str, Any], resolution: in
 
 
 # ----------------------------------------------------------------------------- fitting
-def sweep(method: str, rs: Sequence[int], episodes: Sequence[Episode], q_ref: Any,
-          y_ref: Any, *, names: Any = None,
+def sweep(method: str, rs: Sequence[int], episodes: Sequence[Episode], ts: Any, *,
           era_options: dict[str, Any] | None = None) -> dict[int, LinearROM]:
-    """ROMs of one method for several ``r``, sharing the expensive part of the fit.
+    """ROMs of one method for several ``r`` (:func:`soft_rom.fitting.fit_models`).
 
-    LOpInf: one POD of rank ``max(rs)``; each ROM is fitted on the leading ``r`` POD
-    coordinates (:meth:`LOpInf.fit_reduced`), exactly what ``LOpInf(r).fit`` computes.
-    DMDc: one pair of SVDs, truncated per ``r`` (:meth:`DMDc.model_for`). ERA/OKID: one OKID
-    and Hankel SVD (one episode), truncated per ``r`` (:meth:`ERAOKID.model_for`).
+    The expensive part is shared: one POD (LOpInf), one pair of SVDs (DMDc), one OKID and
+    Hankel SVD (ERA/OKID, one episode).
     """
-    rs = sorted(set(int(r) for r in rs))
-    names = names or {}
+    from soft_rom.fitting import fit_models
+    opts = dict(era_options or {})
     if method == 'era':
         if len(episodes) != 1:
             raise ConfigError('ERA/OKID fits one episode.')
-        from soft_rom.learners.era import ERAOKID
-        learner = ERAOKID(r=max(rs), **(era_options or {})).fit(episodes[0], y_ref=y_ref)
-        return {r: learner.model_for(r) for r in rs}
-    if method == 'dmdc':
-        from soft_rom.learners.dmdc import DMDc
-        learner = DMDc(r=max(rs)).fit(list(episodes), q_ref=q_ref, y_ref=y_ref, **names)
-        return {r: learner.model_for(r) for r in rs}
-    if method == 'lopinf':
-        from soft_rom.basis import POD
-        from soft_rom.learners.lopinf import LOpInf
-        pod = POD(r=max(rs)).fit([ep.Q for ep in episodes], q_ref)
-        Qhat = [pod.project(ep.Q) for ep in episodes]
-        out = {}
-        for r in rs:
-            out[r] = LOpInf(r=r).fit_reduced(
-                [Qh[:r] for Qh in Qhat], [ep.U for ep in episodes], [ep.Y for ep in episodes],
-                episodes[0].dt, y_ref, names=[ep.name for ep in episodes],
-                energy_captured=float(pod.energy_[r - 1]),
-                time_ranges=[[float(ep.t[0]), float(ep.t[-1])] for ep in episodes],
-                **names).model_
-        return out
-    raise ConfigError(f'unknown method {method!r}')
+        opts['episode'] = episodes[0].name
+    provenance = {'training_set': str(getattr(ts, 'path', '')),
+                  'episodes': [ep.name for ep in episodes],
+                  'time_ranges': [[float(ep.t[0]), float(ep.t[-1])] for ep in episodes]}
+    fitted = fit_models(ts, method, r_values=tuple(sorted(set(int(r) for r in rs))),
+                        energy=None, episodes=list(episodes), provenance=provenance,
+                        era_options=opts, progress=False)
+    return {model.r: model for model, _seconds in fitted}
 
 
 def _in_memory(ep: Episode, limit_bytes: float = 2e9) -> Episode:
@@ -192,11 +175,6 @@ def _in_memory(ep: Episode, limit_bytes: float = 2e9) -> Episode:
         return ep
     return Episode(t=ep.t, U=ep.U, Y=ep.Y, Q=np.asarray(ep.Q[:, :], dtype=np.float64),
                    name=ep.name, metadata=ep.metadata)
-
-
-def _names(ts: Any) -> dict[str, Any]:
-    return {'input_names': ts.input_names, 'output_names': ts.output_names,
-            'input_units': ts.input_units, 'output_units': ts.output_units}
 
 
 def _predict(model: LinearROM, episode: Episode) -> np.ndarray:
@@ -236,7 +214,7 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
     ep1 = _in_memory(ts['ep1'])
     train = ep1.time_slice(None, cfg.t_train)
     k_train = train.n_samples
-    y_ref, q_ref = ts.y_ref, ts.q_ref
+    y_ref = ts.y_ref
     curves: dict[str, dict[str, list[float]]] = {}
     predictions: dict[str, dict[int, np.ndarray]] = {}
     grids = {'lopinf': cfg.r_lopinf, 'dmdc': cfg.r_dmdc, 'era': cfg.r_era}
@@ -246,7 +224,7 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
         predictions[method] = {}
         t0 = time.perf_counter()
         try:
-            models = sweep(method, grids[method], [train], q_ref, y_ref, names=_names(ts),
+            models = sweep(method, grids[method], [train], ts,
                            era_options=cfg.era_options)
         except Exception as err:  # a failed fit is a result to report, not a crash
             LOG.warning('study 1: %s failed: %s', method, err)
@@ -297,7 +275,7 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
     train_eps = [_in_memory(ts['ep1']), _in_memory(ts['ep2'])]
     test_names = [n for n in names if n not in ('ep1', 'ep2')]
     tests = [ts[n] for n in test_names]
-    y_ref, q_ref = ts.y_ref, ts.q_ref
+    y_ref = ts.y_ref
     grids = {'lopinf': cfg.r_lopinf, 'dmdc': cfg.r_dmdc, 'era': cfg.r_era}
 
     def train_error(model: LinearROM, eps: Sequence[Episode]) -> float:
@@ -307,8 +285,7 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
 
     def pick(method: str, eps: Sequence[Episode]) -> tuple[float, int, LinearROM] | None:
         try:
-            models = sweep(method, grids[method], eps, q_ref, y_ref, names=_names(ts),
-                           era_options=cfg.era_options)
+            models = sweep(method, grids[method], eps, ts, era_options=cfg.era_options)
         except Exception as err:
             LOG.warning('study 2: %s on %s failed: %s', method, [e.name for e in eps], err)
             return None
@@ -528,7 +505,7 @@ def kalman_check(model_path: Path, data_path: Path, episode: str, *, noise: floa
     from soft_rom.predictor import kalman_vs_open_loop, PredictorConfig
     ts = TrainingSet.open(data_path)
     train = [_in_memory(ts['ep1']), _in_memory(ts['ep2'])]
-    models = sweep('lopinf', r_values, train, ts.q_ref, ts.y_ref, names=_names(ts))
+    models = sweep('lopinf', r_values, train, ts)
     ep = ts[episode]
     rng = np.random.default_rng(seed)
     noisy = Episode(t=ep.t, U=ep.U, Y=ep.Y + noise * rng.standard_normal(ep.Y.shape),
