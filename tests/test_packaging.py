@@ -78,3 +78,11 @@ def test_colcon_build_installs_executables_and_marker(tmp_path) -> None:
     assert (install / 'share' / 'soft_rom' / 'package.xml').is_file()
     assert list((install / 'share' / 'soft_rom' / 'config').glob('*.yaml'))
     assert list((install / 'share' / 'soft_rom' / 'launch').glob('*.launch.py'))
+
+
+def test_every_subpackage_is_a_package() -> None:
+    """``find_packages`` skips folders without ``__init__.py``: they would not be installed."""
+    missing = [str(d.relative_to(ROOT)) for d in (ROOT / 'soft_rom').rglob('*')
+               if d.is_dir() and d.name != '__pycache__' and any(d.glob('*.py'))
+               and not (d / '__init__.py').exists()]
+    assert not missing
