@@ -25,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
 
-__all__ = ['BasisBuilder', 'DEFAULT_BLOCK_COLUMNS', 'POD', 'project', 'select_rank']
+__all__ = ['BasisBuilder', 'DEFAULT_BLOCK_COLUMNS', 'POD', 'project', 'reconstruct', 'select_rank']
 
 Array = NDArray[np.float64]
 
@@ -119,6 +119,29 @@ def project(Q: Any, basis: ArrayLike, q_ref: ArrayLike, *,
         block = np.asarray(Q[:, a:b], dtype=np.float64)
         out[:, a:b] = V.T @ (block - ref[:, None])
     return out
+
+
+def reconstruct(Qhat: ArrayLike, basis: ArrayLike, q_ref: ArrayLike) -> Array:
+    """Full states ``q_ref + V Qhat`` from reduced coordinates.
+
+    Parameters
+    ----------
+    Qhat : ndarray, shape (r, k) or (r,)
+    basis : ndarray, shape (n, r)
+    q_ref : ndarray, shape (n,)
+
+    Returns
+    -------
+    ndarray, shape (n, k) or (n,)
+    """
+    V = np.asarray(basis, dtype=np.float64)
+    Qhat = np.asarray(Qhat, dtype=np.float64)
+    one_d = Qhat.ndim == 1
+    Q2 = Qhat.reshape(-1, 1) if one_d else Qhat
+    if Q2.shape[0] != V.shape[1]:
+        raise DimensionError(f'Qhat must have {V.shape[1]} rows; got shape {Qhat.shape}.')
+    out = np.asarray(q_ref, dtype=np.float64)[:, None] + V @ Q2
+    return out[:, 0] if one_d else out
 
 
 class POD:
@@ -215,10 +238,4 @@ class POD:
     def reconstruct(self, Qhat: ArrayLike) -> Array:
         """Full states ``q_ref + V Qhat`` from reduced coordinates (r, k); returns (n, k)."""
         self._check()
-        Qhat = np.asarray(Qhat, dtype=np.float64)
-        one_d = Qhat.ndim == 1
-        Qhat2 = Qhat.reshape(-1, 1) if one_d else Qhat
-        if Qhat2.shape[0] != self.r_:
-            raise DimensionError(f'Qhat must have {self.r_} rows; got shape {Qhat.shape}.')
-        out = self.q_ref_[:, None] + self.basis_ @ Qhat2
-        return out[:, 0] if one_d else out
+        return reconstruct(Qhat, self.basis_, self.q_ref_)

@@ -325,14 +325,9 @@ class StreamingPOD:
 
     def reconstruct(self, Qhat: ArrayLike) -> Array:
         """Full states ``q_ref + V_r Qhat`` from reduced coordinates (r, k); returns (n, k)."""
+        from soft_rom.basis import reconstruct
         self._check()
-        Qhat = np.asarray(Qhat, dtype=np.float64)
-        one_d = Qhat.ndim == 1
-        Q2 = Qhat.reshape(-1, 1) if one_d else Qhat
-        if Q2.shape[0] != self.r_:
-            raise DimensionError(f'Qhat must have {self.r_} rows; got shape {Qhat.shape}.')
-        out = self.q_ref_[:, None] + self.basis_ @ Q2
-        return out[:, 0] if one_d else out
+        return reconstruct(Qhat, self.basis_, self.q_ref_)
 
 
 def dense_reference(arrays: Sequence[ArrayLike], q_ref: ArrayLike) -> tuple[Array, Array]:
