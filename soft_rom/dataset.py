@@ -31,6 +31,7 @@ renamed into place only when :class:`TrainingSetWriter` exits without an excepti
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Iterator, Mapping, Sequence
 import json
 import os
@@ -121,21 +122,38 @@ class _ChunkFileWriter:
 
     ``Q`` is stored in Fortran order: an uncompressed zarr v2 chunk is then the raw bytes of
     its columns one after the other (edge chunks padded with the fill value), in a file named
-    ``'<i>.<j>'``. Snapshots are therefore written with one ``writev`` straight from the
-    arrays they arrived in (no copy, no transpose), which is several times faster than
-    zarr's codec pipeline; the thread overlaps disk writes with reading the bag. At most two
-    chunk columns wait in the queue. The array's shape is updated through zarr when the
-    episode is finished.
+    ``'<i>.<j>'``. Snapshots are copied once, as they arrive, into a reused buffer of one
+    chunk column laid out as its chunk files, ``(row blocks, cols, rows)`` (C order), so that
+    each chunk file is one contiguous 8 MiB ``write`` and the message buffers are released at
+    once (holding them until their chunk column is written made every new message land in
+    fresh pages: page faults cost more than the copy). A background thread writes the chunk
+    files (overlapping disk writes with reading the bag) and, with ``drop_cache``, asks the
+    kernel to evict the pages already written back (``POSIX_FADV_DONTNEED``) so that writing
+    gigabytes of ``Q`` does not evict the bag being read from the page cache. Three buffers
+    (one filling, two queued or being written) bound the memory to ``3 n cols`` float64. The
+    array's shape is updated through zarr when the episode is finished.
     """
 
-    def __init__(self, directory: Path, n: int, chunks: tuple[int, int], separator: str) -> None:
+    n_buffers = 3
+    drop_lag = 16       # chunk files (8 MiB each) left in the page cache behind the writer
+
+    def __init__(self, directory: Path, n: int, chunks: tuple[int, int], separator: str,
+                 drop_cache: bool = True) -> None:
         self.directory = directory
         self.n = n
         self.rows, self.cols = chunks
         self.separator = separator
-        self._queue: queue.Queue[tuple[int, list[NDArray[np.float64]]] | None] = \
-            queue.Queue(2)
-        self._zeros = np.zeros(self.rows, dtype=np.float64)
+        self.drop_cache = drop_cache and hasattr(os, 'posix_fadvise')
+        self.n_blocks = -(-n // self.rows)
+        self._full = n // self.rows                      # row blocks without padding
+        self._free: queue.Queue[NDArray[np.float64] | None] = queue.Queue()
+        for _ in range(self.n_buffers):
+            self._free.put(None)                         # allocated on first use
+        self._queue: queue.Queue[tuple[int, NDArray[np.float64]] | None] = queue.Queue()
+        self._buf: NDArray[np.float64] | None = None
+        self._k = 0                                      # columns in the filling buffer
+        self._j = 0                                      # index of the filling chunk column
+        self._written: deque[Path] = deque()
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name='soft_rom-q-writer',
                                         daemon=True)
@@ -146,65 +164,99 @@ class _ChunkFileWriter:
             item = self._queue.get()
             if item is None:
                 return
-            if self._error is not None:
-                continue
-            j, columns = item
+            j, buf = item
             try:
-                for i, r0 in enumerate(range(0, self.n, self.rows)):
-                    h = min(self.rows, self.n - r0)
-                    parts: list[Any] = []
-                    for col in columns:
-                        parts.append(memoryview(col[r0:r0 + h]).cast('B'))
-                        if h < self.rows:
-                            parts.append(memoryview(self._zeros[:self.rows - h]).cast('B'))
-                    parts.extend([memoryview(self._zeros).cast('B')]
-                                 * (self.cols - len(columns)))
-                    fd = os.open(self.directory / f'{i}{self.separator}{j}',
-                                 os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-                    try:
-                        _write_all(fd, parts)
-                    finally:
-                        os.close(fd)
+                if self._error is None:
+                    for i in range(self.n_blocks):
+                        self._write_chunk(f'{i}{self.separator}{j}', buf[i])
             except BaseException as err:  # noqa: BLE001 - re-raised in the caller's thread
                 self._error = err
+            finally:
+                self._free.put(buf)
+
+    def _write_chunk(self, name: str, block: NDArray[np.float64]) -> None:
+        path = self.directory / name
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+        try:
+            _write_all(fd, [memoryview(block).cast('B')])
+            if self.drop_cache:      # starts writing it back now (its dirty pages stay)
+                os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+        finally:
+            os.close(fd)
+        if self.drop_cache:
+            # drop-behind: evict a chunk file written a while ago, by now written back, so
+            # that its pages are reused instead of the page cache growing by all of Q
+            self._written.append(path)
+            if len(self._written) > self.drop_lag:
+                _drop_pages(self._written.popleft())
 
     def _check(self) -> None:
         if self._error is not None:
             raise DatasetError(f'writing Q chunks to {self.directory} failed: '
                                f'{self._error}') from self._error
 
-    def put(self, j: int, columns: list[NDArray[np.float64]]) -> None:
-        """Queue chunk column ``j``: up to ``cols`` contiguous ``(n,)`` snapshots (now owned)."""
+    def append(self, column: NDArray[Any]) -> None:
+        """Copy one snapshot ``(n,)`` (any real dtype) into the chunk column being filled."""
+        buf = self._buf
+        if buf is None:
+            self._check()
+            buf = self._free.get()                       # waits while all buffers are busy
+            if buf is None:
+                buf = np.zeros((self.n_blocks, self.cols, self.rows), dtype=np.float64)
+            self._buf = buf
+        k, full, rows = self._k, self._full, self.rows
+        if full:
+            buf[:full, k, :] = column[:full * rows].reshape(full, rows)
+        if full < self.n_blocks:
+            buf[full, k, :self.n - full * rows] = column[full * rows:]
+        self._k = k + 1
+        if self._k == self.cols:
+            self.flush()
+
+    def flush(self) -> None:
+        """Queue the chunk column being filled (a partial one is padded with zeros)."""
+        buf, k = self._buf, self._k
+        if buf is None or k == 0:
+            return
+        if k < self.cols:
+            buf[:, k:, :] = 0.0
         self._check()
-        self._queue.put((j, columns))
+        self._queue.put((self._j, buf))
+        self._buf, self._k = None, 0
+        self._j += 1
 
     def close(self) -> None:
-        """Wait for every queued chunk; raise if one failed."""
+        """Wait for every queued chunk; raise if one failed (the filling column is dropped)."""
         if self._thread.is_alive():
             self._queue.put(None)
             self._thread.join()
         self._check()
 
 
-def _write_all(fd: int, parts: list[Any]) -> None:
-    """``writev`` every buffer of ``parts`` to ``fd``, retrying short writes."""
-    if not hasattr(os, 'writev'):  # pragma: no cover - Windows
-        for part in parts:
-            view = memoryview(part)
-            while view.nbytes:
-                view = view[os.write(fd, view):]
+def _drop_pages(path: Path) -> None:
+    """Ask the kernel to evict the (written back) pages of ``path`` from the page cache."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
         return
-    pending = [memoryview(p) for p in parts if memoryview(p).nbytes]
-    while pending:
-        written = os.writev(fd, pending[:512])
-        while written and pending:
-            head = pending[0]
-            if written >= head.nbytes:
-                written -= head.nbytes
-                pending.pop(0)
-            else:
-                pending[0] = head[written:]
-                written = 0
+    try:
+        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+    finally:
+        os.close(fd)
+
+
+#: Largest single ``write``: measured on Linux/ext4, writing 8 MiB chunk files in one call
+#: (or one ``writev``) was 4-10x slower (kernel time copying into fresh page-cache folios)
+#: than writing them in 1 MiB pieces, which run at memory-copy speed.
+_WRITE_PIECE = 1 << 20
+
+
+def _write_all(fd: int, parts: list[Any]) -> None:
+    """Write every buffer of ``parts`` to ``fd`` in pieces of ``_WRITE_PIECE`` bytes."""
+    for part in parts:
+        view = memoryview(part).cast('B')
+        while view.nbytes:
+            view = view[os.write(fd, view[:_WRITE_PIECE]):]
 
 
 def check_all_finite(arr: Any) -> bool:
@@ -343,14 +395,16 @@ class EpisodeWriter:
                 bad = np.argwhere(~np.isfinite(block))[0]
                 raise DimensionError(f'episode {self.name!r}: Q contains NaN or Inf '
                                      f'(row {bad[0]}, sample {self.n_q + j + bad[1]}).')
-            if take == 1 and not copy:
-                col = np.ascontiguousarray(block[:, 0], dtype=np.float64)
-                self._qcols.append(col)
-            else:  # one transposed copy; its rows are contiguous snapshots
-                rows_t = np.array(block.T, dtype=np.float64, order='C')
-                self._qcols.extend(rows_t)
             if self.first_q is None:
-                self.first_q = np.array(self._qcols[0], dtype=np.float64)
+                self.first_q = np.array(block[:, 0], dtype=np.float64)
+            if self._qfiles is not None:        # copied at once into the chunk buffer
+                for c in range(take):
+                    self._qfiles.append(block[:, c])
+                self._qwritten += take
+            elif take == 1 and not copy:
+                self._qcols.append(np.ascontiguousarray(block[:, 0], dtype=np.float64))
+            else:  # one transposed copy; its rows are contiguous snapshots
+                self._qcols.extend(np.array(block.T, dtype=np.float64, order='C'))
             j += take
             if len(self._qcols) == cols:
                 self._flush_q()
@@ -381,11 +435,8 @@ class EpisodeWriter:
             return
         columns, self._qcols = self._qcols, []
         a, b = self._qwritten, self._qwritten + len(columns)
-        if self._qfiles is not None:
-            self._qfiles.put(a // self._q_chunks[1], columns)
-        else:
-            self._Q.resize((self._Q.shape[0], b))
-            self._Q[:, a:b] = np.stack(columns, axis=1)
+        self._Q.resize((self._Q.shape[0], b))
+        self._Q[:, a:b] = np.stack(columns, axis=1)
         self._qwritten = b
 
     def discard(self) -> None:
@@ -411,6 +462,7 @@ class EpisodeWriter:
         self._flush_q()
         if self._qfiles is not None:
             files, self._qfiles = self._qfiles, None
+            files.flush()
             files.close()
             self._Q.resize((self._Q.shape[0], self._qwritten))
         t = np.concatenate(self._t)
