@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 import time
 
 import numpy as np
@@ -35,6 +36,7 @@ from soft_rom.ros.conversions import (  # noqa: E402
 )
 from soft_rom.ros.predictor_node import PredictorNode  # noqa: E402
 
+ROOT = Path(__file__).resolve().parents[1]
 TOPICS = ['/test/chamber_1', '/test/chamber_2', '/test/chamber_3']
 RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -203,3 +205,20 @@ def test_missing_model_at_startup(ctx, tmp_path) -> None:
         assert waiting.predictor is not None and waiting.startup_error is None
     finally:
         waiting.destroy_node()
+
+
+def test_params_file_applies_under_another_node_name(ctx, tmp_path) -> None:
+    # the launch file's node_name argument renames the node; config/predictor.yaml must still
+    # apply (rcl ignores a section keyed by another node name)
+    text = (ROOT / 'config' / 'predictor.yaml').read_text(encoding='utf-8')
+    assert 'publish_rate_hz: 50.0' in text
+    params = tmp_path / 'p.yaml'
+    params.write_text(text.replace('publish_rate_hz: 50.0', 'publish_rate_hz: 7.0'),
+                      encoding='utf-8')
+    node = PredictorNode(context=ctx, cli_args=['--ros-args', '-r', '__node:=renamed',
+                                                '--params-file', str(params)])
+    try:
+        assert node.get_name() == 'renamed'
+        assert node.get_parameter('publish_rate_hz').value == 7.0
+    finally:
+        node.destroy_node()
