@@ -19,11 +19,11 @@ blocks of ``(min(n, 32768), 32)`` (8 MiB), uncompressed, Fortran order inside a 
 block of 32 snapshots reads ``ceil(n / 32768)`` whole chunks (the streaming POD's randomized
 range finder) and a row block reads whole chunks too (its Gram pass), so both access patterns
 of :mod:`soft_rom.scale` read every stored byte once per pass. Fortran order makes each
-snapshot contiguous on disk, so the writer stores snapshots straight from the buffers they
-arrived in (:class:`_ChunkFileWriter`); compression is off because it would cost a CPU pass
-per snapshot on a 2-core machine for data (float64 positions) that compresses poorly. The
-writer holds at most four chunk columns of ``Q`` (``4 x n x 32`` values: one filling, two
-queued, one being written).
+snapshot contiguous inside a chunk file, so the writer copies each snapshot once into a
+reused buffer laid out as the chunk files and writes them from it (:class:`_ChunkFileWriter`);
+compression is off because it would cost a CPU pass per snapshot on a 2-core machine for data
+(float64 positions) that compresses poorly. The writer holds at most three chunk columns of
+``Q`` (``3 x n x 32`` values: one filling, two queued or being written).
 
 A training set is written atomically: into a hidden temporary directory next to the target,
 renamed into place only when :class:`TrainingSetWriter` exits without an exception.
