@@ -19,11 +19,11 @@ blocks of ``(min(n, 32768), 32)`` (8 MiB), uncompressed, Fortran order inside a 
 block of 32 snapshots reads ``ceil(n / 32768)`` whole chunks (the streaming POD's randomized
 range finder) and a row block reads whole chunks too (its Gram pass), so both access patterns
 of :mod:`soft_rom.scale` read every stored byte once per pass. Fortran order makes each
-snapshot contiguous inside a chunk file, so the writer copies each snapshot once into a
-reused buffer laid out as the chunk files and writes them from it (:class:`_ChunkFileWriter`);
-compression is off because it would cost a CPU pass per snapshot on a 2-core machine for data
-(float64 positions) that compresses poorly. The writer holds at most three chunk columns of
-``Q`` (``3 x n x 32`` values: one filling, two queued or being written).
+snapshot contiguous inside a chunk file, so the writer appends each snapshot to the open
+chunk files of its chunk column straight from the buffer it arrived in
+(:class:`_ChunkFileWriter`); compression is off because it would cost a CPU pass per snapshot
+on a 2-core machine for data (float64 positions) that compresses poorly. The writer holds at
+most 16 snapshots waiting to be written.
 
 A training set is written atomically: into a hidden temporary directory next to the target,
 renamed into place only when :class:`TrainingSetWriter` exits without an exception.
@@ -122,19 +122,21 @@ class _ChunkFileWriter:
 
     ``Q`` is stored in Fortran order: an uncompressed zarr v2 chunk is then the raw bytes of
     its columns one after the other (edge chunks padded with the fill value), in a file named
-    ``'<i>.<j>'``. Snapshots are copied once, as they arrive, into a reused buffer of one
-    chunk column laid out as its chunk files, ``(row blocks, cols, rows)`` (C order), so that
-    each chunk file is one contiguous 8 MiB ``write`` and the message buffers are released at
-    once (holding them until their chunk column is written made every new message land in
-    fresh pages: page faults cost more than the copy). A background thread writes the chunk
-    files (overlapping disk writes with reading the bag) and, with ``drop_cache``, asks the
-    kernel to evict the pages already written back (``POSIX_FADV_DONTNEED``) so that writing
-    gigabytes of ``Q`` does not evict the bag being read from the page cache. Three buffers
-    (one filling, two queued or being written) bound the memory to ``3 n cols`` float64. The
-    array's shape is updated through zarr when the episode is finished.
+    ``'<i>.<j>'``. The files of the chunk column being filled stay open and each snapshot is
+    appended to them (its row block ``i`` to file ``i``) as it arrives, straight from the
+    array it arrived in: no copy, and the message buffer is released a few snapshots later
+    (holding whole chunk columns of message buffers made every new message land in fresh
+    pages, whose page faults cost more than a copy). Writes are at most 1 MiB (larger ones
+    were several times slower on Linux). A background thread overlaps the writes with
+    reading the bag; at most ``queue_size`` snapshots wait for it. With ``drop_cache`` the
+    written files are evicted from the page cache ``drop_lag`` files behind the writer
+    (``POSIX_FADV_DONTNEED``: the first call starts their write-back, a later one drops the
+    clean pages), so that gigabytes of ``Q`` recycle the same pages instead of filling the
+    page cache (measured 3-4x faster to write). The array's shape is updated through zarr
+    when the episode is finished.
     """
 
-    n_buffers = 3
+    queue_size = 16
     drop_lag = 16       # chunk files (8 MiB each) left in the page cache behind the writer
 
     def __init__(self, directory: Path, n: int, chunks: tuple[int, int], separator: str,
@@ -145,14 +147,13 @@ class _ChunkFileWriter:
         self.separator = separator
         self.drop_cache = drop_cache and hasattr(os, 'posix_fadvise')
         self.n_blocks = -(-n // self.rows)
-        self._full = n // self.rows                      # row blocks without padding
-        self._free: queue.Queue[NDArray[np.float64] | None] = queue.Queue()
-        for _ in range(self.n_buffers):
-            self._free.put(None)                         # allocated on first use
-        self._queue: queue.Queue[tuple[int, NDArray[np.float64]] | None] = queue.Queue()
-        self._buf: NDArray[np.float64] | None = None
-        self._k = 0                                      # columns in the filling buffer
-        self._j = 0                                      # index of the filling chunk column
+        self._zeros = np.zeros(self.rows, dtype=np.float64)
+        self._queue: queue.Queue[Any] = queue.Queue(self.queue_size)
+        self._count = 0                                  # snapshots queued
+        self._fds: list[int] = []                        # files of the open chunk column
+        self._paths: list[Path] = []
+        self._open_j = -1
+        self._filled = 0                                 # columns in the open chunk column
         self._written: deque[Path] = deque()
         self._error: BaseException | None = None
         self._thread = threading.Thread(target=self._run, name='soft_rom-q-writer',
@@ -162,32 +163,57 @@ class _ChunkFileWriter:
     def _run(self) -> None:
         while True:
             item = self._queue.get()
-            if item is None:
-                return
-            j, buf = item
             try:
-                if self._error is None:
-                    for i in range(self.n_blocks):
-                        self._write_chunk(f'{i}{self.separator}{j}', buf[i])
+                if item is None:
+                    self._close_files(pad=False)
+                    return
+                if self._error is not None:
+                    continue
+                if item == 'flush':
+                    self._close_files(pad=True)
+                else:
+                    self._write_column(*item)
             except BaseException as err:  # noqa: BLE001 - re-raised in the caller's thread
                 self._error = err
-            finally:
-                self._free.put(buf)
+                try:
+                    self._close_files(pad=False)
+                except OSError:
+                    pass
 
-    def _write_chunk(self, name: str, block: NDArray[np.float64]) -> None:
-        path = self.directory / name
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    def _write_column(self, index: int, col: NDArray[np.float64]) -> None:
+        j = index // self.cols
+        if j != self._open_j:
+            self._close_files(pad=True)
+            for i in range(self.n_blocks):
+                path = self.directory / f'{i}{self.separator}{j}'
+                self._fds.append(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644))
+                self._paths.append(path)
+            self._open_j, self._filled = j, 0
+        for i, fd in enumerate(self._fds):
+            r0 = i * self.rows
+            h = min(self.rows, self.n - r0)
+            _write_all(fd, [col[r0:r0 + h]] if h == self.rows else
+                       [col[r0:r0 + h], self._zeros[:self.rows - h]])
+        self._filled += 1
+
+    def _close_files(self, pad: bool) -> None:
+        """Close the open chunk column (``pad``: fill its missing columns with zeros)."""
+        fds, paths, self._fds, self._paths = self._fds, self._paths, [], []
+        self._open_j = -1
         try:
-            _write_all(fd, [memoryview(block).cast('B')])
-            if self.drop_cache:      # starts writing it back now (its dirty pages stay)
-                os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
+            if pad:
+                for fd in fds:
+                    _write_all(fd, [self._zeros] * (self.cols - self._filled))
+                    if self.drop_cache:      # starts writing it back now
+                        os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
         finally:
-            os.close(fd)
-        if self.drop_cache:
-            # drop-behind: evict a chunk file written a while ago, by now written back, so
-            # that its pages are reused instead of the page cache growing by all of Q
-            self._written.append(path)
-            if len(self._written) > self.drop_lag:
+            for fd in fds:
+                os.close(fd)
+        if pad and self.drop_cache:
+            # drop-behind: evict chunk files written a while ago, by now written back, so
+            # that their pages are reused instead of the page cache growing by all of Q
+            self._written.extend(paths)
+            while len(self._written) > self.drop_lag:
                 _drop_pages(self._written.popleft())
 
     def _check(self) -> None:
@@ -195,38 +221,27 @@ class _ChunkFileWriter:
             raise DatasetError(f'writing Q chunks to {self.directory} failed: '
                                f'{self._error}') from self._error
 
-    def append(self, column: NDArray[Any]) -> None:
-        """Copy one snapshot ``(n,)`` (any real dtype) into the chunk column being filled."""
-        buf = self._buf
-        if buf is None:
-            self._check()
-            buf = self._free.get()                       # waits while all buffers are busy
-            if buf is None:
-                buf = np.zeros((self.n_blocks, self.cols, self.rows), dtype=np.float64)
-            self._buf = buf
-        k, full, rows = self._k, self._full, self.rows
-        if full:
-            buf[:full, k, :] = column[:full * rows].reshape(full, rows)
-        if full < self.n_blocks:
-            buf[full, k, :self.n - full * rows] = column[full * rows:]
-        self._k = k + 1
-        if self._k == self.cols:
-            self.flush()
+    def append(self, column: NDArray[Any], copy: bool = True) -> None:
+        """Queue one snapshot ``(n,)`` (any real dtype).
+
+        Without ``copy`` a contiguous float64 ``column`` is written from as it is: the
+        caller must not modify it afterwards.
+        """
+        self._check()
+        if copy:
+            col = np.array(column, dtype=np.float64)
+        else:
+            col = np.ascontiguousarray(column, dtype=np.float64)
+        self._queue.put((self._count, col))
+        self._count += 1
 
     def flush(self) -> None:
-        """Queue the chunk column being filled (a partial one is padded with zeros)."""
-        buf, k = self._buf, self._k
-        if buf is None or k == 0:
-            return
-        if k < self.cols:
-            buf[:, k:, :] = 0.0
+        """Complete the chunk column being filled (a partial one is padded with zeros)."""
         self._check()
-        self._queue.put((self._j, buf))
-        self._buf, self._k = None, 0
-        self._j += 1
+        self._queue.put('flush')
 
     def close(self) -> None:
-        """Wait for every queued chunk; raise if one failed (the filling column is dropped)."""
+        """Wait for every queued snapshot; raise if one failed (an open column is dropped)."""
         if self._thread.is_alive():
             self._queue.put(None)
             self._thread.join()
@@ -397,9 +412,9 @@ class EpisodeWriter:
                                      f'(row {bad[0]}, sample {self.n_q + j + bad[1]}).')
             if self.first_q is None:
                 self.first_q = np.array(block[:, 0], dtype=np.float64)
-            if self._qfiles is not None:        # copied at once into the chunk buffer
+            if self._qfiles is not None:        # queued for the chunk writer
                 for c in range(take):
-                    self._qfiles.append(block[:, c])
+                    self._qfiles.append(block[:, c], copy=copy)
                 self._qwritten += take
             elif take == 1 and not copy:
                 self._qcols.append(np.ascontiguousarray(block[:, 0], dtype=np.float64))
