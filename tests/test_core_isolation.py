@@ -54,7 +54,10 @@ def test_every_core_module_imports_with_rclpy_blocked() -> None:
 
 
 def test_no_pickle_loading_anywhere() -> None:
+    # The needles are assembled so that this file itself does not contain them.
+    enable_pickle = 'allow_pickle' + '=True'
+    load_calls = ('pickle' + '.load', 'joblib' + '.load')
     for path in PKG.rglob('*.py'):
         text = path.read_text(encoding='utf-8')
-        assert 'allow_pickle=True' not in text.replace(' ', ''), path
-        assert 'pickle.load' not in text, path
+        assert enable_pickle not in text.replace(' ', ''), path
+        assert not any(call in text for call in load_calls), path
