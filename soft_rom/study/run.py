@@ -422,9 +422,10 @@ def run_study(out_dir: str | Path, cfg: StudyConfig | None = None, *, progress: 
     timings['simulate (bags)'] = time.perf_counter() - t0
     t0 = time.perf_counter()
     data_path = out / 'data.zarr'
-    if not data_path.exists():
-        convert(bags, data_path, progress=progress)
-    ts = TrainingSet.open(data_path)
+    ts = TrainingSet.open(data_path) if data_path.exists() else None
+    if ts is None or sorted(ts.episode_names) != sorted(b.name for b in bags):
+        # none yet, or left by a run on other bags: convert (again)
+        ts, _reports = convert(bags, data_path, overwrite=True, progress=progress)
     timings['convert'] = time.perf_counter() - t0
     n_fits = ((len(cfg.r_lopinf) + len(cfg.r_dmdc) + len(cfg.r_era)) * (1 in studies)
               + (len(cfg.r_lopinf) + len(cfg.r_dmdc) + 2 * len(cfg.r_era)) * (2 in studies))
@@ -440,7 +441,7 @@ def run_study(out_dir: str | Path, cfg: StudyConfig | None = None, *, progress: 
         'episodes': len(ts.episode_names), 'samples per episode': ep1.n_samples,
         'dt [s]': ep1.dt, 'state DOF n': None if ts.q_ref is None else int(ts.q_ref.size),
         'inputs m': ep1.U.shape[0], 'outputs p': ep1.Y.shape[0],
-        'max |tail deviation| Ep 1 [mm]': float(
+        'max |output deviation| Ep 1 [mm]': float(
             np.max(np.abs(ep1.Y - ts.y_ref[:, None])) * 1e3),
         'storage': cfg.storage,
     }

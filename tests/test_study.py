@@ -1,0 +1,73 @@
+"""The studies end to end on a short, small run of the embedded eel (bags, converter, fits)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from soft_rom.errors import ConfigError
+from soft_rom.models import load_model
+from soft_rom.study.report import markdown_table
+from soft_rom.study.run import run_study, StudyConfig
+
+
+@pytest.fixture(scope='module')
+def study(tmp_path_factory):
+    out = tmp_path_factory.mktemp('study')
+    cfg = StudyConfig(n_episodes=3, duration=0.4, t_train=0.3, r_lopinf=(2, 4), r_dmdc=(4,),
+                      r_era=(6, 8), shape_times=(0.1, 0.2, 0.39), jobs=1,
+                      era_options={'decimation': 1, 'output_rank': 4, 'observer_order': 8,
+                                   'n_markov': 100})
+    summary = run_study(out, cfg, progress=False, replay=True)
+    return out, summary
+
+
+def test_study_writes_report_figures_models(study) -> None:
+    out, summary = study
+    for name in ('report.md', 'summary.json', 'errors_vs_r.png', 'traces.png', 'bars.png',
+                 'centerline_ep3.png'):
+        assert (out / name).is_file(), name
+    assert json.loads((out / 'summary.json').read_text())['study1']['best']
+    report = (out / 'report.md').read_text()
+    assert '## Study 1' in report and '## Study 2' in report and 'paper' in report
+    chosen = summary['study2']['chosen']
+    model = load_model(out / 'models' / f'eel_lopinf_r{chosen["lopinf"]["r"]}.npz')
+    assert model.method == 'lopinf' and model.input_units == ['Pa'] * 6
+
+
+def test_study_numbers_are_sane(study) -> None:
+    _out, summary = study
+    c = summary['study1']['curves']['lopinf']
+    assert c['r'] == [2, 4]
+    assert all(np.isfinite(c['train'])) and all(np.isfinite(c['test']))
+    # LOpInf ROMs are stable by construction and fit their training window.
+    assert min(c['stability_margin']) > 0
+    assert min(c['train_dev']) < 0.5
+    # The absolute metric is dominated by the body's x coordinates: far below the deviation one.
+    assert max(c['train']) < 0.1 * min(c['train_dev'])
+    assert set(summary['study2']['test']['lopinf']) == {'ep3'}
+    assert summary['replay']['samples'] == 400
+    assert summary['conclusions']
+
+
+def test_rerun_reuses_bags_and_reconverts_when_they_change(study, tmp_path) -> None:
+    out, _summary = study
+    cfg = StudyConfig(n_episodes=2, duration=0.4, t_train=0.3, r_lopinf=(2,), r_dmdc=(2,),
+                      r_era=(4,), jobs=1, era_options={'decimation': 1, 'output_rank': 4,
+                                                       'observer_order': 8, 'n_markov': 100})
+    # Same folder: the bags are reused, the 3-episode training set is replaced by a 2-episode one.
+    stamp = (out / 'bags' / 'ep1.json').stat().st_mtime_ns
+    summary = run_study(out, cfg, progress=False, studies=(1,))
+    assert summary['fom']['episodes'] == 2
+    assert (out / 'bags' / 'ep1.json').stat().st_mtime_ns == stamp
+    with pytest.raises(ConfigError, match='other settings'):
+        run_study(tmp_path / 'other', StudyConfig(n_episodes=2, duration=0.4, t_train=0.3,
+                                                  seed=7, jobs=1),
+                  progress=False, studies=(1,), bag_dir=out / 'bags')
+
+
+def test_markdown_table_formats_numbers() -> None:
+    table = markdown_table(['a', 'b'], [[1, 0.12345], [2, 1.5e12], [3, 2e-5]])
+    assert '| 1 | 0.1235 |' in table and '1.50e+12' in table and '2.00e-05' in table
