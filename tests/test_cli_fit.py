@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import json
 
+from _systems import spring_chain_episodes
 import numpy as np
 import pytest
-import scipy.linalg as sla
 
 from soft_rom.cli import main
 from soft_rom.data import Episode
@@ -16,36 +16,11 @@ pytest.importorskip('zarr')
 from soft_rom.dataset import TrainingSet  # noqa: E402
 
 
-def _fom_episodes(n_dof: int = 12, m: int = 2, p: int = 4, k: int = 500,
-                  dt: float = 2e-3, seed: int = 0) -> list[Episode]:
+def _fom_episodes() -> list[Episode]:
     """A damped spring chain (second-order linear FOM) with full states, two episodes."""
-    rng = np.random.default_rng(seed)
-    K = 2 * np.eye(n_dof) - np.eye(n_dof, k=1) - np.eye(n_dof, k=-1)
-    K *= 400.0
-    C = 0.02 * K + 0.5 * np.eye(n_dof)
-    Bf = np.zeros((n_dof, m))
-    Bf[n_dof // 3, 0] = 1e-3
-    Bf[2 * n_dof // 3, 1] = 1e-3
-    Ac = np.block([[np.zeros((n_dof, n_dof)), np.eye(n_dof)], [-K, -C]])
-    Bc = np.vstack([np.zeros((n_dof, m)), Bf])
-    M = np.zeros((2 * n_dof + m,) * 2)
-    M[:2 * n_dof, :2 * n_dof] = Ac * dt
-    M[:2 * n_dof, 2 * n_dof:] = Bc * dt
-    F = sla.expm(M)
-    Ad, Bd = F[:2 * n_dof, :2 * n_dof], F[:2 * n_dof, 2 * n_dof:]
-    E = rng.standard_normal((p, n_dof))
-    q_ref = np.linspace(0.0, 1.0, n_dof)
-    eps = []
-    for i in range(2):
-        U = np.repeat(rng.uniform(0, 30e3, (m, k // 25 + 1)), 25, axis=1)[:, :k]
-        x = np.zeros(2 * n_dof)
-        X = np.empty((2 * n_dof, k))
-        for j in range(k):
-            X[:, j] = x
-            x = Ad @ x + Bd @ U[:, j]
-        Q = X[:n_dof] + q_ref[:, None]
-        eps.append(Episode(t=np.arange(k) * dt, U=U, Y=E @ Q, Q=Q, name=f'ep{i + 1}'))
-    return eps
+    return spring_chain_episodes(n_dof=12, m=2, p=4, k=500, dt=2e-3, seed=0, stiffness=400.0,
+                                 drive_nodes=(4, 8), input_gain=1e-3, amplitude=30e3, hold=25,
+                                 q_span=1.0)
 
 
 @pytest.fixture(scope='module')

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import ast
 from pathlib import Path
 import subprocess
 import sys
+
+from _source import top_level_imports
 
 PKG = Path(__file__).resolve().parents[1] / 'soft_rom'
 ROS_MODULES = ('rclpy', 'std_msgs', 'sensor_msgs', 'geometry_msgs', 'visualization_msgs',
@@ -13,22 +14,11 @@ ROS_MODULES = ('rclpy', 'std_msgs', 'sensor_msgs', 'geometry_msgs', 'visualizati
                'rcl_interfaces')
 
 
-def _imports(path: Path) -> set[str]:
-    tree = ast.parse(path.read_text(encoding='utf-8'))
-    names: set[str] = set()
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            names.update(alias.name.split('.')[0] for alias in node.names)
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names.add(node.module.split('.')[0])
-    return names
-
-
 def test_ros_and_rosbags_imports_stay_in_their_packages() -> None:
     offenders = []
     for path in PKG.rglob('*.py'):
         rel = path.relative_to(PKG).as_posix()
-        found = _imports(path)
+        found = top_level_imports(path)
         if not rel.startswith('ros/') and found & set(ROS_MODULES):
             offenders.append(f'{rel}: {sorted(found & set(ROS_MODULES))}')
         if not rel.startswith('bags/') and 'rosbags' in found:

@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import ast
 from pathlib import Path
 import shutil
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
 
+from _source import top_level_imports
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -33,14 +33,8 @@ def _exec_depends() -> set[str]:
 
 
 def _top_level_imports() -> set[str]:
-    names: set[str] = set()
-    for path in list((ROOT / 'soft_rom').rglob('*.py')) + list((ROOT / 'launch').glob('*.py')):
-        for node in ast.walk(ast.parse(path.read_text(encoding='utf-8'))):
-            if isinstance(node, ast.Import):
-                names.update(a.name.split('.')[0] for a in node.names)
-            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-                names.add(node.module.split('.')[0])
-    return names
+    paths = list((ROOT / 'soft_rom').rglob('*.py')) + list((ROOT / 'launch').glob('*.py'))
+    return set().union(*(top_level_imports(path) for path in paths))
 
 
 def test_package_xml_declares_what_the_code_imports() -> None:

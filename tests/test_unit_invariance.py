@@ -7,9 +7,9 @@ m/Pa to 1e-6 relative.
 
 from __future__ import annotations
 
+from _systems import spring_chain_episodes
 import numpy as np
 import pytest
-import scipy.linalg as sla
 
 from soft_rom.data import Episode
 from soft_rom.evaluation import predict
@@ -19,32 +19,11 @@ from soft_rom.learners.era import ERAOKID
 TOL = 1e-6
 
 
-def _chain_episodes(n_dof=10, m=2, p=4, k=800, dt=2e-3, seed=0):
+def _chain_episodes():
     """Damped spring chain driven by two pressures (Pa); positions in m."""
-    rng = np.random.default_rng(seed)
-    K = 300.0 * (2 * np.eye(n_dof) - np.eye(n_dof, k=1) - np.eye(n_dof, k=-1))
-    C = 0.02 * K + 0.5 * np.eye(n_dof)
-    Bf = np.zeros((n_dof, m))
-    Bf[2, 0], Bf[7, 1] = 1e-6, 1e-6
-    Ac = np.block([[np.zeros((n_dof, n_dof)), np.eye(n_dof)], [-K, -C]])
-    Bc = np.vstack([np.zeros((n_dof, m)), Bf])
-    M = np.zeros((2 * n_dof + m,) * 2)
-    M[:2 * n_dof, :2 * n_dof], M[:2 * n_dof, 2 * n_dof:] = Ac * dt, Bc * dt
-    F = sla.expm(M)
-    Ad, Bd = F[:2 * n_dof, :2 * n_dof], F[:2 * n_dof, 2 * n_dof:]
-    E = rng.standard_normal((p, n_dof))
-    q_ref = np.linspace(0.0, 0.5, n_dof)
-    eps = []
-    for i in range(2):
-        U = np.repeat(rng.uniform(0, 40e3, (m, k // 40 + 1)), 40, axis=1)[:, :k]
-        x, X = np.zeros(2 * n_dof), np.empty((2 * n_dof, k))
-        for j in range(k):
-            X[:, j] = x
-            x = Ad @ x + Bd @ U[:, j]
-        Q = X[:n_dof] + q_ref[:, None]
-        Y = E @ Q + 1e-6 * rng.standard_normal((p, k))
-        eps.append(Episode(t=np.arange(k) * dt, U=U, Y=Y, Q=Q, name=f'ep{i + 1}'))
-    return eps
+    return spring_chain_episodes(n_dof=10, m=2, p=4, k=800, dt=2e-3, seed=0, stiffness=300.0,
+                                 drive_nodes=(2, 7), input_gain=1e-6, amplitude=40e3, hold=40,
+                                 q_span=0.5, output_noise=1e-6)
 
 
 def _in_other_units(ep: Episode) -> Episode:
