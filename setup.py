@@ -31,7 +31,7 @@ setup(
         'tqdm>=4.64',
     ],
     extras_require={
-        'test': ['pytest>=7', 'ruff>=0.5', 'colcon-common-extensions>=0.3'],
+        'test': ['pytest>=7', 'ruff>=0.5', 'mypy>=1.8', 'colcon-common-extensions>=0.3'],
         'dask': ['dask[array]>=2023.1', 'distributed>=2023.1'],
         'mesh': ['gmsh>=4.11'],
     },

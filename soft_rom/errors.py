@@ -14,6 +14,8 @@ __all__ = [
     'DimensionError',
     'ModelFileError',
     'NotFittedError',
+    'OutputExistsError',
+    'ResourceError',
     'SoftRomError',
     'SolverError',
 ]
@@ -49,3 +51,11 @@ class DatasetError(SoftRomError, ValueError):
 
 class BagError(SoftRomError, ValueError):
     """A ROS 2 bag cannot be read/written or does not match the configured contract."""
+
+
+class OutputExistsError(SoftRomError, FileExistsError):
+    """An output exists and may not be replaced (no ``--overwrite``, or not soft_rom's)."""
+
+
+class ResourceError(SoftRomError, MemoryError):
+    """A run was refused before it started: it would not fit in memory or on disk."""

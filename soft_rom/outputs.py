@@ -1,0 +1,292 @@
+"""Safe outputs: soft_rom never replaces what it did not write, and what it writes appears whole.
+
+Every folder soft_rom creates as an output (a training set, a bag of predictions, a study
+folder) carries a small marker file, :data:`MARKER`, naming what it is. ``--overwrite``
+replaces an existing output only when that marker says soft_rom wrote it (a file output,
+such as a model file, is recognised by a check the caller passes). A recording — a bag
+that soft_rom did not write — is never replaced.
+
+Outputs are built in a hidden staging folder next to their destination (same file system)
+and moved into place at the end:
+
+* a folder is swapped in with one atomic ``renameat2(RENAME_EXCHANGE)`` where the kernel
+  and file system support it, so that at every instant either the old or the new output
+  exists; elsewhere with two renames, and :func:`recover` (called before every write)
+  restores the old one if a crash came between them;
+* several files (:func:`atomic_files`, e.g. one model file per method and r) are staged
+  together and moved in only when all were written; if moving one fails, the files
+  already moved are put back.
+
+Staging folders left by a killed run are removed by the next run in the same folder
+(:func:`clean_stale`); they are hidden and never read as outputs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator, Sequence
+import contextlib
+import ctypes
+import ctypes.util
+import json
+import os
+from pathlib import Path
+import shutil
+import uuid
+
+from soft_rom.errors import OutputExistsError, ResourceError
+
+__all__ = [
+    'MARKER',
+    'atomic_dir',
+    'atomic_files',
+    'check_free_space',
+    'check_output',
+    'clean_stale',
+    'is_marked',
+    'mark',
+    'recover',
+]
+
+MARKER = '.soft_rom_output.json'
+_STAGE = '.soft_rom-stage-'
+_OLD = '.soft_rom-old-'
+
+Checker = Callable[[Path], bool]
+
+
+def mark(folder: str | os.PathLike[str], kind: str) -> None:
+    """Write the marker that says soft_rom wrote ``folder`` as an output of ``kind``."""
+    Path(folder, MARKER).write_text(json.dumps({'writer': 'soft_rom', 'kind': kind}) + '\n')
+
+
+def is_marked(path: str | os.PathLike[str], kinds: Sequence[str] | None = None) -> bool:
+    """Whether ``path`` is a folder soft_rom wrote (of one of ``kinds``, if given)."""
+    marker = Path(path, MARKER)
+    try:
+        if not marker.is_file() or marker.stat().st_size > 4096:
+            return False
+        info = json.loads(marker.read_text())
+    except (OSError, ValueError):
+        return False
+    if not isinstance(info, dict) or info.get('writer') != 'soft_rom':
+        return False
+    return kinds is None or info.get('kind') in kinds
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def clean_stale(parent: str | os.PathLike[str]) -> None:
+    """Remove staging folders in ``parent`` left by soft_rom runs that no longer exist."""
+    try:
+        entries = list(Path(parent).iterdir())
+    except OSError:
+        return
+    for entry in entries:
+        if not entry.name.startswith('.') or _STAGE not in entry.name:
+            continue
+        try:
+            pid = int(entry.name.split(_STAGE, 1)[1].split('-', 1)[0])
+        except ValueError:
+            continue
+        if not _pid_alive(pid):
+            shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() else entry.unlink(
+                missing_ok=True)
+
+
+def _old_copies(dest: Path) -> list[Path]:
+    prefix = f'.{dest.name}{_OLD}'
+    try:
+        return sorted(p for p in dest.parent.iterdir() if p.name.startswith(prefix))
+    except OSError:
+        return []
+
+
+def recover(dest: str | os.PathLike[str]) -> None:
+    """Finish or undo a folder swap that a crash interrupted.
+
+    If ``dest`` is missing and an old copy of it is parked beside it, the old copy is put
+    back; if ``dest`` exists, parked old copies are removed.
+    """
+    dest = Path(dest)
+    olds = _old_copies(dest)
+    if not olds:
+        return
+    if not dest.exists():
+        os.rename(olds[-1], dest)
+        olds = olds[:-1]
+    for old in olds:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def check_output(dest: str | os.PathLike[str], *, overwrite: bool, what: str,
+                 kinds: Sequence[str] | None = None, is_ours: Checker | None = None) -> None:
+    """Refuse to write ``dest`` unless it is new, or ours and ``overwrite`` is set.
+
+    Parameters
+    ----------
+    dest : path
+        The output (folder or file).
+    overwrite : bool
+        Whether the user asked to replace an existing output.
+    what : str
+        What the output is, for messages (``'training set'``, ``'model file'``).
+    kinds : sequence of str, optional
+        Marker kinds accepted for a folder.
+    is_ours : callable, optional
+        For a file output: ``is_ours(path)`` says whether soft_rom wrote it.
+
+    Raises
+    ------
+    OutputExistsError
+        ``dest`` exists and ``overwrite`` is not set, or it exists and soft_rom did not
+        write it.
+    """
+    dest = Path(dest)
+    recover(dest)
+    if not dest.exists() and not dest.is_symlink():
+        return
+    if not overwrite:
+        raise OutputExistsError(f'{dest} exists already; choose another output or pass '
+                                f'--overwrite to replace it')
+    ours = (is_ours(dest) if is_ours is not None and dest.is_file()
+            else dest.is_dir() and not dest.is_symlink() and is_marked(dest, kinds))
+    if not ours:
+        raise OutputExistsError(f'{dest} was not written by soft_rom as a {what}; refusing to '
+                                f'replace it (--overwrite only replaces soft_rom outputs)')
+
+
+def _stage_path(dest: Path) -> Path:
+    return dest.parent / f'.{dest.name}{_STAGE}{os.getpid()}-{uuid.uuid4().hex[:8]}'
+
+
+_libc: ctypes.CDLL | None | bool = False
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Atomically exchange two paths (Linux ``renameat2``); False where unsupported."""
+    global _libc
+    if _libc is False:
+        name = ctypes.util.find_library('c')
+        try:
+            _libc = ctypes.CDLL(name, use_errno=True) if name else None
+        except OSError:
+            _libc = None
+    if _libc is None or not hasattr(_libc, 'renameat2'):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    rc = _libc.renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange)
+    return rc == 0
+
+
+def _swap_in(stage: Path, dest: Path) -> None:
+    if not dest.exists():
+        os.rename(stage, dest)
+        return
+    if _exchange(stage, dest):
+        shutil.rmtree(stage, ignore_errors=True)  # stage now holds the old output
+        return
+    old = dest.parent / f'.{dest.name}{_OLD}{os.getpid()}-{uuid.uuid4().hex[:8]}'
+    os.rename(dest, old)
+    try:
+        os.rename(stage, dest)
+    except BaseException:
+        os.rename(old, dest)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def atomic_dir(dest: str | os.PathLike[str], *, overwrite: bool, kind: str, what: str,
+               kinds: Sequence[str] | None = None) -> Iterator[Path]:
+    """Build a folder output in a staging folder and swap it into place on success.
+
+    Yields the staging folder. On an exception (or Ctrl-C) the staging folder is removed
+    and ``dest`` is left as it was; on success the marker for ``kind`` is written and the
+    folder replaces ``dest`` atomically (see the module docstring).
+    """
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    clean_stale(dest.parent)
+    check_output(dest, overwrite=overwrite, what=what, kinds=kinds or (kind,))
+    stage = _stage_path(dest)
+    stage.mkdir()
+    try:
+        yield stage
+        mark(stage, kind)
+        _swap_in(stage, dest)
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+
+
+@contextlib.contextmanager
+def atomic_files(dests: Sequence[str | os.PathLike[str]], *, overwrite: bool, what: str,
+                 is_ours: Checker | None = None) -> Iterator[dict[Path, Path]]:
+    """Write several files so that they appear all together or not at all.
+
+    Every destination is checked with :func:`check_output` before anything is written.
+    Yields ``{destination: staging path}``; the caller writes each staging path. On
+    success every file is moved into place; if one move fails, the ones already moved are
+    put back as they were. On an exception nothing at the destinations changes.
+    """
+    paths = [Path(d) for d in dests]
+    if len(set(paths)) != len(paths):
+        raise OutputExistsError(f'two {what}s would be written to the same path')
+    for parent in {p.parent for p in paths}:
+        parent.mkdir(parents=True, exist_ok=True)
+        clean_stale(parent)
+    for p in paths:
+        check_output(p, overwrite=overwrite, what=what, is_ours=is_ours)
+    stages = {p.parent: _stage_path(p.parent / 'files') for p in paths}
+    for stage in stages.values():
+        stage.mkdir()
+    mapping = {p: stages[p.parent] / p.name for p in paths}
+    moved: list[tuple[Path, Path | None]] = []
+    try:
+        yield mapping
+        missing = [str(p) for p, s in mapping.items() if not s.is_file()]
+        if missing:
+            raise OutputExistsError(f'internal: {what}s not written: {", ".join(missing)}')
+        for p, s in mapping.items():
+            backup = None
+            if p.exists():
+                backup = s.with_name(s.name + '.previous')
+                os.replace(p, backup)
+            moved.append((p, backup))
+            os.replace(s, p)
+    except BaseException:
+        for p, backup in reversed(moved):
+            with contextlib.suppress(OSError):
+                if backup is not None:
+                    os.replace(backup, p)
+                else:
+                    p.unlink(missing_ok=True)
+        raise
+    finally:
+        for stage in stages.values():
+            shutil.rmtree(stage, ignore_errors=True)
+
+
+def check_free_space(folder: str | os.PathLike[str], nbytes: float, what: str) -> None:
+    """Refuse work that would need more disk than ``folder``'s file system has free.
+
+    Raises
+    ------
+    ResourceError
+        With the estimate and what is free.
+    """
+    folder = Path(folder)
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    free = shutil.disk_usage(folder).free
+    if nbytes > free:
+        raise ResourceError(f'{what} needs about {nbytes / 1e9:.3g} GB on disk, only '
+                            f'{free / 1e9:.3g} GB free in {folder}')
