@@ -167,23 +167,23 @@ def _stage_path(dest: Path) -> Path:
     return dest.parent / f'.{dest.name}{_STAGE}{os.getpid()}-{uuid.uuid4().hex[:8]}'
 
 
-_libc: ctypes.CDLL | None | bool = False
+_libc: list[ctypes.CDLL | None] = []
 
 
 def _exchange(a: Path, b: Path) -> bool:
     """Atomically exchange two paths (Linux ``renameat2``); False where unsupported."""
-    global _libc
-    if _libc is False:
+    if not _libc:
         name = ctypes.util.find_library('c')
         try:
-            _libc = ctypes.CDLL(name, use_errno=True) if name else None
+            _libc.append(ctypes.CDLL(name, use_errno=True) if name else None)
         except OSError:
-            _libc = None
-    if _libc is None or not hasattr(_libc, 'renameat2'):
+            _libc.append(None)
+    libc = _libc[0]
+    if libc is None or not hasattr(libc, 'renameat2'):
         return False
     at_fdcwd, rename_exchange = -100, 2
-    rc = _libc.renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange)
-    return rc == 0
+    rc = libc.renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange)
+    return bool(rc == 0)
 
 
 def _swap_in(stage: Path, dest: Path) -> None:
