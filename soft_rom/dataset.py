@@ -3,13 +3,13 @@
 Layout (zarr format 2 on disk, so zarr 2.16+ and zarr 3.x both read and write it, and
 :func:`dask.array.from_zarr` reads it on a cluster)::
 
-    OUT.zarr/                      attrs: format='soft_rom.trainingset', format_version=1,
+    OUT.zarr/                      attrs: format='soft_rom.trainingset', format_version=2,
                                           input_names, input_units, output_names,
                                           output_units, episode_names, provenance, ...
         q_ref      (n,)            reference configuration (absent without states)
         y_ref      (p,)            reference output
-        episodes/<name>/           attrs: metadata (source bag, topics, time range, report)
-            t      (k,)            seconds, strictly increasing
+        episodes/<name>/           attrs: metadata (t0_ns, source bag, topics, report)
+            t      (k,)            seconds from the episode's start: t[0] = 0, increasing
             U      (m, k)          inputs, absolute
             Y      (p, k)          outputs, absolute
             Q      (n, k)          optional full states, absolute, float64
@@ -25,34 +25,50 @@ chunk files of its chunk column straight from the buffer it arrived in
 on a 2-core machine for data (float64 positions) that compresses poorly. The writer holds at
 most 16 snapshots waiting to be written.
 
-A training set is written atomically: into a hidden temporary directory next to the target,
-renamed into place only when :class:`TrainingSetWriter` exits without an exception.
+Time: ``t`` is float seconds from the episode's own start (``t[0] = 0``); the absolute start
+is the integer ``metadata['t0_ns']`` (nanoseconds, e.g. the epoch stamp of the first sample),
+so a recording stamped at 1.7e9 s keeps its sample times exact. Format version 1 stored
+absolute seconds; such a set is read with its times shifted to ``t[0] = 0`` when its stamps
+are small enough to be exact (below 1e4 s), and refused with the command that converts its
+bags again otherwise.
+
+A training set is written atomically through :func:`soft_rom.outputs.atomic_dir`: into a
+hidden staging folder next to the target, marked as a soft_rom output and swapped into place
+only when :class:`TrainingSetWriter` closes without an exception. ``overwrite`` replaces only
+a folder soft_rom wrote as a training set; a training set written before the marker existed
+is recognised by its ``format`` attribute (a bag or any other folder is refused).
 """
 
 from __future__ import annotations
 
 from collections import deque
 from collections.abc import Iterator, Mapping, Sequence
+import contextlib
 import json
 import os
 from pathlib import Path
 import queue
-import shutil
+import shlex
 import threading
 from types import TracebackType
 from typing import Any
-import uuid
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from soft_rom.data import as_signal, Episode
+from soft_rom import outputs
+from soft_rom.data import all_finite, as_signal, Episode
 from soft_rom.errors import DatasetError, DimensionError
 
-__all__ = ['FORMAT', 'FORMAT_VERSION', 'EpisodeWriter', 'TrainingSet', 'TrainingSetWriter']
+__all__ = ['FORMAT', 'FORMAT_VERSION', 'KIND', 'EpisodeWriter', 'TrainingSet',
+           'TrainingSetWriter']
 
 FORMAT = 'soft_rom.trainingset'
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+#: Marker kind of a training-set folder (:mod:`soft_rom.outputs`).
+KIND = 'trainingset'
+#: Format version 1 (absolute times) is read when every episode starts before this (s).
+V1_MAX_START_S = 1e4
 #: Default ``Q`` chunk: rows (at most) and columns.
 Q_CHUNK_ROWS = 32768
 Q_CHUNK_COLS = 32
@@ -274,21 +290,19 @@ def _write_all(fd: int, parts: list[Any]) -> None:
             view = view[os.write(fd, view[:_WRITE_PIECE]):]
 
 
-def check_all_finite(arr: Any) -> bool:
-    """True if every value of ``arr`` is finite."""
-    return bool(np.all(np.isfinite(np.asarray(arr, dtype=np.float64))))
-
-
 class EpisodeWriter:
     """Appends samples of one episode; obtained from :meth:`TrainingSetWriter.begin_episode`.
 
     Small arrays (``t``, ``U``, ``Y``) are kept in memory until the episode is finished;
-    ``Q`` goes to disk one chunk column at a time.
+    ``Q`` goes to disk one chunk column at a time. Times are seconds; they are stored from
+    the first one (``t[0] = 0``) and that first time is added to ``t0_ns``.
     """
 
     def __init__(self, owner: TrainingSetWriter, group: Any, name: str, n_states: int | None,
-                 metadata: Mapping[str, Any] | None, q_chunks: tuple[int, int]) -> None:
+                 metadata: Mapping[str, Any] | None, q_chunks: tuple[int, int],
+                 t0_ns: int = 0) -> None:
         self._owner = owner
+        self.t0_ns = int(t0_ns)
         self._group = group
         self.name = name
         self.n_states = None if n_states is None else int(n_states)
@@ -299,7 +313,6 @@ class EpisodeWriter:
         self._Y: list[NDArray[np.float64]] = []
         self._Q: Any = None
         self._qfiles: _ChunkFileWriter | None = None
-        self._qcols: list[NDArray[np.float64]] = []
         self._qwritten = 0
         self._has_q: bool | None = None
         self._last_t = -np.inf
@@ -333,7 +346,7 @@ class EpisodeWriter:
             if self.n_states is not None and shape[0] != self.n_states:
                 raise DimensionError(f'episode {self.name!r}: Q must have {self.n_states} '
                                      f'rows; got {shape[0]}.')
-            if check_all_finite(Q) is False:
+            if not all_finite(np.asarray(Q)):
                 raise DimensionError(f'episode {self.name!r}: Q contains NaN or Inf.')
         self.append_signals(t, U, Y)
         self._has_q = has_q
@@ -372,9 +385,10 @@ class EpisodeWriter:
     def append_states(self, Q: Any, check_finite: bool = True, copy: bool = True) -> None:
         """Append state columns ``Q`` (n, k) (any array with ``shape`` and column slicing).
 
-        ``copy=False`` lets the writer keep a contiguous float64 ``(n,)`` / ``(n, 1)`` input
-        without copying it (the caller must not modify it afterwards); the converter uses
-        it to write snapshots straight from the message buffers.
+        Every column goes to the chunk-file writer (:class:`_ChunkFileWriter`), the one write
+        path of ``Q``. ``copy=False`` lets it keep a contiguous float64 ``(n,)`` / ``(n, 1)``
+        input without copying it (the caller must not modify it afterwards); the converter
+        uses it to write snapshots straight from the message buffers.
         """
         if self.closed:
             raise DatasetError(f'episode {self.name!r} is finished; begin a new one.')
@@ -395,64 +409,45 @@ class EpisodeWriter:
         if n != self.n_states:
             raise DimensionError(f'episode {self.name!r}: Q must have {self.n_states} rows; '
                                  f'got {n}.')
-        if self._Q is None:
+        if self._qfiles is None:
             rows = min(n, self._q_chunks[0])
             cols = self._q_chunks[1]
             self._Q = _create_array(self._group, 'Q', (n, 0), (rows, cols), compress=False,
                                     order='F')
             self._qfiles = self._direct_writer(n, (rows, cols))
-        cols = self._q_chunks[1]
-        j = 0
-        while j < k:
-            take = min(k - j, cols - len(self._qcols))
-            block = np.asarray(Q[:, j:j + take])
-            if check_finite and not np.all(np.isfinite(block)):
+        step = self._q_chunks[1]
+        for j in range(0, k, step):
+            block = np.asarray(Q[:, j:j + step])
+            if check_finite and not all_finite(block):
                 bad = np.argwhere(~np.isfinite(block))[0]
                 raise DimensionError(f'episode {self.name!r}: Q contains NaN or Inf '
-                                     f'(row {bad[0]}, sample {self.n_q + j + bad[1]}).')
+                                     f'(row {bad[0]}, sample {self.n_q + bad[1]}).')
             if self.first_q is None:
                 self.first_q = np.array(block[:, 0], dtype=np.float64)
-            if self._qfiles is not None:        # queued for the chunk writer
-                for c in range(take):
-                    self._qfiles.append(block[:, c], copy=copy)
-                self._qwritten += take
-            elif take == 1 and not copy:
-                self._qcols.append(np.ascontiguousarray(block[:, 0], dtype=np.float64))
-            else:  # one transposed copy; its rows are contiguous snapshots
-                self._qcols.extend(np.array(block.T, dtype=np.float64, order='C'))
-            j += take
-            if len(self._qcols) == cols:
-                self._flush_q()
+            for c in range(block.shape[1]):
+                self._qfiles.append(block[:, c], copy=copy)
+            self._qwritten += block.shape[1]
 
     @property
     def n_q(self) -> int:
         """Number of state columns appended so far."""
-        return self._qwritten + len(self._qcols)
+        return self._qwritten
 
-    def _direct_writer(self, n: int, chunks: tuple[int, int]) -> _ChunkFileWriter | None:
-        """A chunk-file writer if ``Q`` is an uncompressed zarr v2 array in a directory."""
-        tmp = self._owner._tmp
-        if tmp is None:
-            return None
-        directory = tmp / 'episodes' / self.name / 'Q'
+    def _direct_writer(self, n: int, chunks: tuple[int, int]) -> _ChunkFileWriter:
+        """The chunk-file writer of ``Q`` (an uncompressed zarr v2 array in a directory)."""
+        directory = self._owner.store_path / 'episodes' / self.name / 'Q'
         try:
             meta = json.loads((directory / '.zarray').read_text())
-        except (OSError, ValueError):
-            return None
+        except (OSError, ValueError) as err:
+            raise DatasetError(f'episode {self.name!r}: Q array metadata unreadable in '
+                               f'{directory} ({err}).') from err
         if (meta.get('zarr_format') != 2 or meta.get('compressor') is not None
                 or meta.get('filters') or meta.get('order') != 'F'
                 or meta.get('dtype') != '<f8' or list(meta.get('chunks', [])) != list(chunks)):
-            return None
+            raise DatasetError(f'episode {self.name!r}: zarr created Q with an unexpected '
+                               f'layout {meta}; the chunk writer needs uncompressed, Fortran '
+                               'order, float64 zarr v2 chunks.')
         return _ChunkFileWriter(directory, n, chunks, meta.get('dimension_separator') or '.')
-
-    def _flush_q(self) -> None:
-        if not self._qcols or self._Q is None:
-            return
-        columns, self._qcols = self._qcols, []
-        a, b = self._qwritten, self._qwritten + len(columns)
-        self._Q.resize((self._Q.shape[0], b))
-        self._Q[:, a:b] = np.stack(columns, axis=1)
-        self._qwritten = b
 
     def discard(self) -> None:
         """Stop the background chunk writer (the training set is being aborted)."""
@@ -474,13 +469,16 @@ class EpisodeWriter:
         if self._Q is not None and self.n_q != self.n_samples:
             raise DimensionError(f'episode {self.name!r}: {self.n_q} state columns for '
                                  f'{self.n_samples} samples.')
-        self._flush_q()
         if self._qfiles is not None:
             files, self._qfiles = self._qfiles, None
             files.flush()
             files.close()
             self._Q.resize((self._Q.shape[0], self._qwritten))
         t = np.concatenate(self._t)
+        start = float(t[0])
+        if start != 0.0:             # stored from the episode's own start
+            t = t - start
+            self.t0_ns += int(round(start * 1e9))
         U = np.concatenate(self._U, axis=1)
         Y = np.concatenate(self._Y, axis=1)
         k = t.size
@@ -488,8 +486,8 @@ class EpisodeWriter:
         _create_array(self._group, 'U', U.shape, U.shape, data=U)
         _create_array(self._group, 'Y', Y.shape, Y.shape, data=Y)
         meta = dict(self.metadata)
-        meta.setdefault('t_start', float(t[0]))
-        meta.setdefault('t_end', float(t[-1]))
+        meta['t0_ns'] = int(self.t0_ns)
+        meta['duration_s'] = float(t[-1])
         meta['n_samples'] = int(k)
         meta['has_state'] = self._Q is not None
         self._group.attrs.update({'metadata': _jsonable(meta, 'episode metadata')})
@@ -526,37 +524,57 @@ class TrainingSetWriter:
                  overwrite: bool = False,
                  q_chunks: tuple[int, int] = (Q_CHUNK_ROWS, Q_CHUNK_COLS)) -> None:
         self.path = Path(path)
-        self.input_names = [str(s) for s in input_names]
-        self.input_units = [str(s) for s in input_units]
-        self.output_names = [str(s) for s in output_names]
-        self.output_units = [str(s) for s in output_units]
-        if len(self.input_units) != len(self.input_names) or not self.input_names:
-            raise DatasetError('input_names and input_units must be non-empty and of equal '
-                               f'length; got {len(self.input_names)} and {len(self.input_units)}.')
-        if len(self.output_units) != len(self.output_names) or not self.output_names:
-            raise DatasetError('output_names and output_units must be non-empty and of equal '
-                               f'length; got {len(self.output_names)} and '
-                               f'{len(self.output_units)}.')
+        self.input_names: list[str] = []
+        self.input_units: list[str] = []
+        self.output_names: list[str] = []
+        self.output_units: list[str] = []
+        self.set_names(input_names, input_units, output_names, output_units)
         self.attrs = _jsonable(dict(attrs or {}), 'attrs')
         self.overwrite = bool(overwrite)
         self.q_chunks = (int(q_chunks[0]), int(q_chunks[1]))
-        if self.path.exists() and not self.overwrite:
-            raise DatasetError(f'{self.path} exists already; pass overwrite=True (--overwrite) '
-                               'to replace it.')
-        self._tmp: Path | None = None
+        if self.overwrite:
+            adopt_legacy(self.path)
+        outputs.check_output(self.path, overwrite=self.overwrite, what='training set',
+                             kinds=(KIND,))
+        self._stack: contextlib.ExitStack | None = None
+        self._stage: Path | None = None
         self._root: Any = None
         self._episodes: dict[str, EpisodeWriter] = {}
         self._current: EpisodeWriter | None = None
         self._q_ref: NDArray[np.float64] | None = None
         self._y_ref: NDArray[np.float64] | None = None
 
+    def set_names(self, input_names: Sequence[str], input_units: Sequence[str],
+                  output_names: Sequence[str], output_units: Sequence[str]) -> None:
+        """Set the channel names and units; allowed until the first sample is appended."""
+        if any(ep.n_samples or ep.n_q for ep in getattr(self, '_episodes', {}).values()):
+            raise DatasetError('names and units are fixed once samples were appended.')
+        names = ([str(s) for s in input_names], [str(s) for s in input_units],
+                 [str(s) for s in output_names], [str(s) for s in output_units])
+        if len(names[1]) != len(names[0]) or not names[0]:
+            raise DatasetError('input_names and input_units must be non-empty and of equal '
+                               f'length; got {len(names[0])} and {len(names[1])}.')
+        if len(names[3]) != len(names[2]) or not names[2]:
+            raise DatasetError('output_names and output_units must be non-empty and of equal '
+                               f'length; got {len(names[2])} and {len(names[3])}.')
+        self.input_names, self.input_units, self.output_names, self.output_units = names
+
+    @property
+    def store_path(self) -> Path:
+        """The staging folder the set is written into (until :meth:`close`)."""
+        if self._stage is None:
+            raise DatasetError('TrainingSetWriter is not open: use it as a context manager.')
+        return self._stage
+
     def open(self) -> TrainingSetWriter:
-        """Create the temporary directory; called by ``__enter__``."""
+        """Create the staging folder; called by ``__enter__``."""
         if self._root is not None:
             return self
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._tmp = self.path.parent / f'.{self.path.name}.tmp-{uuid.uuid4().hex[:8]}'
-        self._root = _open_group(self._tmp, 'w')
+        stack = contextlib.ExitStack()
+        self._stage = stack.enter_context(outputs.atomic_dir(
+            self.path, overwrite=self.overwrite, kind=KIND, what='training set'))
+        self._stack = stack
+        self._root = _open_group(self._stage, 'w')
         self._root.require_group('episodes')
         return self
 
@@ -571,8 +589,13 @@ class TrainingSetWriter:
             self.abort()
 
     def begin_episode(self, name: str, n_states: int | None = None,
-                      metadata: Mapping[str, Any] | None = None) -> EpisodeWriter:
-        """Start episode ``name`` (the previous one is finished); returns its writer."""
+                      metadata: Mapping[str, Any] | None = None,
+                      t0_ns: int = 0) -> EpisodeWriter:
+        """Start episode ``name`` (the previous one is finished); returns its writer.
+
+        ``t0_ns`` is the absolute time of the episode's first sample in integer
+        nanoseconds (for a recording, its first stamp).
+        """
         if self._root is None:
             raise DatasetError('TrainingSetWriter is not open: use it as a context manager.')
         name = _check_name(name)
@@ -581,7 +604,7 @@ class TrainingSetWriter:
         if self._current is not None:
             self._current.finish()
         group = self._root['episodes'].require_group(name)
-        ep = EpisodeWriter(self, group, name, n_states, metadata, self.q_chunks)
+        ep = EpisodeWriter(self, group, name, n_states, metadata, self.q_chunks, t0_ns)
         self._episodes[name] = ep
         self._current = ep
         return ep
@@ -599,8 +622,8 @@ class TrainingSetWriter:
             self._y_ref = y.copy()
 
     def close(self) -> None:
-        """Finish the last episode, write references and attributes, move into place."""
-        if self._root is None or self._tmp is None:
+        """Finish the last episode, write references and attributes, swap into place."""
+        if self._root is None or self._stack is None:
             return
         try:
             if self._current is not None:
@@ -633,29 +656,49 @@ class TrainingSetWriter:
                 'episode_names': list(self._episodes),
                 'provenance': attrs.get('provenance', {}),
             })
-            self._root.attrs.update(attrs)
+            self._root.attrs.update(attrs)   # written last: a partial set has no format
         except BaseException:
             self.abort()
             raise
         self._root = None
-        old = None
-        if self.path.exists():
-            old = self.path.parent / f'.{self.path.name}.old-{uuid.uuid4().hex[:8]}'
-            self.path.rename(old)
-        self._tmp.rename(self.path)
-        self._tmp = None
-        if old is not None:
-            shutil.rmtree(old, ignore_errors=True)
+        stack, self._stack = self._stack, None
+        self._stage = None
+        stack.close()                        # marker, then the atomic swap
 
     def abort(self) -> None:
-        """Delete the temporary directory; ``path`` is left untouched."""
+        """Delete the staging folder; ``path`` is left untouched."""
         self._root = None
         for ep in self._episodes.values():
             ep.discard()
         self._current = None
-        if self._tmp is not None:
-            shutil.rmtree(self._tmp, ignore_errors=True)
-            self._tmp = None
+        stack, self._stack = self._stack, None
+        self._stage = None
+        if stack is not None:
+            with contextlib.suppress(_Aborted):
+                stack.__exit__(_Aborted, _Aborted(), None)
+
+
+class _Aborted(Exception):
+    """Passed to the staging context so that it removes the staging folder."""
+
+
+def adopt_legacy(path: Path) -> None:
+    """Mark a training set written before the output marker existed as soft_rom's.
+
+    Only a folder whose zarr attributes say ``format = soft_rom.trainingset`` and that holds
+    no bag file is adopted; anything else is left alone (and then refused by ``--overwrite``).
+    """
+    if not path.is_dir() or path.is_symlink() or outputs.is_marked(path):
+        return
+    if (path / 'metadata.yaml').exists() or any(
+            f.suffix in ('.mcap', '.db3') for f in path.iterdir()):
+        return
+    try:
+        attrs = json.loads((path / '.zattrs').read_text())
+    except (OSError, ValueError):
+        return
+    if isinstance(attrs, dict) and attrs.get('format') == FORMAT:
+        outputs.mark(path, KIND)
 
 
 class TrainingSet:
@@ -669,6 +712,7 @@ class TrainingSet:
         self.path = path
         self._root = root
         self.attrs: dict[str, Any] = dict(root.attrs)
+        self._v1 = False
 
     @classmethod
     def open(cls, path: str | Path) -> TrainingSet:
@@ -682,6 +726,8 @@ class TrainingSet:
         """
         p = Path(path)
         if not p.exists():
+            outputs.recover(p)          # a swap interrupted by a crash: put the old set back
+        if not p.exists():
             raise DatasetError(f'training set {p} does not exist; create it with '
                                '`soft-rom convert BAG... -o OUT.zarr`.')
         try:
@@ -694,17 +740,32 @@ class TrainingSet:
             raise DatasetError(f'{p} is not a soft_rom training set (format attribute is '
                                f'{attrs.get("format")!r}, expected {FORMAT!r}).')
         version = attrs.get('format_version')
-        if version != FORMAT_VERSION:
+        if version not in (1, FORMAT_VERSION):
             raise DatasetError(f'{p} has training-set format version {version!r}; this soft_rom '
-                               f'reads version {FORMAT_VERSION}. Upgrade soft_rom or convert '
-                               'the bags again.')
+                               f'reads versions 1 and {FORMAT_VERSION}. Upgrade soft_rom or '
+                               f'convert the bags again: {_reconvert(p, attrs)}')
         for key in ('input_names', 'input_units', 'output_names', 'output_units',
                     'episode_names'):
             if not isinstance(attrs.get(key), list):
                 raise DatasetError(f'{p}: attribute {key!r} is missing or not a list.')
         ts = cls(p, root)
         ts._validate()
+        if version == 1:
+            ts._check_v1()
         return ts
+
+    def _check_v1(self) -> None:
+        """Version 1 stored absolute seconds: readable only when those were exact."""
+        for name in self.episode_names:
+            t = self._group(name)['t']
+            start = float(t[0]) if t.shape[0] else 0.0
+            if not abs(start) < V1_MAX_START_S:
+                raise DatasetError(
+                    f'{self.path} was written by an older soft_rom (format version 1) with '
+                    f'absolute times (episode {name!r} starts at t = {start:.6f} s), whose '
+                    'float64 seconds cannot hold the sample steps exactly. Convert the bags '
+                    f'again: {_reconvert(self.path, self.attrs)}')
+        self._v1 = True
 
     def _validate(self) -> None:
         m, p = len(self.input_names), len(self.output_names)
@@ -747,7 +808,8 @@ class TrainingSet:
                       q_chunks: tuple[int, int] = (Q_CHUNK_ROWS, Q_CHUNK_COLS)) -> TrainingSet:
         """Write in-memory episodes to ``path`` and open the result (tests, small data).
 
-        Names default to ``u1..um`` / ``y1..yp`` and units to ``''``.
+        Names default to ``u1..um`` / ``y1..yp`` and units to ``''``; an episode's
+        ``metadata['t0_ns']`` (default 0) is its absolute start.
         """
         if not episodes:
             raise DatasetError('from_episodes needs at least one episode.')
@@ -763,7 +825,8 @@ class TrainingSet:
                 output_units=list(output_units) if output_units is not None else [''] * p,
                 attrs=attrs, overwrite=overwrite, q_chunks=q_chunks) as w:
             for i, ep in enumerate(episodes):
-                writer = w.begin_episode(ep.name or f'ep{i + 1}', metadata=ep.metadata)
+                writer = w.begin_episode(ep.name or f'ep{i + 1}', metadata=ep.metadata,
+                                         t0_ns=int(ep.metadata.get('t0_ns', 0)))
                 if ep.Q is None:
                     writer.append(ep.t, ep.U, ep.Y)
                 else:
@@ -836,12 +899,26 @@ class TrainingSet:
         return g['Q']
 
     def metadata(self, name: str) -> dict[str, Any]:
-        """Episode attributes (source bag, topics, time range, conversion report)."""
-        return dict(self._group(name).attrs.get('metadata') or {})
+        """Episode attributes (``t0_ns``, source bag, topics, conversion report)."""
+        meta = dict(self._group(name).attrs.get('metadata') or {})
+        if self._v1 and 't0_ns' not in meta:
+            t = self._group(name)['t']
+            meta['t0_ns'] = int(round(float(t[0]) * 1e9)) if t.shape[0] else 0
+        meta.setdefault('t0_ns', 0)
+        return meta
+
+    def times(self, name: str) -> NDArray[np.float64]:
+        """Sample times of episode ``name`` in seconds from its start (``t[0] = 0``)."""
+        t = np.asarray(self._group(name)['t'][...], dtype=np.float64)
+        return t - t[0] if self._v1 and t.size else t
+
+    def t0_ns(self, name: str) -> int:
+        """Absolute start of episode ``name`` in integer nanoseconds."""
+        return int(self.metadata(name)['t0_ns'])
 
     def __getitem__(self, name: str) -> Episode:
         g = self._group(name)
-        return Episode(t=np.asarray(g['t'][...], dtype=np.float64),
+        return Episode(t=self.times(name),
                        U=np.asarray(g['U'][...], dtype=np.float64),
                        Y=np.asarray(g['Y'][...], dtype=np.float64),
                        Q=g['Q'] if 'Q' in g else None, name=name,
@@ -858,13 +935,14 @@ class TrainingSet:
         return len(self.episode_names)
 
     def describe(self) -> dict[str, Any]:
-        """Summary for ``soft-rom info``."""
+        """Summary for ``soft-rom info``: per episode ``t0_ns`` and times from its start."""
         eps = {}
         for name in self.episode_names:
             g = self._group(name)
-            t = np.asarray(g['t'][...])
+            t = self.times(name)
             eps[name] = {
-                'n_samples': int(t.size), 't_start': float(t[0]), 't_end': float(t[-1]),
+                'n_samples': int(t.size), 't0_ns': self.t0_ns(name),
+                'duration_s': float(t[-1]) if t.size else 0.0,
                 'dt_mean': float(np.mean(np.diff(t))) if t.size > 1 else float('nan'),
                 'Q': list(g['Q'].shape) if 'Q' in g else None,
                 'Q_chunks': list(g['Q'].chunks) if 'Q' in g else None,
@@ -874,3 +952,12 @@ class TrainingSet:
                 'input_names': self.input_names, 'input_units': self.input_units,
                 'output_names': self.output_names, 'output_units': self.output_units,
                 'n_states': self.n_states, 'episodes': eps, 'provenance': self.provenance}
+
+
+def _reconvert(path: Path, attrs: Mapping[str, Any]) -> str:
+    """The command that converts the bags of a training set again."""
+    prov = attrs.get('provenance') or {}
+    bags = prov.get('bags') if isinstance(prov, Mapping) else None
+    args = ' '.join(shlex.quote(str(b)) for b in bags) if isinstance(bags, list) and bags \
+        else 'BAG...'
+    return f'soft-rom convert {args} -o {shlex.quote(str(path))} --overwrite'
