@@ -320,6 +320,7 @@ class EpisodeWriter:
         self.first_q: NDArray[np.float64] | None = None
         self.first_y: NDArray[np.float64] | None = None
         self.closed = False
+        self.discarded = False
 
     def append(self, t: ArrayLike, U: ArrayLike, Y: ArrayLike, Q: ArrayLike | None = None) -> None:
         """Append ``k`` samples.
@@ -452,6 +453,7 @@ class EpisodeWriter:
     def discard(self) -> None:
         """Stop the background chunk writer (the training set is being aborted)."""
         self.closed = True
+        self.discarded = True
         files, self._qfiles = self._qfiles, None
         if files is not None:
             try:
@@ -608,6 +610,18 @@ class TrainingSetWriter:
         self._episodes[name] = ep
         self._current = ep
         return ep
+
+    def update_metadata(self, name: str, extra: Mapping[str, Any]) -> None:
+        """Add ``extra`` to the metadata of episode ``name`` (also once it is finished)."""
+        ep = self._episodes.get(name)
+        if ep is None:
+            raise DatasetError(f'no episode {name!r} is being written.')
+        extra = _jsonable(dict(extra), f'metadata of episode {name!r}')
+        ep.metadata.update(extra)
+        if ep.closed and not ep.discarded:
+            meta = dict(ep._group.attrs.get('metadata') or {})
+            meta.update(extra)
+            ep._group.attrs['metadata'] = meta
 
     def set_reference(self, q_ref: ArrayLike | None = None,
                       y_ref: ArrayLike | None = None) -> None:

@@ -1,0 +1,666 @@
+"""Streaming conversion of one bag onto a uniform time grid.
+
+Two steps per bag:
+
+1. :func:`probe_bag` reads the first :data:`PROBE_MESSAGES` messages of every mapped topic
+   and decides, from the majority of them (never from the first message alone), the input
+   widths, the number of centerline points and the state size; the median offset of each
+   topic's stamps from its log times; and the output's median period. A topic whose stamps
+   mostly go backwards (or do not move) is refused.
+2. :class:`BagConverter` streams the bag once in log order. Messages that disagree with the
+   probe (another size, NaN/Inf, a stamp more than :data:`STAMP_OFFSET_LIMIT_NS` from its
+   log time, a stamp not after the previous one) are dropped and reported. Outputs are
+   paired with states within 0.45 output periods. Every sample goes through the resampler:
+   grid points ``t0_ns + j * dt_ns`` between two consecutive samples are interpolated
+   linearly (output and state) when the samples are at most ``(1 + max_gap)`` output periods
+   apart, otherwise the episode is split there. Inputs, kept in memory (a few floats per
+   message), are zero-order held at each grid point when an episode ends. State columns go
+   to the sink as they are produced, so at most ``min_samples`` of them are held.
+
+All times are integer nanoseconds here; an episode leaves with ``t = j * dt`` seconds and
+its integer start ``t0_ns``.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, deque
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+import re
+from typing import Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from soft_rom.bags.reader import BagMessage, BagReader
+from soft_rom.convert.mapping import (ARRAY_TYPES, BagMapping, CHAMBER_RE, DEFAULT_ARRAY_TOPIC,
+                                      InputSource, OUTPUT_TYPES, per_input, PRESSURE_TYPES,
+                                      STATE_TYPES)
+from soft_rom.convert.report import ConversionReport, TopicReport
+from soft_rom.data import all_finite
+from soft_rom.errors import BagError, ConfigError
+
+__all__ = ['BagConverter', 'BagPlan', 'EpisodeSink', 'PROBE_MESSAGES', 'SegmentSink',
+           'STAMP_OFFSET_LIMIT_NS', 'probe_bag']
+
+Array = NDArray[np.float64]
+
+#: Messages per topic read by the probe.
+PROBE_MESSAGES = 256
+#: A stamp further than this from its log time (after the topic's median offset) is dropped.
+STAMP_OFFSET_LIMIT_NS = 1_000_000_000
+#: Interval (in periods) above which samples are counted as lost between two others.
+LOST_FACTOR = 1.5
+
+
+class SegmentSink(Protocol):
+    """Receives one episode: state columns while streaming, signals at the end."""
+
+    def append_state(self, q: Array) -> None:
+        """One state column ``(n,)``; the caller does not modify it afterwards."""
+
+    def finish(self, t: Array, U: Array, Y: Array, metadata: dict[str, Any]) -> None:
+        """The episode's times (s from its start), inputs and outputs."""
+
+
+class EpisodeSink(Protocol):
+    """Where the episodes of a conversion go (a training set, or memory)."""
+
+    def begin(self, name: str, n_states: int | None, t0_ns: int) -> SegmentSink:
+        """Start episode ``name``."""
+
+
+@dataclass
+class TopicPlan:
+    """What the probe found on one topic."""
+
+    topic: str
+    role: str
+    msgtype: str
+    count: int
+    size: int | None = None
+    offset_ns: int = 0
+    period_ns: int | None = None
+    first_ns: int | None = None
+    first_log_ns: int | None = None
+
+
+@dataclass
+class BagPlan:
+    """The probe's decisions for one bag (see the module docstring)."""
+
+    path: Path
+    storage: str
+    sources: tuple[InputSource, ...]
+    include_state: bool
+    topics: dict[str, TopicPlan] = field(default_factory=dict)
+    log_start_ns: int = 0
+    log_end_ns: int = 0
+
+    @property
+    def output(self) -> TopicPlan:
+        """The output topic's plan."""
+        return next(p for p in self.topics.values() if p.role == 'output')
+
+    @property
+    def state(self) -> TopicPlan | None:
+        """The state topic's plan, if states are converted."""
+        return next((p for p in self.topics.values() if p.role == 'state'), None)
+
+    @property
+    def inputs(self) -> list[TopicPlan]:
+        """The input topics' plans, in input order."""
+        return [self.topics[s.topic] for s in self.sources]
+
+    @property
+    def n_inputs(self) -> int:
+        """Number of inputs ``m``."""
+        return int(sum(p.size or 0 for p in self.inputs))
+
+    @property
+    def first_log_ns(self) -> int:
+        """The earliest log time the probe saw (ns)."""
+        firsts = [p.first_log_ns for p in self.topics.values() if p.first_log_ns is not None]
+        return min(firsts) if firsts else self.log_start_ns
+
+    @property
+    def t_ref_ns(self) -> int:
+        """The earliest stamp the probe saw (reference of the report's relative times)."""
+        firsts = [p.first_ns for p in self.topics.values() if p.first_ns is not None]
+        return min(firsts) if firsts else 0
+
+    def min_period(self) -> tuple[str, int] | None:
+        """``(topic, median period ns)`` of the fastest topic."""
+        per = [(p.topic, p.period_ns) for p in self.topics.values() if p.period_ns]
+        return min(per, key=lambda x: x[1]) if per else None  # type: ignore[return-value]
+
+
+def _time(msg: BagMessage, stamps: str) -> int:
+    return msg.log_ns if stamps == 'log' or msg.stamp_ns is None else msg.stamp_ns
+
+
+def _layout_ok(msg: BagMessage) -> bool:
+    if msg.layout:
+        want = int(np.prod([s for _, s in msg.layout]))
+        return not want or want == msg.value.size
+    return True
+
+
+def _size(role: str, msg: BagMessage, source: InputSource | None) -> int:
+    """The size the probe votes on: values (inputs, states) or points (outputs)."""
+    if role == 'output':
+        return int(msg.value.shape[0])
+    n = int(msg.value.size)
+    if role == 'input' and source is not None and source.indices is not None:
+        return len(source.indices) if n > max(source.indices) else 0
+    return n
+
+
+def _resolve_inputs(mapping: BagMapping, topics: Mapping[str, tuple[str, int]]
+                    ) -> tuple[InputSource, ...]:
+    if mapping.inputs is not None:
+        return mapping.inputs
+    chambers = sorted((int(m.group(1)), t) for t in topics
+                      if (m := CHAMBER_RE.match(t)) is not None)
+    if chambers:
+        return tuple(InputSource(t) for _, t in chambers)
+    if DEFAULT_ARRAY_TOPIC in topics:
+        return (InputSource(DEFAULT_ARRAY_TOPIC),)
+    raise BagError('no pressure topics found: expected /soft_robot/pressure/chamber_<i> '
+                   f'(FluidPressure) or {DEFAULT_ARRAY_TOPIC} (Float64MultiArray); the bag has '
+                   f'{sorted(topics)}. Give the input topics in a mapping file (--mapping).')
+
+
+def _check_topic(topics: Mapping[str, tuple[str, int]], topic: str, role: str,
+                 allowed: Sequence[str], path: Path) -> str:
+    if topic not in topics:
+        raise BagError(f'{role} topic {topic} is missing from bag {path}; it has '
+                       f'{sorted(topics)}. Fix the topic names in the mapping (--mapping).')
+    msgtype = topics[topic][0]
+    if msgtype not in allowed:
+        raise BagError(f'{role} topic {topic} in bag {path} carries {msgtype}; expected one of '
+                       f'{list(allowed)}.')
+    return msgtype
+
+
+def probe_bag(path: Path, mapping: BagMapping, *, include_state: bool | None,
+              storage: str) -> BagPlan:
+    """Open ``path``, check its topics and decide sizes, stamp offsets and the output period."""
+    with BagReader(path, storage=storage) as bag:
+        topics = bag.topics
+        if not topics:
+            raise BagError(f'bag {path} is empty (no topics, no messages).')
+        sources = _resolve_inputs(mapping, topics)
+        for s in sources:
+            _check_topic(topics, s.topic, 'input', PRESSURE_TYPES + ARRAY_TYPES, path)
+        out = mapping.output
+        out_type = _check_topic(topics, out.topic, 'output', OUTPUT_TYPES, path)
+        include = include_state
+        if include is None:
+            include = mapping.state.include
+        if include is None:
+            include = mapping.state.topic in topics
+        plan = BagPlan(path, bag.storage, sources, bool(include),
+                       log_start_ns=bag.start_ns, log_end_ns=bag.end_ns)
+        roles: list[tuple[str, str, str, InputSource | None]] = [
+            (s.topic, 'input', topics[s.topic][0], s) for s in sources]
+        roles.append((out.topic, 'output', out_type, None))
+        if include:
+            st = _check_topic(topics, mapping.state.topic, 'state', STATE_TYPES, path)
+            roles.append((mapping.state.topic, 'state', st, None))
+        for topic, role, msgtype, source in roles:
+            plan.topics[topic] = _probe_topic(bag, topic, role, msgtype, source, mapping,
+                                              topics[topic][1])
+    if plan.output.first_ns is None:
+        if not any(p.first_ns is not None for p in plan.topics.values()):
+            raise BagError(f'bag {path} is empty (no messages on the mapped topics).')
+        raise BagError(f'output topic {out.topic} has no messages in bag {path}.')
+    return plan
+
+
+def _probe_topic(bag: BagReader, topic: str, role: str, msgtype: str,
+                 source: InputSource | None, mapping: BagMapping, count: int) -> TopicPlan:
+    plan = TopicPlan(topic, role, msgtype, count)
+    sizes: Counter[int] = Counter()
+    times: list[int] = []
+    offsets: list[int] = []
+    for msg in bag.messages([topic]):
+        t = _time(msg, mapping.stamps)
+        if plan.first_log_ns is None:
+            plan.first_log_ns = msg.log_ns
+        times.append(t)
+        offsets.append(t - msg.log_ns)
+        if _layout_ok(msg):
+            sizes[_size(role, msg, source)] += 1
+        if len(times) >= PROBE_MESSAGES:
+            break
+    if not times:
+        return plan
+    plan.first_ns = min(times)
+    d = np.diff(np.asarray(times, dtype=np.int64))
+    if d.size >= 2 and np.mean(d <= 0) > 0.5:
+        how = 'go backwards' if np.mean(d < 0) > 0.5 else 'do not advance'
+        raise BagError(f'{topic} in bag {bag.path}: the header stamps {how} in '
+                       f'{np.mean(d <= 0):.0%} of its first {len(times)} messages, so they '
+                       "cannot time the samples; time this bag by its log time with 'time: "
+                       "{stamps: log}' in the mapping (--mapping).")
+    plan.offset_ns = int(np.median(offsets))
+    if role == 'output' and mapping.output.n_points is not None:
+        plan.size = int(mapping.output.n_points)
+    elif role == 'input' and source is not None and source.indices is not None:
+        plan.size = len(source.indices)
+    elif role == 'input' and msgtype in PRESSURE_TYPES:
+        plan.size = 1
+    else:
+        good = [(n, c) for n, c in sizes.most_common() if n > 0]
+        plan.size = good[0][0] if good else None
+    ok = np.abs(np.asarray(offsets) - plan.offset_ns) <= STAMP_OFFSET_LIMIT_NS
+    tt = np.asarray(times, dtype=np.int64)[ok]
+    pos = np.diff(tt)
+    pos = pos[pos > 0]
+    if pos.size:
+        plan.period_ns = int(np.median(pos))
+    return plan
+
+
+@dataclass
+class _Track:
+    """Held-value timeline of one input source."""
+
+    source: InputSource
+    report: TopicReport
+    width: int
+    offset_ns: int
+    times: list[int] = field(default_factory=list)
+    values: list[Array] = field(default_factory=list)
+
+
+@dataclass
+class _Segment:
+    """One episode being assembled on the grid."""
+
+    t0_ns: int
+    k: int = 0
+    Y: list[Array] = field(default_factory=list)
+    pending: list[Array] = field(default_factory=list)
+    sink: SegmentSink | None = None
+    name: str = ''
+
+
+class BagConverter:
+    """Streams one probed bag into episodes on a uniform grid of ``dt_ns``.
+
+    Parameters
+    ----------
+    plan : BagPlan
+        From :func:`probe_bag`.
+    mapping : BagMapping
+    dt_ns : int
+        Grid step (ns).
+    sink : EpisodeSink
+        Receives the episodes.
+    names_taken : set of str
+        Episode names already used (shared between the bags of one training set).
+    progress : bool
+        Show a tqdm bar.
+    """
+
+    def __init__(self, plan: BagPlan, mapping: BagMapping, dt_ns: int, sink: EpisodeSink,
+                 names_taken: set[str], progress: bool = False) -> None:
+        self.plan = plan
+        self.mapping = mapping
+        self.dt_ns = int(dt_ns)
+        self.sink = sink
+        self.names_taken = names_taken
+        self.progress = progress
+        self.report = ConversionReport(str(plan.path), plan.storage, plan.t_ref_ns,
+                                       self.dt_ns * 1e-9)
+        ref = plan.t_ref_ns
+        self.tracks: dict[str, _Track] = {}
+        for tp in plan.inputs:
+            src = next(s for s in plan.sources if s.topic == tp.topic)
+            rep = TopicReport(tp.topic, 'input', tp.msgtype, ref)
+            self.report.topics[tp.topic] = rep
+            self.tracks[tp.topic] = _Track(src, rep, int(tp.size or 0), tp.offset_ns)
+        out = plan.output
+        self.out_plan = out
+        self.out_rep = TopicReport(out.topic, 'output', out.msgtype, ref)
+        self.report.topics[out.topic] = self.out_rep
+        self.state_plan = plan.state
+        self.state_rep: TopicReport | None = None
+        if self.state_plan is not None:
+            self.state_rep = TopicReport(self.state_plan.topic, 'state',
+                                         self.state_plan.msgtype, ref)
+            self.report.topics[self.state_plan.topic] = self.state_rep
+        period = out.period_ns or self.dt_ns
+        self.period_ns = int(period)
+        tol = mapping.match_tolerance
+        self.tol_ns = int(round(tol * 1e9)) if tol is not None else int(0.45 * period)
+        self.limit_ns = int(round(mapping.split_gap * 1e9)) if mapping.split_gap is not None \
+            else int((1.0 + mapping.max_gap) * period)
+        self.lost_ns = int(LOST_FACTOR * period)
+        self.n_points = out.size
+        m = mapping.output
+        self.columns = ['xyz'.index(c) for c in m.components]
+        self.need_points = None if m.points is None else max(m.points) + 1
+        self.outs: deque[tuple[int, Array]] = deque()
+        self.states: deque[tuple[int, Array]] = deque()
+        self.last_ns: dict[str, int] = {}
+        self.out_used: list[int] = []
+        self.state_used: list[int] = []
+        self.seg: _Segment | None = None
+        self.prev: tuple[int, Array, Array | None] | None = None
+        self.next_ns = 0
+        self.base = (re.sub(r'[^A-Za-z0-9_.-]+', '_', plan.path.name.split('.')[0])
+                     .lstrip('.') or 'episode')
+        self.pieces = 0
+
+    # -- stream -----------------------------------------------------------------------
+    def run(self) -> ConversionReport:
+        """Convert the bag; returns its report (raises when nothing usable is left)."""
+        from tqdm import tqdm
+
+        wanted = list(self.plan.topics)
+        total = sum(p.count for p in self.plan.topics.values())
+        state_topic = None if self.state_plan is None else self.state_plan.topic
+        with BagReader(self.plan.path, storage=self.plan.storage) as bag, \
+                tqdm(total=total, unit='msg', desc=self.plan.path.name, leave=False,
+                     disable=not self.progress, mininterval=0.5) as bar:
+            for msg in bag.messages(wanted):
+                bar.update(1)
+                if msg.topic in self.tracks:
+                    self._on_input(msg)
+                elif msg.topic == self.out_plan.topic:
+                    item = self._on_output(msg)
+                    if item is not None:
+                        self.outs.append(item)
+                        self._pair()
+                elif msg.topic == state_topic:
+                    q = self._on_state(msg)
+                    if q is not None:
+                        self.states.append(q)
+                        self._pair()
+        self._pair(final=True)
+        self._finish_segment()
+        self.out_rep.timing(np.asarray(self.out_used, dtype=np.int64))
+        if self.state_rep is not None:
+            self.state_rep.timing(np.asarray(self.state_used, dtype=np.int64))
+        for tr in self.tracks.values():
+            tr.report.timing(np.asarray(tr.times, dtype=np.int64))
+        if not self.report.episodes:
+            raise BagError(f'bag {self.plan.path}: no usable sample left after dropping bad or '
+                           f'unmatched messages:\n{self.report.format()}')
+        return self.report
+
+    def _stamp_ok(self, topic: str, rep: TopicReport, t: int, log_ns: int,
+                  offset_ns: int) -> bool:
+        if abs(t - log_ns - offset_ns) > STAMP_OFFSET_LIMIT_NS:
+            rep.drop('stamp more than 1 s away from its log time', t)
+            return False
+        last = self.last_ns.get(topic)
+        if last is not None and t <= last:
+            rep.drop('duplicated stamp' if t == last else 'stamp going backwards', t)
+            return False
+        self.last_ns[topic] = t
+        return True
+
+    def _on_input(self, msg: BagMessage) -> None:
+        tr = self.tracks[msg.topic]
+        rep = tr.report
+        rep.read += 1
+        t = _time(msg, self.mapping.stamps)
+        if not _layout_ok(msg):
+            rep.drop('array length differs from its layout', t)
+            return
+        v = np.asarray(msg.value, dtype=np.float64).reshape(-1)
+        idx = tr.source.indices
+        if idx is not None:
+            if max(idx) >= v.size:
+                rep.drop(f'fewer than {max(idx) + 1} values', t)
+                return
+            v = v[list(idx)]
+        if v.size != tr.width:
+            rep.drop(f'{v.size} values instead of {tr.width}', t)
+            return
+        if not all_finite(v):
+            rep.drop('NaN/Inf', t)
+            return
+        if not self._stamp_ok(msg.topic, rep, t, msg.log_ns, tr.offset_ns):
+            return
+        tr.times.append(t)
+        tr.values.append(v.copy())
+
+    def _on_output(self, msg: BagMessage) -> tuple[int, Array] | None:
+        m = self.mapping.output
+        rep = self.out_rep
+        rep.read += 1
+        t = _time(msg, self.mapping.stamps)
+        pts = msg.value
+        n = int(pts.shape[0])
+        need = self.need_points if m.points is not None else self.n_points
+        if need is not None and n < need:
+            rep.drop(f'fewer than {need} points', t)
+            return None
+        if m.points is None and n != self.n_points:
+            rep.drop(f'{n} points instead of {self.n_points}', t)
+            return None
+        sel = pts if m.points is None else pts[list(m.points)]
+        sel = sel[:, self.columns]
+        y = np.ascontiguousarray(sel.T if m.order == 'component_major' else sel,
+                                 dtype=np.float64).reshape(-1)
+        if not all_finite(y):
+            rep.drop('NaN/Inf', t)
+            return None
+        if not self._stamp_ok(m.topic, rep, t, msg.log_ns, self.out_plan.offset_ns):
+            return None
+        return t, y
+
+    def _on_state(self, msg: BagMessage) -> tuple[int, Array] | None:
+        rep, plan = self.state_rep, self.state_plan
+        if rep is None or plan is None:
+            return None
+        rep.read += 1
+        t = _time(msg, self.mapping.stamps)
+        if not _layout_ok(msg):
+            rep.drop('array length differs from its layout', t)
+            return None
+        q = np.asarray(msg.value, dtype=np.float64).reshape(-1)
+        if q.size != plan.size:
+            rep.drop(f'{q.size} values instead of {plan.size}', t)
+            return None
+        if not all_finite(q):
+            rep.drop('NaN/Inf', t)
+            return None
+        if not self._stamp_ok(plan.topic, rep, t, msg.log_ns, plan.offset_ns):
+            return None
+        return t, q
+
+    # -- pairing ----------------------------------------------------------------------
+    def _pair(self, final: bool = False) -> None:
+        outs, states, srep = self.outs, self.states, self.state_rep
+        if srep is None:
+            while outs:
+                t, y = outs.popleft()
+                self._sample(t, y, None)
+            return
+        while outs and states:
+            (to, y), (ts, q) = outs[0], states[0]
+            if abs(to - ts) <= self.tol_ns:
+                outs.popleft()
+                states.popleft()
+                self._sample(to, y, q)
+            elif to < ts:
+                outs.popleft()
+                self.out_rep.drop('no state message within 0.45 output periods', to)
+            else:
+                states.popleft()
+                srep.drop('no output message within 0.45 output periods', ts)
+        if final:
+            for to, _ in outs:
+                self.out_rep.drop('no state message within 0.45 output periods', to)
+            for ts, _ in states:
+                srep.drop('no output message within 0.45 output periods', ts)
+            outs.clear()
+            states.clear()
+
+    # -- resampling onto the grid -------------------------------------------------------
+    def _inputs_ready(self, t: int) -> str | None:
+        for tr in self.tracks.values():
+            if not tr.times or tr.times[0] > t:
+                return tr.source.topic
+        return None
+
+    def _sample(self, t: int, y: Array, q: Array | None) -> None:
+        late = self._inputs_ready(t)
+        if late is not None:
+            self.out_rep.drop(f'before the first message of {late}', t)
+            if q is not None and self.state_rep is not None:
+                self.state_rep.drop(f'before the first message of {late}', t)
+            return
+        self.out_used.append(t)
+        self.out_rep.used += 1
+        if q is not None and self.state_rep is not None:
+            self.state_used.append(t)
+            self.state_rep.used += 1
+        prev = self.prev
+        if prev is not None and t - prev[0] > self.limit_ns:
+            self.out_rep.splits += 1
+            self._finish_segment()
+            prev = None
+        if prev is None:
+            self.seg = _Segment(t0_ns=t)
+            self._emit(y, q, 'exact')
+            self.next_ns = t + self.dt_ns
+            self.prev = (t, y, q)
+            return
+        tp, yp, qp = prev
+        span = t - tp
+        kind = 'gap' if span > self.lost_ns else 'interp'
+        while self.next_ns <= t:
+            if self.next_ns == t:
+                self._emit(y, q, 'exact')
+            else:
+                a = (self.next_ns - tp) / span
+                yi = yp + a * (y - yp)
+                qi = None if q is None or qp is None else qp + a * (q - qp)
+                self._emit(yi, qi, kind)
+            self.next_ns += self.dt_ns
+        self.prev = (t, y, q)
+
+    def _emit(self, y: Array, q: Array | None, kind: str) -> None:
+        seg = self.seg
+        if seg is None:
+            return
+        seg.Y.append(y)
+        seg.k += 1
+        for rep in (self.out_rep, self.state_rep if q is not None else None):
+            if rep is None:
+                continue
+            if kind == 'exact':
+                rep.grid_exact += 1
+            elif kind == 'gap':
+                rep.grid_gap_interpolated += 1
+            else:
+                rep.grid_interpolated += 1
+        if q is None:
+            return
+        if seg.sink is not None:
+            seg.sink.append_state(q)
+            return
+        seg.pending.append(q)
+        if len(seg.pending) >= self.mapping.min_samples:
+            self._open_sink(seg)
+
+    def _open_sink(self, seg: _Segment) -> SegmentSink:
+        index = self.pieces
+        self.pieces += 1
+        name = self.base if index == 0 else f'{self.base}_{index + 1}'
+        while name in self.names_taken:
+            name = f'{name}_'
+        self.names_taken.add(name)
+        seg.name = name
+        n = None if self.state_plan is None else self.state_plan.size
+        sink = self.sink.begin(name, n, seg.t0_ns)
+        for q in seg.pending:
+            sink.append_state(q)
+        seg.pending = []
+        seg.sink = sink
+        return sink
+
+    def _finish_segment(self) -> None:
+        seg, self.seg, self.prev = self.seg, None, None
+        if seg is None or seg.k == 0:
+            return
+        if seg.k < self.mapping.min_samples:
+            self.out_rep.drop(f'piece shorter than {self.mapping.min_samples} grid points '
+                              '(between long gaps)', seg.t0_ns, count=seg.k)
+            return
+        sink = seg.sink if seg.sink is not None else self._open_sink(seg)
+        grid = seg.t0_ns + np.arange(seg.k, dtype=np.int64) * self.dt_ns
+        U = self._held_inputs(grid)
+        Y = np.stack(seg.Y, axis=1)
+        t = (np.arange(seg.k, dtype=np.int64) * self.dt_ns).astype(np.float64) * 1e-9
+        m = self.mapping
+        meta = {
+            'source_bag': str(self.plan.path.resolve()),
+            'topics': {'inputs': [s.topic for s in self.plan.sources],
+                       'output': m.output.topic,
+                       'state': None if self.state_plan is None else self.state_plan.topic},
+            't0_ns': int(seg.t0_ns), 'dt_ns': self.dt_ns,
+        }
+        sink.finish(t, U, Y, meta)
+        self.report.episodes.append({'name': seg.name, 'n_samples': int(seg.k),
+                                     't0_ns': int(seg.t0_ns), 'duration_s': float(t[-1])})
+        self.report.n_samples += int(seg.k)
+
+    def _held_inputs(self, grid: NDArray[np.int64]) -> Array:
+        blocks = []
+        for tr in self.tracks.values():
+            times = np.asarray(tr.times, dtype=np.int64)
+            vals = np.asarray(tr.values, dtype=np.float64)          # (count, width)
+            idx = np.searchsorted(times, grid, side='right') - 1   # last stamp <= t
+            if np.any(idx < 0):  # cannot happen: a piece starts after every first input
+                raise BagError(f'{tr.source.topic}: no input value before grid stamp '
+                               f'{int(grid[np.argmax(idx < 0)])} ns.')
+            blocks.append(vals[idx].T)
+            rep = tr.report
+            rep.used += int(np.unique(idx).size)
+            age = (grid - times[idx]) * 1e-9
+            rep.max_hold_s = max(rep.max_hold_s, float(age.max()))
+            if times.size > 1:
+                # held over a gap: the held message is followed by an interval longer than
+                # 1.5 input periods (a message missing or dropped), and the grid point is
+                # after the held message's stamp
+                limit = LOST_FACTOR * float(np.median(np.diff(times))) * 1e-9
+                has_next = idx < times.size - 1
+                nxt = times[np.minimum(idx + 1, times.size - 1)]
+                interval = np.where(has_next, (nxt - times[idx]) * 1e-9, np.inf)
+                in_gap = (age > 0) & np.where(has_next, interval > limit, age > limit)
+                rep.held_over_gap += int(np.sum(in_gap))
+        U = np.concatenate(blocks, axis=0)
+        mm = U.shape[0]
+        scale = np.asarray(per_input('inputs.scale', self.mapping.scale, mm), dtype=np.float64)
+        offset = np.asarray(per_input('inputs.offset', self.mapping.offset, mm),
+                            dtype=np.float64)
+        return np.asarray(scale[:, None] * U + offset[:, None], dtype=np.float64)
+
+    # -- names ------------------------------------------------------------------------
+    def input_names(self) -> tuple[list[str], list[str]]:
+        """Input names and units."""
+        return input_names(self.mapping, self.plan)
+
+    def output_names(self) -> list[str]:
+        """Output names."""
+        return self.mapping.output.names(self.n_points or 0)
+
+
+def input_names(mapping: BagMapping, plan: BagPlan) -> tuple[list[str], list[str]]:
+    """Input names and units of a probed bag."""
+    mm = plan.n_inputs
+    names = list(mapping.input_names) if mapping.input_names else [
+        f'p{i + 1}' for i in range(mm)]
+    units = [str(u) for u in per_input('inputs.units', mapping.input_units or ('Pa',), mm)]
+    if len(names) != mm:
+        raise ConfigError(f'inputs.names has {len(names)} names for {mm} inputs.')
+    return names, units
