@@ -113,7 +113,7 @@ def test_savgol_suppresses_noise_that_fd8_amplifies():
     true_dd = -(2 * np.pi * 0.7) ** 2 * q
     noisy = (q + 0.0005 * rng.standard_normal(t.size))[None]    # 0.5 mm mocap noise
     errs = {}
-    for est in (FiniteDifference(8), SavitzkyGolay()):
+    for est in (FiniteDifference(8), SavitzkyGolay(31, 3)):
         _, _, d2 = est.derivatives(noisy, dt)
         ref = est.trim(true_dd[None])     # SG: the filtered truth (the fit's target)
         errs[repr(est)] = np.linalg.norm(d2 - ref) / np.linalg.norm(ref)

@@ -56,6 +56,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help='LOpInf operator solver (default fast)')
     parser.add_argument('--ddt-order', type=int, choices=(2, 4, 6, 8), default=8,
                         help='finite-difference order for LOpInf derivatives (default 8)')
+    parser.add_argument('--coordinates', choices=('state', 'outputs'), default=None,
+                        help='LOpInf/DMDc coordinates: full states Q, or the measured outputs '
+                             '(deviations from y_ref); default state when the set has Q, '
+                             'else outputs')
+    parser.add_argument('--ddt', default=None, metavar='ESTIMATOR',
+                        help='LOpInf derivatives: fd2, fd4, fd6, fd8, savgol, '
+                             'savgol:WINDOW[:POLYORDER] (default fd8 on states, savgol on '
+                             'outputs); overrides --ddt-order')
     parser.add_argument('--episodes', default=None,
                         help='comma-separated episode names to train on (default all)')
     parser.add_argument('--t-max', type=float, default=None,
@@ -128,7 +136,8 @@ def run(args: argparse.Namespace) -> int:
             fitted = fit_models(ts, method, r_values=args.r, energy=args.energy,
                                 episodes=episodes, provenance=provenance, solver=args.solver,
                                 ddt_order=args.ddt_order, dmdc_p=args.dmdc_p,
-                                era_options=era_options, progress=not args.no_progress)
+                                era_options=era_options, progress=not args.no_progress,
+                                coordinates=args.coordinates, ddt=args.ddt)
         for model, seconds in fitted:
             path = model.save(outdir / f'{prefix}_{method}_r{model.r}.npz')
             train_eps = episodes

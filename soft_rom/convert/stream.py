@@ -256,12 +256,27 @@ def _probe_topic(bag: BagReader, topic: str, role: str, msgtype: str,
         good = [(n, c) for n, c in sizes.most_common() if n > 0]
         plan.size = good[0][0] if good else None
     ok = np.abs(np.asarray(offsets) - plan.offset_ns) <= STAMP_OFFSET_LIMIT_NS
-    tt = np.asarray(times, dtype=np.int64)[ok]
-    pos = np.diff(tt)
-    pos = pos[pos > 0]
-    if pos.size:
-        plan.period_ns = int(np.median(pos))
+    plan.period_ns = _period(np.asarray(times, dtype=np.int64)[ok])
     return plan
+
+
+def _period(tt: NDArray[np.int64]) -> int | None:
+    """Median period of stamps ``tt``, refined by a line through them (jitter averages out).
+
+    Each stamp gets its frame number from the median interval (so lost frames count), and
+    the period is the slope of the least-squares line of stamp against frame number.
+    """
+    tt = np.sort(np.unique(tt))
+    d = np.diff(tt)
+    if not d.size:
+        return None
+    med = float(np.median(d))
+    frame = np.round((tt - tt[0]) / med)
+    if frame[-1] < 2 or np.unique(frame).size < 3:
+        return int(round(med))
+    rel = (tt - tt[0]).astype(np.float64)
+    slope = np.polyfit(frame, rel, 1)[0]
+    return int(round(slope)) if 0.5 * med < slope < 1.5 * med else int(round(med))
 
 
 @dataclass
