@@ -741,6 +741,7 @@ class TrainingSet:
         p = Path(path)
         if not p.exists():
             outputs.recover(p)          # a swap interrupted by a crash: put the old set back
+            outputs.clean_stale(p.parent)
         if not p.exists():
             raise DatasetError(f'training set {p} does not exist; create it with '
                                '`soft-rom convert BAG... -o OUT.zarr`.')
