@@ -54,6 +54,17 @@ def _fmt_names(names: list[str], units: list[str]) -> str:
     return ', '.join(items)
 
 
+def _fmt_stamp(ns: int) -> str:
+    """An integer stamp in ns, with its UTC date when it looks like epoch time."""
+    import datetime
+
+    ns = int(ns)
+    if ns > 946_684_800 * 10 ** 9:                 # after 2000-01-01: an epoch stamp
+        when = datetime.datetime.fromtimestamp(ns // 10 ** 9, tz=datetime.timezone.utc)
+        return f"{ns} ns ({when.strftime('%Y-%m-%d %H:%M:%S')}.{ns % 10 ** 9:09d} UTC)"
+    return f'{ns} ns'
+
+
 def format_text(d: dict[str, Any]) -> str:
     """Human-readable form of :func:`describe`."""
     kind = d['kind']
@@ -77,9 +88,9 @@ def format_text(d: dict[str, Any]) -> str:
         for name, ep in d['episodes'].items():
             q = 'no Q' if ep['Q'] is None else f"Q {ep['Q'][0]} x {ep['Q'][1]} " \
                 f"(chunks {ep['Q_chunks'][0]} x {ep['Q_chunks'][1]})"
-            lines.append(f"  {name}: {ep['n_samples']} samples, t = {ep['t_start']:.6f} .. "
-                         f"{ep['t_end']:.6f} s, dt = {ep['dt_mean'] * 1e3:.4g} ms, {q}"
-                         + (f", from {ep['source']}" if ep.get('source') else ''))
+            lines.append(f"  {name}: {ep['n_samples']} samples, {ep['duration_s']:.6f} s from "
+                         f"t0 = {_fmt_stamp(ep['t0_ns'])}, dt = {ep['dt_mean'] * 1e3:.6g} ms, "
+                         f'{q}' + (f", from {ep['source']}" if ep.get('source') else ''))
     else:
         lines.append(f"model {d['path']}: {d['class']} (method {d['method']}), r = {d['r']}, "
                      f"state dimension {d['n_states']}, dt = {d['dt']:g} s")
