@@ -2,8 +2,9 @@
 
 Two steps per bag:
 
-1. :func:`probe_bag` reads the first :data:`PROBE_MESSAGES` messages of every mapped topic
-   and decides, from the majority of them (never from the first message alone), the input
+1. :func:`probe_bag` reads the bag from its start, once, until it has the first
+   :data:`PROBE_MESSAGES` messages of every mapped topic (:data:`PROBE_STATE_MESSAGES` of
+   the state), and decides, from the majority of them (never from the first message alone), the input
    widths, the number of centerline points and the state size; the median offset of each
    topic's stamps from its log times; and the output's median period. A topic whose stamps
    mostly go backwards (or do not move) is refused.
@@ -46,8 +47,9 @@ __all__ = ['BagConverter', 'BagPlan', 'EpisodeSink', 'PROBE_MESSAGES', 'SegmentS
 
 Array = NDArray[np.float64]
 
-#: Messages per topic read by the probe.
+#: Messages per topic read by the probe (state topics: fewer, they are large).
 PROBE_MESSAGES = 256
+PROBE_STATE_MESSAGES = 32
 #: A stamp further than this from its log time (after the topic's median offset) is dropped.
 STAMP_OFFSET_LIMIT_NS = 1_000_000_000
 #: Interval (in periods) above which samples are counted as lost between two others.
@@ -209,9 +211,7 @@ def probe_bag(path: Path, mapping: BagMapping, *, include_state: bool | None,
         if include:
             st = _check_topic(topics, mapping.state.topic, 'state', STATE_TYPES, path)
             roles.append((mapping.state.topic, 'state', st, None))
-        for topic, role, msgtype, source in roles:
-            plan.topics[topic] = _probe_topic(bag, topic, role, msgtype, source, mapping,
-                                              topics[topic][1])
+        plan.topics = _probe(bag, roles, mapping, topics)
     if plan.output.first_ns is None:
         if not any(p.first_ns is not None for p in plan.topics.values()):
             raise BagError(f'bag {path} is empty (no messages on the mapped topics).')
@@ -219,13 +219,33 @@ def probe_bag(path: Path, mapping: BagMapping, *, include_state: bool | None,
     return plan
 
 
+def _probe(bag: BagReader, roles: list[tuple[str, str, str, InputSource | None]],
+           mapping: BagMapping, topics: Mapping[str, tuple[str, int]]) -> dict[str, TopicPlan]:
+    """One pass from the start until every topic has its quota of messages."""
+    seen: dict[str, list[BagMessage]] = {t: [] for t, *_ in roles}
+    quota = {t: max(1, min(PROBE_STATE_MESSAGES if role == 'state' else PROBE_MESSAGES,
+                           topics[t][1] or PROBE_MESSAGES)) for t, role, *_ in roles}
+    short = set(seen)
+    for msg in bag.messages(list(seen)):
+        got = seen[msg.topic]
+        if len(got) < quota[msg.topic]:
+            got.append(msg)
+            if len(got) == quota[msg.topic]:
+                short.discard(msg.topic)
+                if not short:
+                    break
+    return {t: _probe_topic(bag, t, role, msgtype, source, mapping, topics[t][1], seen[t])
+            for t, role, msgtype, source in roles}
+
+
 def _probe_topic(bag: BagReader, topic: str, role: str, msgtype: str,
-                 source: InputSource | None, mapping: BagMapping, count: int) -> TopicPlan:
+                 source: InputSource | None, mapping: BagMapping, count: int,
+                 messages: list[BagMessage]) -> TopicPlan:
     plan = TopicPlan(topic, role, msgtype, count)
     sizes: Counter[int] = Counter()
     times: list[int] = []
     offsets: list[int] = []
-    for msg in bag.messages([topic]):
+    for msg in messages:
         t = _time(msg, mapping.stamps)
         if plan.first_log_ns is None:
             plan.first_log_ns = msg.log_ns
@@ -233,8 +253,6 @@ def _probe_topic(bag: BagReader, topic: str, role: str, msgtype: str,
         offsets.append(t - msg.log_ns)
         if _layout_ok(msg):
             sizes[_size(role, msg, source)] += 1
-        if len(times) >= PROBE_MESSAGES:
-            break
     if not times:
         return plan
     plan.first_ns = min(times)
