@@ -340,7 +340,7 @@ class EpisodeWriter:
             raise DimensionError(f'episode {self.name!r}: Q must be given on every append or on '
                                  'none.')
         if has_q:
-            shape = getattr(Q, 'shape', None) or np.shape(Q)
+            shape: tuple[int, ...] = tuple(getattr(Q, 'shape', None) or np.shape(np.asarray(Q)))
             if len(shape) != 2 or shape[1] != k:
                 raise DimensionError(f'episode {self.name!r}: Q must have shape (n, {k}); '
                                      f'got {tuple(shape)}.')

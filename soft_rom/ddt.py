@@ -18,9 +18,9 @@ noise of standard deviation ``s`` into ``q''`` by about ``c_p s / dt^2`` (``c_8 
 differentiates it (Savitzky and Golay, Anal. Chem. 36 (1964); :func:`scipy.signal.
 savgol_coeffs`); its noise gain on ``q''`` falls as ``window^-2.5`` (0.5 mm at 120 Hz:
 0.34 m/s^2 for window 21 and degree 4, 0.036 m/s^2 for window 31 and degree 3, whose gain
-equals that of degree 2 by symmetry; degrees 4 and 5 cost 3.5x more). It is one linear time-invariant filter ``S``: the
-states come back as ``S q``, the derivatives as ``(S q)'`` and ``(S q)''``, and
-:meth:`SavitzkyGolay.trim` returns ``S x`` for every other signal (inputs, outputs), so that
+equals that of degree 2 by symmetry; degrees 4 and 5 cost 3.5x more). It is one linear
+time-invariant filter ``S``: the states come back as ``S q``, the derivatives as
+``(S q)'`` and ``(S q)''``, and :meth:`SavitzkyGolay.trim` returns ``S x`` for every other signal (inputs, outputs), so that
 a linear relation ``q'' + C q' + K q = B u``, ``y = E q`` that holds for the raw signals holds
 exactly for the filtered ones, up to how well the local polynomial resolves each mode.
 Defaults: ``window = 31``, ``polyorder = 5``. The window (0.26 s at 120 Hz) is set by the
@@ -54,14 +54,14 @@ __all__ = ['DerivativeEstimator', 'FiniteDifference', 'SavitzkyGolay', 'as_estim
 Array = NDArray[np.float64]
 
 # Central stencils on offsets -h..h (Fornberg 1988, table 1).
-_FIRST = {
+_FIRST: dict[int, list[F | int]] = {
     2: [F(-1, 2), 0, F(1, 2)],
     4: [F(1, 12), F(-2, 3), 0, F(2, 3), F(-1, 12)],
     6: [F(-1, 60), F(3, 20), F(-3, 4), 0, F(3, 4), F(-3, 20), F(1, 60)],
     8: [F(1, 280), F(-4, 105), F(1, 5), F(-4, 5), 0, F(4, 5), F(-1, 5), F(4, 105),
         F(-1, 280)],
 }
-_SECOND = {
+_SECOND: dict[int, list[F | int]] = {
     2: [1, -2, 1],
     4: [F(-1, 12), F(4, 3), F(-5, 2), F(4, 3), F(-1, 12)],
     6: [F(1, 90), F(-3, 20), F(3, 2), F(-49, 18), F(3, 2), F(-3, 20), F(1, 90)],
@@ -270,8 +270,7 @@ class SavitzkyGolay:
     def episodes(self, Qs: Sequence[ArrayLike], dt: float,
                  others: Sequence[Sequence[ArrayLike]] = ()
                  ) -> tuple[Array, Array, Array, list[Array]]:
-        """Derivatives of several episodes, each on its own (see :meth:`FiniteDifference.
-        episodes`)."""
+        """Derivatives of several episodes, each on its own (as :class:`FiniteDifference`)."""
         parts = [self.derivatives(Q, dt) for Q in Qs]
         if not parts:
             raise DimensionError('no episode given.')
@@ -304,8 +303,10 @@ def parse_estimator(text: str) -> DerivativeEstimator:
 
 
 def as_estimator(ddt: int | str | DerivativeEstimator) -> DerivativeEstimator:
-    """An estimator object from an order (``8`` -> ``FiniteDifference(8)``), a name
-    (:func:`parse_estimator`) or an estimator."""
+    """An estimator from an order (8: ``FiniteDifference(8)``), a name, or an estimator.
+
+    Names are those of :func:`parse_estimator`.
+    """
     if isinstance(ddt, (int, np.integer)) and not isinstance(ddt, bool):
         return FiniteDifference(int(ddt))
     if isinstance(ddt, str):

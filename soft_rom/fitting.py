@@ -169,13 +169,15 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             _need_states(episodes, 'DMDc')
             t0 = time.perf_counter()
             r0 = r_values[0] if r_values else None
-            learner = DMDc(r=r0, p=dmdc_p, energy=0.95 if energy is None else energy).fit(
+            dmdc = DMDc(r=r0, p=dmdc_p, energy=0.95 if energy is None else energy).fit(
                 episodes, _q_ref(q_ref, episodes), y_ref,
                 metadata={'training': provenance, **extra}, **names)
             t_svd = time.perf_counter() - t0
-            for r in (r_values or (None,)):
+            r_opt: int | None
+            for r_opt in (r_values or (None,)):
                 t1 = time.perf_counter()
-                model = learner.model_ if r == r0 else learner.model_for(r, dmdc_p)
+                model = (dmdc.model_ if r_opt is None or r_opt == r0
+                         else dmdc.model_for(r_opt, dmdc_p))
                 model.metadata.update(extra)
                 out.append((model, t_svd / len(r_values or (1,)) + time.perf_counter() - t1))
                 bar.update(1)
@@ -196,13 +198,13 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
                 ep = match[0]
             t0 = time.perf_counter()
             r0 = r_values[0] if r_values else None
-            learner = ERAOKID(r=r0, **opts).fit(
+            era = ERAOKID(r=r0, **opts).fit(
                 ep, y_ref, metadata={'training': {**provenance, 'episodes': [ep.name]}},
                 **names)
             t_okid = time.perf_counter() - t0
-            for r in (r_values or (None,)):
+            for r_opt in (r_values or (None,)):
                 t1 = time.perf_counter()
-                model = learner.model_ if r == r0 else learner.model_for(r)
+                model = era.model_ if r_opt is None or r_opt == r0 else era.model_for(r_opt)
                 out.append((model, t_okid / len(r_values or (1,)) + time.perf_counter() - t1))
                 bar.update(1)
         else:  # pragma: no cover - argparse restricts the choices
@@ -305,6 +307,8 @@ def _fit_streaming(ts: Any, method: str, r_values: tuple[int, ...] | None,
                                progress=False)[0][0]
         else:
             kw: dict[str, Any] = {'p': dmdc_p} if method == 'dmdc' else {}
+            if red is None:  # pragma: no cover - set above for lopinf and dmdc
+                raise ConfigError(f'unknown method {method!r}.')
             model = fit_reduced_model(red, method, r, **kw)
         model.metadata.setdefault('training', provenance)
         out.append((model, t_pass / len(r_values or (1,)) + time.perf_counter() - t1))

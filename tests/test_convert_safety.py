@@ -15,11 +15,11 @@ import subprocess
 import sys
 import time
 
+from _rig import _header, _pose_array, T, T0_NS, write_messages
 import numpy as np
 import pytest
 import yaml
 
-from _rig import _header, _pose_array, T, T0_NS, write_messages
 from soft_rom.cli import main
 from soft_rom.convert import BagMapping, convert, read_episode
 from soft_rom.dataset import TrainingSet
@@ -234,7 +234,7 @@ def test_failed_swap_restores_the_old_set(tmp_path, monkeypatch):
     assert _hidden(tmp_path) == []
 
 
-_KILL_BETWEEN_RENAMES = '''
+_KILL_BETWEEN_RENAMES = """
 import os, sys
 from soft_rom import outputs
 from soft_rom.convert import convert
@@ -246,9 +246,9 @@ def rename(a, b):
         os._exit(9)
 os.rename = rename
 convert([sys.argv[1]], sys.argv[2], overwrite=True, progress=False)
-'''
+"""
 
-_KILL_MID_RUN = '''
+_KILL_MID_RUN = """
 import sys, time
 from soft_rom.convert import stream
 slow = stream.BagConverter._emit
@@ -258,7 +258,7 @@ def emit(self, *a):
 stream.BagConverter._emit = emit
 from soft_rom.convert import convert
 convert([sys.argv[1]], sys.argv[2], overwrite=True, progress=False)
-'''
+"""
 
 
 def test_kill_between_renames_then_recovered(tmp_path):

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from _rig import _header, _pose_array, T, T0_NS, write_messages
 from _systems import spring_chain_episodes
+import numpy as np
+
 from soft_rom.cli import main
 from soft_rom.dataset import TrainingSet
 from soft_rom.models import load_model

@@ -13,10 +13,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from _rig import N_POINTS, record, Robot, T0_NS
 import numpy as np
 import pytest
 
-from _rig import N_POINTS, record, Robot, T0_NS
 from soft_rom.basis import POD, project
 from soft_rom.cli import main
 from soft_rom.dataset import TrainingSet

@@ -88,8 +88,13 @@ staging folder (:mod:`soft_rom.outputs`) and swapped in only when complete.
 """
 
 from soft_rom.convert.api import choose_dt_ns, convert, read_episode
-from soft_rom.convert.mapping import (BagMapping, InputSource, load_mapping, OutputMapping,
-                                      StateMapping)
+from soft_rom.convert.mapping import (
+                                      BagMapping,
+                                      InputSource,
+                                      load_mapping,
+                                      OutputMapping,
+                                      StateMapping,
+)
 from soft_rom.convert.report import ConversionReport, TopicReport
 
 __all__ = ['BagMapping', 'ConversionReport', 'InputSource', 'OutputMapping', 'StateMapping',

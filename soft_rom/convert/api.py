@@ -11,8 +11,14 @@ import numpy as np
 from soft_rom import outputs
 from soft_rom.convert.mapping import BagMapping
 from soft_rom.convert.report import ConversionReport
-from soft_rom.convert.stream import (Array, BagConverter, BagPlan, input_names, probe_bag,
-                                     SegmentSink)
+from soft_rom.convert.stream import (
+    Array,
+    BagConverter,
+    BagPlan,
+    input_names,
+    probe_bag,
+    SegmentSink,
+)
 from soft_rom.data import Episode
 from soft_rom.dataset import adopt_legacy, EpisodeWriter, KIND, TrainingSet, TrainingSetWriter
 from soft_rom.errors import BagError, ConfigError, ResourceError

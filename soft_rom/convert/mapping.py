@@ -1,5 +1,7 @@
-"""The topic mapping of a conversion: which topics are inputs, output and state, and the time
-options; validated when it is built (:meth:`BagMapping.from_dict`, :func:`load_mapping`).
+"""The topic mapping of a conversion: inputs, output, state and the time options.
+
+The mapping is validated when it is built (:meth:`BagMapping.from_dict`,
+:func:`load_mapping`, :meth:`BagMapping.replace`).
 
 See :mod:`soft_rom.convert` for what each key means and ``config/bag_mapping.yaml`` for a
 documented file.
@@ -235,7 +237,7 @@ def _source(s: Any) -> InputSource:
 
 
 def _floats(name: str, v: Any) -> tuple[float, ...]:
-    vals = [v] if np.isscalar(v) else list(v)
+    vals: list[Any] = [v] if np.isscalar(v) else list(v)
     try:
         out = tuple(float(x) for x in vals)
     except (TypeError, ValueError) as err:

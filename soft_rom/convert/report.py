@@ -1,5 +1,7 @@
-"""What a conversion did, per bag and per topic: read, used, dropped (and why), interpolated,
-held, split. Stored with every episode (``metadata['conversion_report']``) and printed by
+"""What a conversion did, per bag and per topic.
+
+Messages read, used, dropped (and why), grid points interpolated, inputs held, episodes
+split. Stored with every episode (``metadata['conversion_report']``) and printed by
 ``soft-rom convert``.
 """
 

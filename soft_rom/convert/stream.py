@@ -4,9 +4,9 @@ Two steps per bag:
 
 1. :func:`probe_bag` reads the bag from its start, once, until it has the first
    :data:`PROBE_MESSAGES` messages of every mapped topic (:data:`PROBE_STATE_MESSAGES` of
-   the state), and decides, from the majority of them (never from the first message alone), the input
-   widths, the number of centerline points and the state size; the median offset of each
-   topic's stamps from its log times; and the output's median period. A topic whose stamps
+   the state), and decides, from the majority of them (never from the first message
+   alone), the input widths, the number of centerline points and the state size; the
+   median offset of each topic's stamps from its log times; and the output's period. A topic whose stamps
    mostly go backwards (or do not move) is refused.
 2. :class:`BagConverter` streams the bag once in log order. Messages that disagree with the
    probe (another size, NaN/Inf, a stamp more than :data:`STAMP_OFFSET_LIMIT_NS` from its
@@ -35,9 +35,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from soft_rom.bags.reader import BagMessage, BagReader
-from soft_rom.convert.mapping import (ARRAY_TYPES, BagMapping, CHAMBER_RE, DEFAULT_ARRAY_TOPIC,
-                                      InputSource, OUTPUT_TYPES, per_input, PRESSURE_TYPES,
-                                      STATE_TYPES)
+from soft_rom.convert.mapping import (
+    ARRAY_TYPES,
+    BagMapping,
+    CHAMBER_RE,
+    DEFAULT_ARRAY_TOPIC,
+    InputSource,
+    OUTPUT_TYPES,
+    per_input,
+    PRESSURE_TYPES,
+    STATE_TYPES,
+)
 from soft_rom.convert.report import ConversionReport, TopicReport
 from soft_rom.data import all_finite
 from soft_rom.errors import BagError, ConfigError
@@ -135,7 +143,7 @@ class BagPlan:
     def min_period(self) -> tuple[str, int] | None:
         """``(topic, median period ns)`` of the fastest topic."""
         per = [(p.topic, p.period_ns) for p in self.topics.values() if p.period_ns]
-        return min(per, key=lambda x: x[1]) if per else None  # type: ignore[return-value]
+        return min(per, key=lambda x: x[1]) if per else None
 
 
 def _time(msg: BagMessage, stamps: str) -> int:
