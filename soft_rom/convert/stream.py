@@ -6,8 +6,8 @@ Two steps per bag:
    :data:`PROBE_MESSAGES` messages of every mapped topic (:data:`PROBE_STATE_MESSAGES` of
    the state), and decides, from the majority of them (never from the first message
    alone), the input widths, the number of centerline points and the state size; the
-   median offset of each topic's stamps from its log times; and the output's period. A topic whose stamps
-   mostly go backwards (or do not move) is refused.
+   median offset of each topic's stamps from its log times; and the output's period. A
+   topic whose stamps mostly go backwards (or do not move) is refused.
 2. :class:`BagConverter` streams the bag once in log order. Messages that disagree with the
    probe (another size, NaN/Inf, a stamp more than :data:`STAMP_OFFSET_LIMIT_NS` from its
    log time, a stamp not after the previous one) are dropped and reported. Outputs are
