@@ -22,7 +22,8 @@ equals that of degree 2 by symmetry; degrees 4 and 5 cost 3.5x more). It is one 
 time-invariant filter ``S``: the states come back as ``S q``, the derivatives as
 ``(S q)'`` and ``(S q)''``, and :meth:`SavitzkyGolay.trim` returns ``S x`` for every other
 signal (inputs, outputs), so that a linear relation ``q'' + C q' + K q = B u``,
-``y = E q`` that holds for the raw signals holds exactly for the filtered ones, up to how well the local polynomial resolves each mode.
+``y = E q`` that holds for the raw signals holds exactly for the filtered ones, up to how
+well the local polynomial resolves each mode.
 Defaults: ``window = 31``, ``polyorder = 5``. The window (0.26 s at 120 Hz) is set by the
 noise: its gain on ``q''`` falls as ``window^-2.5``. The degree is set by the bias: noise on
 ``q''`` (the regressand of the fit) averages out in the least-squares problem, while a
