@@ -56,6 +56,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from soft_rom import data as signals
 from soft_rom import outputs
 from soft_rom.data import all_finite, as_signal, Episode
 from soft_rom.errors import DatasetError, DimensionError
@@ -370,7 +371,7 @@ class EpisodeWriter:
         U = as_signal('U', U, rows=len(self._owner.input_names), cols=k)
         Y = as_signal('Y', Y, rows=len(self._owner.output_names), cols=k)
         for label, arr in (('t', tt), ('U', U), ('Y', Y)):
-            if not np.all(np.isfinite(arr)):
+            if not all_finite(arr):
                 raise DimensionError(f'episode {self.name!r}: {label} contains NaN or Inf.')
         if tt[0] <= self._last_t or (k > 1 and np.any(np.diff(tt) <= 0)):
             raise DimensionError(f'episode {self.name!r}: times must be strictly increasing '
@@ -419,10 +420,8 @@ class EpisodeWriter:
         step = self._q_chunks[1]
         for j in range(0, k, step):
             block = np.asarray(Q[:, j:j + step])
-            if check_finite and not all_finite(block):
-                bad = np.argwhere(~np.isfinite(block))[0]
-                raise DimensionError(f'episode {self.name!r}: Q contains NaN or Inf '
-                                     f'(row {bad[0]}, sample {self.n_q + bad[1]}).')
+            if check_finite:
+                signals.check_finite(f'episode {self.name!r}: Q (from sample {self.n_q})', block)
             if self.first_q is None:
                 self.first_q = np.array(block[:, 0], dtype=np.float64)
             for c in range(block.shape[1]):

@@ -168,3 +168,19 @@ def test_custom_topics_multiple_bags_and_no_state(tmp_path):
     assert ts.episode_names == ['run0', 'run1'] and ts.q_ref is None
     assert all(ep.Q is None for ep in ts.episodes())
     assert isinstance(TrainingSet.open(tmp_path / 'o.zarr'), TrainingSet)
+
+
+def test_short_pieces_between_long_gaps_are_dropped_so_every_learner_fits(tmp_path):
+    bag = tmp_path / 'gappy'
+    # 100 samples, a 50 ms hole, 10 samples, another hole, 60 samples (1 kHz)
+    t = np.concatenate([0.001 * np.arange(100), 0.15 + 0.001 * np.arange(10),
+                        0.3 + 0.001 * np.arange(60)])
+    with EpisodeBagWriter(bag, storage='mcap', n_nodes=None) as w:
+        for tj in t:
+            w.write(tj + 0.001, np.full(6, tj), np.full((20, 3), tj))
+    ts, (rep,) = convert([bag], tmp_path / 'o.zarr', progress=False)
+    assert ts.episode_names == ['gappy', 'gappy_2']
+    assert [ts[n].n_samples for n in ts.episode_names] == [100, 60]
+    out = rep.topics['/soft_robot/centerline']
+    assert out.splits == 2
+    assert out.dropped == {'piece shorter than 32 grid points (between long gaps)': 10}

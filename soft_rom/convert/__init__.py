@@ -49,7 +49,8 @@ unpaired ones are dropped. Grid points between two consecutive samples are inter
 linearly (outputs and states) as long as the samples are at most ``1 + max_gap`` output
 periods apart (default ``max_gap = 1.5``: one lost camera frame in a row is bridged); a
 longer stretch without samples splits the episode (pieces named ``BAG``, ``BAG_2``, ...;
-``split_gap`` seconds overrides the bound; pieces shorter than ``min_samples`` are dropped).
+``split_gap`` seconds overrides the bound; pieces shorter than ``min_samples``, default 32,
+are dropped, so that every learner can fit every episode).
 Inputs, each on its own clock, are zero-order held: ``U[:, j]`` is the last input value with
 stamp ``<= t_j``.
 

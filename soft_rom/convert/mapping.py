@@ -103,7 +103,9 @@ class BagMapping:
         Seconds; split where consecutive samples are further apart than this (overrides
         ``max_gap``).
     min_samples : int
-        Episodes (pieces between splits) with fewer grid points are dropped and reported.
+        When a bag is split, pieces with fewer grid points are dropped and reported
+        (default 32: enough for every learner's derivative stencil); a bag that is not
+        split is kept from 2 samples on.
     """
 
     inputs: tuple[InputSource, ...] | None = None
@@ -118,7 +120,7 @@ class BagMapping:
     dt: float | None = None
     max_gap: float = 1.5
     split_gap: float | None = None
-    min_samples: int = 3
+    min_samples: int = 32
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> BagMapping:
@@ -185,7 +187,7 @@ class BagMapping:
             dt=_opt_pos('time.dt', tm.get('dt')),
             max_gap=_nonneg('time.max_gap', tm.get('max_gap', 1.5)),
             split_gap=_opt_pos('time.split_gap', tm.get('split_gap')),
-            min_samples=_min_samples(tm.get('min_samples', 3)))
+            min_samples=_min_samples(tm.get('min_samples', 32)))
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-able form (stored in the training set's provenance)."""

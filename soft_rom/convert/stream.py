@@ -633,9 +633,11 @@ class BagConverter:
         seg, self.seg, self.prev = self.seg, None, None
         if seg is None or seg.k == 0:
             return
-        if seg.k < self.mapping.min_samples:
-            self.out_rep.drop(f'piece shorter than {self.mapping.min_samples} grid points '
-                              '(between long gaps)', seg.t0_ns, count=seg.k)
+        need = self.mapping.min_samples if self.out_rep.splits else 2
+        if seg.k < need:
+            self.out_rep.drop(f'piece shorter than {need} grid points'
+                              + (' (between long gaps)' if self.out_rep.splits else ''),
+                              seg.t0_ns, count=seg.k)
             return
         sink = seg.sink if seg.sink is not None else self._open_sink(seg)
         grid = seg.t0_ns + np.arange(seg.k, dtype=np.int64) * self.dt_ns
