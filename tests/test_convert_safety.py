@@ -320,3 +320,14 @@ def test_huge_grid_is_refused_before_writing(tmp_path, capsys, monkeypatch):
     with pytest.raises(OutputExistsError):
         out.mkdir()
         convert([bag], out, progress=False)
+
+
+def test_stamps_drifting_from_log_time_are_kept(tmp_path):
+    # a simulation at half real time, recorded with wall-clock log times: the stamps drift
+    # 0.5 ms per sample (0.15 s over the bag) away from the log times, and start 40 s apart
+    hooks = {('y', j): (lambda ns, j=j: (ns, _pose_array(ns, np.zeros((N_PTS, 3))),
+                                         ns + 40 * 10 ** 9 + j * 500_000)) for j in range(K)}
+    bag = tmp_path / 'sim'
+    _bag(bag, hooks=hooks)
+    ep, rep = read_episode(bag, include_state=True)
+    assert ep.n_samples == K and not rep.topics['/soft_robot/centerline'].dropped

@@ -60,6 +60,8 @@ PROBE_MESSAGES = 256
 PROBE_STATE_MESSAGES = 32
 #: A stamp further than this from its log time (after the topic's median offset) is dropped.
 STAMP_OFFSET_LIMIT_NS = 1_000_000_000
+#: Rejected stamps in a row, agreeing among themselves, after which a clock jump is followed.
+REANCHOR = 8
 #: Interval (in periods) above which samples are counted as lost between two others.
 LOST_FACTOR = 1.5
 
@@ -388,6 +390,8 @@ class BagConverter:
         self.outs: deque[tuple[int, Array]] = deque()
         self.states: deque[tuple[int, Array]] = deque()
         self.last_ns: dict[str, int] = {}
+        self.offset_ref: dict[str, int] = {}
+        self.rejected: dict[str, list[int]] = {}
         self.out_used: list[int] = []
         self.state_used: list[int] = []
         self.seg: _Segment | None = None
@@ -436,9 +440,27 @@ class BagConverter:
 
     def _stamp_ok(self, topic: str, rep: TopicReport, t: int, log_ns: int,
                   offset_ns: int) -> bool:
-        if abs(t - log_ns - offset_ns) > STAMP_OFFSET_LIMIT_NS:
+        """Stamp consistent with its log time and after the previous one of the topic.
+
+        The offset ``stamp - log`` is compared with that of the last accepted message (at
+        first the probe's median), so a slow drift between the two clocks (a simulation
+        slower than real time) passes and a single glitch does not; when
+        :data:`REANCHOR` rejected messages in a row agree among themselves, the clock
+        jumped for good and the topic follows it from the next message on.
+        """
+        off = t - log_ns
+        ref = self.offset_ref.setdefault(topic, offset_ns)
+        if abs(off - ref) > STAMP_OFFSET_LIMIT_NS:
             rep.drop('stamp more than 1 s away from its log time', t)
+            run = self.rejected.setdefault(topic, [])
+            run.append(off)
+            if len(run) >= REANCHOR and max(run) - min(run) <= STAMP_OFFSET_LIMIT_NS:
+                self.offset_ref[topic] = run[-1]
+                self.last_ns.pop(topic, None)
+                run.clear()
             return False
+        self.rejected.pop(topic, None)
+        self.offset_ref[topic] = off
         last = self.last_ns.get(topic)
         if last is not None and t <= last:
             rep.drop('duplicated stamp' if t == last else 'stamp going backwards', t)
