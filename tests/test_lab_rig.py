@@ -76,7 +76,7 @@ def test_convert_real_clocks_to_a_uniform_grid(lab, monkeypatch):
             chamber = rep[f'/soft_robot/pressure/chamber_{i}']
             assert not chamber['dropped'] and chamber['max_hold_s'] < 2.5e-3
     info = ts.describe()['episodes']['lab1']
-    assert info['t0_ns'] == T0_NS + int(recs[0].cam_ns[0] - T0_NS)
+    assert info['t0_ns'] == int(recs[0].cam_ns[0]) > T0_NS     # the epoch stamp, exact
 
 
 def test_user_sequence_lopinf_beats_unconstrained_fit(lab, monkeypatch, capsys):

@@ -15,7 +15,8 @@ type                                value                       stamp
 ``sensor_msgs/msg/PointCloud2``     ``(N, 3)`` x, y, z fields   ``header.stamp``
 =================================== =========================== =======================
 
-Time stamps stay integer nanoseconds here; :mod:`soft_rom.convert` converts them to seconds.
+Time stamps stay integer nanoseconds here (and through :mod:`soft_rom.convert`, which turns
+them into seconds from each episode's start only when the episode is written).
 Multi-array data are returned as zero-copy views of the message buffer.
 """
 
