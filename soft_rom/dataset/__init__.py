@@ -22,8 +22,8 @@ of :mod:`soft_rom.scale` read every stored byte once per pass. Fortran order mak
 snapshot contiguous inside a chunk file, so the writer appends each snapshot to the open
 chunk files of its chunk column straight from the buffer it arrived in
 (:class:`~soft_rom.dataset.chunks.ChunkFileWriter`); compression is off because it would
-cost a CPU pass per snapshot on a 2-core machine for data (float64 positions) that compresses poorly. The writer holds at
-most 16 snapshots waiting to be written.
+cost a CPU pass per snapshot on a 2-core machine for data (float64 positions) that
+compresses poorly. The writer holds at most 16 snapshots waiting to be written.
 
 Time: ``t`` is float seconds from the episode's own start (``t[0] = 0``); the absolute start
 is the integer ``metadata['t0_ns']`` (nanoseconds, e.g. the epoch stamp of the first sample),
