@@ -17,7 +17,8 @@ Several models from one pass over the data::
 """
 
 from soft_rom.scale.blocks import LocalExecutor, SnapshotSet
-from soft_rom.scale.fit import (
+from soft_rom.scale.pod import StreamingPOD
+from soft_rom.scale.streaming import (
     fit_reduced_model,
     fit_streaming,
     open_training_data,
@@ -25,7 +26,6 @@ from soft_rom.scale.fit import (
     ReducedData,
     TrainingData,
 )
-from soft_rom.scale.pod import StreamingPOD
 
 __all__ = [
     'LocalExecutor',
