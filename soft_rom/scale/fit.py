@@ -5,24 +5,15 @@ streaming reduce-then-fit functions now live in :mod:`soft_rom.scale.streaming`.
 from there (or from :mod:`soft_rom.scale`); this module will be removed in the next release.
 """
 
-from soft_rom.scale.streaming import (
-    ColumnWindow,
-    fit_reduced_model,
-    fit_streaming,
-    make_executor,
-    open_training_data,
-    reduce_streaming,
-    ReducedData,
-    TrainingData,
-)
+from typing import Any
 
-__all__ = [
-    'ColumnWindow',
-    'ReducedData',
-    'TrainingData',
-    'fit_reduced_model',
-    'fit_streaming',
-    'make_executor',
-    'open_training_data',
-    'reduce_streaming',
-]
+from soft_rom.scale import streaming as _streaming
+
+__all__ = list(_streaming.__all__)
+
+
+def __getattr__(name: str) -> Any:
+    """The names of :mod:`soft_rom.scale.streaming`, under their former module."""
+    if name in __all__:
+        return getattr(_streaming, name)
+    raise AttributeError(f'module {__name__!r} has no attribute {name!r}')

@@ -233,6 +233,7 @@ class StreamingPOD:
         ex = self.executor if self.executor is not None else LocalExecutor(self.progress)
         n, K = snaps.n, snaps.n_total
         l = self._l(n, K)
+        W: Array | None
         if self.method == 'randomized':
             W, s, Z, total, passes = self._randomized(snaps, ex, l)
         else:

@@ -468,13 +468,14 @@ class EelModel:
         alpha, beta = cfg.rayleigh_mass, cfg.rayleigh_stiffness
         h = dt
         W = self.centerline_map
-        t = np.arange(n_steps) * dt
+        t = np.arange(n_steps, dtype=np.float64) * dt
         centerline = np.empty((W.shape[0], 3, n_steps))
         states = np.empty((self.n_nodes, 3, n_steps)) if store_states else None
         cg_iters = 0
         cg_worst = 0.0
 
-        def apply_A(R: NDArray[np.float64], p_free: NDArray[np.float64]) -> NDArray[np.float64]:
+        def apply_A(R: list[NDArray[np.float64]],
+                    p_free: NDArray[np.float64]) -> NDArray[np.float64]:
             full = np.zeros(self.n_dof)
             full[free] = p_free
             kw = fem.warped_matvec(R, full.reshape(-1, 3)).ravel()[free]
@@ -496,7 +497,7 @@ class EelModel:
             else:
                 f = fem.elastic_force(x).ravel()[free]
                 R = None
-            if follower:
+            if BU is None:
                 fp = self.pressure_force(x, U[:, j]).ravel()[free]
             else:
                 fp = BU[:, j]
