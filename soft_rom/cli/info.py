@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from soft_rom.errors import SoftRomError
+from soft_rom.errors import ConfigError
 
 __all__ = ['add_parser', 'describe', 'run']
 
@@ -43,7 +43,7 @@ def describe(path: str | Path) -> dict[str, Any]:
     from soft_rom.bags.reader import describe_bag, is_bag
     if is_bag(p):
         return {'kind': 'bag', **describe_bag(p)}
-    raise SoftRomError(f'{p} is neither a ROS 2 bag, a training set (.zarr) nor a model file '
+    raise ConfigError(f'{p} is neither a ROS 2 bag, a training set (.zarr) nor a model file '
                        '(.npz).')
 
 
