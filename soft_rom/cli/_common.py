@@ -16,7 +16,9 @@ Numbers are checked by the ``type=`` of their option (:func:`finite_float`,
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+import errno
+import json
 import math
 import os
 from pathlib import Path
@@ -26,9 +28,13 @@ __all__ = [
     'add_output',
     'add_quiet',
     'available_memory',
+    'check_writable_folder',
     'finite_float',
     'int_range',
+    'is_model_file',
+    'is_summary_json',
     'parse_r_list',
+    'write_text_output',
 ]
 
 
@@ -163,3 +169,53 @@ def available_memory() -> float:
         except (ValueError, OSError):
             avail = math.inf
     return avail
+
+
+def is_summary_json(keys: Sequence[str]) -> Callable[[Path], bool]:
+    """A check that a file is a ``--json`` summary soft_rom wrote (rows or an object with
+    ``keys``), for :func:`soft_rom.outputs.check_output`."""
+    def check(path: Path) -> bool:
+        try:
+            if path.stat().st_size > 64 * 2**20:
+                return False
+            data = json.loads(path.read_text(encoding='utf-8'))
+        except (OSError, ValueError, RecursionError):
+            return False
+        items = data if isinstance(data, list) else [data]
+        return bool(items) and all(isinstance(d, dict) and all(k in d for k in keys)
+                                   for d in items)
+    return check
+
+
+def is_model_file(path: Path) -> bool:
+    """Whether ``path`` is a model file soft_rom wrote (it loads)."""
+    from soft_rom.errors import ModelFileError
+    from soft_rom.models import load_model
+    try:
+        load_model(path)
+    except (ModelFileError, OSError):
+        return False
+    return True
+
+
+def check_writable_folder(folder: Path, what: str) -> None:
+    """Refuse early (before any work) an output folder that is a file or cannot be written."""
+    from soft_rom.errors import ConfigError
+
+    probe = folder
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ConfigError(f'{probe} is not a folder; cannot write the {what} there')
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise PermissionError(errno.EACCES, f'cannot write the {what} here (permission denied)',
+                              str(probe))
+
+
+def write_text_output(path: Path, text: str, *, overwrite: bool, what: str,
+                      is_ours: Callable[[Path], bool]) -> None:
+    """Write one text output atomically, replacing only a file soft_rom wrote."""
+    from soft_rom.outputs import atomic_files
+
+    with atomic_files([path], overwrite=overwrite, what=what, is_ours=is_ours) as staged:
+        staged[path].write_text(text, encoding='utf-8')
