@@ -1,5 +1,7 @@
-"""Table-driven misuse of every ``soft-rom`` verb: right exit code, one line, no traceback,
-nothing clobbered."""
+"""Table-driven misuse of every ``soft-rom`` verb.
+
+Each case: the right exit code, one line, no traceback, nothing clobbered.
+"""
 
 from __future__ import annotations
 
@@ -10,11 +12,11 @@ from pathlib import Path
 import subprocess
 import sys
 
+import _hostile as h
 from _systems import spring_chain_episodes
 import numpy as np
 import pytest
 
-import _hostile as h
 from soft_rom.bags import EpisodeBagWriter
 from soft_rom.cli import main
 from soft_rom.models import DiscreteModel
@@ -170,9 +172,10 @@ def test_overwrite_replaces_what_soft_rom_wrote(ws, tmp_path, capsys) -> None:
 
 
 def test_replay_output_marked_and_recording_never_replaced(tmp_path, capsys) -> None:
+    import test_replay as tr
+
     from soft_rom.bags.replay_io import write_input_bag
     from soft_rom.outputs import is_marked
-    import test_replay as tr
 
     model = tr._model()
     path = model.save(tmp_path / 'm.npz')

@@ -27,6 +27,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import _hostile as h  # noqa: E402
+
 from soft_rom.errors import ModelFileError  # noqa: E402
 from soft_rom.models import load_model  # noqa: E402
 
@@ -101,9 +102,9 @@ def _mutate_npy_header(rng: random.Random, members: dict[str, bytes]) -> None:
     data = bytearray(members[name])
     hlen = struct.unpack('<H', data[8:10])[0]
     text = data[10:10 + hlen].decode('latin1')
-    repl = rng.choice(["(1000000, 1000000)", "(3, 3, 3, 3)", "()", "(-1,)", "(2**64,)",
-                       "'O'", "'<i8'", "True", "(((((", "'''", "1e999", "None"])
-    spans = [("'descr': '", "'"), ("'shape': (", ")"), ("'fortran_order': ", ",")]
+    repl = rng.choice(['(1000000, 1000000)', '(3, 3, 3, 3)', '()', '(-1,)', '(2**64,)',
+                       "'O'", "'<i8'", 'True', '(((((', "'''", '1e999', 'None'])
+    spans = [("'descr': '", "'"), ("'shape': (", ')'), ("'fortran_order': ", ',')]
     a, b = rng.choice(spans)
     i = text.find(a)
     if i >= 0:

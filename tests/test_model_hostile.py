@@ -1,5 +1,7 @@
-"""Hostile model files: every one ends in ModelFileError, quickly, or in a model that says
-whether it can be trusted."""
+"""Hostile model files.
+
+Every one ends in ModelFileError, quickly, or in a model that says whether it can be trusted.
+"""
 
 from __future__ import annotations
 
@@ -7,12 +9,12 @@ import json
 import time
 import zipfile
 
+import _hostile as h
 import numpy as np
 import pytest
 
-import _hostile as h
-from soft_rom.errors import ModelFileError
 from soft_rom import models
+from soft_rom.errors import ModelFileError
 from soft_rom.models import DiscreteModel, load_model, SecondOrderModel
 
 MAX_STATES = getattr(models, 'MAX_STATES', 512)

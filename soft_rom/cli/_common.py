@@ -172,8 +172,12 @@ def available_memory() -> float:
 
 
 def is_summary_json(keys: Sequence[str]) -> Callable[[Path], bool]:
-    """A check that a file is a ``--json`` summary soft_rom wrote (rows or an object with
-    ``keys``), for :func:`soft_rom.outputs.check_output`."""
+    """A check that a file is a ``--json`` summary soft_rom wrote.
+
+    The file holds rows (or one object) with all of ``keys``; for
+    :func:`soft_rom.outputs.check_output`.
+    """
+
     def check(path: Path) -> bool:
         try:
             if path.stat().st_size > 64 * 2**20:

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import time
-
 from pathlib import Path
+import time
 
 from soft_rom.cli.study import add_study_options, check_study_resources
 
