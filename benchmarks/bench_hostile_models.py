@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'tests'))
 
 import _hostile as h  # noqa: E402
 
-_PROBE = r'''
+_PROBE = r"""
 import resource, sys, time
 import numpy, scipy.linalg
 from soft_rom.errors import ModelFileError
@@ -46,7 +46,7 @@ if sys.argv[1] != '-':
         outcome = 'ModelFileError'
 wall = time.perf_counter() - t0
 print(wall, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, outcome)
-'''
+"""
 
 
 def _big_model(path: Path, r: int, kind: str) -> Path:

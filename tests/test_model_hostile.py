@@ -256,3 +256,18 @@ def test_registered_model_class_with_an_extra_tensor(tmp_path) -> None:
     loaded = load_model(model.save(tmp_path / 't.npz'))
     assert type(loaded) is TensorModel and loaded.G.shape == (3, 3, 3)
     _refused(h.with_arrays(model, tmp_path / 'bad.npz', G=np.ones((3, 3))), 'shape')
+
+
+@pytest.mark.parametrize('change', [{'dt': 1e300}, {'dt': float('inf')}])
+def test_predictor_and_info_refuse_absurd_dt(tmp_path, change) -> None:
+    from soft_rom.cli.info import describe
+    from soft_rom.predictor import Predictor
+
+    path = h.with_header(h.discrete(), tmp_path / 'm.npz', **change)
+    with pytest.raises(ModelFileError, match='dt|Infinity'):
+        Predictor(path)
+    with pytest.raises(ModelFileError, match='dt|Infinity'):
+        describe(path)
+    stiff = h.with_arrays(h.second_order(), tmp_path / 'k.npz', K=np.eye(3) * 1e300)
+    with pytest.raises(ModelFileError):
+        Predictor(stiff)
