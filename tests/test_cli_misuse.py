@@ -71,6 +71,7 @@ CASES = [
     (['fit', '{ts}', '--method', 'dmdc', '--r', '0', '-o', '{root}/m1'], 2, 'positive'),
     (['fit', '{ts}', '--method', 'dmdc', '--energy', 'inf', '-o', '{root}/m1'], 2, '--energy'),
     (['fit', '{ts}', '--method', 'nope', '-o', '{root}/m1'], 2, '--method'),
+    (['fit', '{ts}', '--method', 'lopinf', '--r', '300', '-o', '{root}/m1'], 2, 'r <= 256'),
     (['evaluate', '{model}', '--data', '{ts}', '--t-split', '-1'], 2, '--t-split'),
     (['replay', '{model}', '{bag}', '-o', '{root}/p1', '--publish-rate', 'nan'], 2,
      '--publish-rate'),
@@ -262,3 +263,15 @@ def test_read_only_output_folder(ws, tmp_path, argv) -> None:
     assert res.returncode == 1, res.stderr
     assert len(lines) == 1 and 'ermission' in lines[0] and 'Traceback' not in res.stderr
     assert list(ro.iterdir()) == []
+
+
+def test_undecodable_path_names_print(tmp_path) -> None:
+    """A model at a path that is not UTF-8 (a lone surrogate in Python) prints, exit 0."""
+    name = os.fsdecode(b'model_\xff.npz')
+    path = h.second_order().save(tmp_path / name)
+    code = 'import sys; from soft_rom.cli import main; sys.exit(main(sys.argv[1:]))'
+    res = subprocess.run([sys.executable, '-c', code, 'info', os.fsencode(path)],
+                         capture_output=True, timeout=120, env=dict(os.environ, LANG='C.UTF-8',
+                                                                   PYTHONIOENCODING='utf-8'))
+    assert res.returncode == 0, res.stderr
+    assert b'model_\\udcff.npz' in res.stdout and b'Traceback' not in res.stderr

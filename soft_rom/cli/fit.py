@@ -121,6 +121,14 @@ def _check_outputs_early(args: argparse.Namespace, outdir: Path, prefix: str) ->
     from soft_rom.outputs import check_output
 
     check_writable_folder(outdir, 'model files')
+    if args.r is not None:
+        from soft_rom.models import MAX_STATES
+        for method in args.method:
+            states = 2 if method == 'lopinf' else 1
+            too_big = [r for r in args.r if states * r > MAX_STATES]
+            if too_big:
+                raise ConfigError(f'--r {too_big[0]} is too large for {method}: model files hold '
+                                  f'at most {MAX_STATES} states (r <= {MAX_STATES // states})')
     if args.json is not None:
         check_writable_folder(args.json.parent, '--json file')
         if args.json.resolve().parent == outdir.resolve() and args.json.suffix == '.npz':
