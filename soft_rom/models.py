@@ -128,6 +128,10 @@ def _finite_system(sys_: DiscreteSystem, what: str) -> DiscreteSystem:
     return sys_
 
 
+def _finite_or_none(value: float) -> float | None:
+    return value if np.isfinite(value) else None
+
+
 def _names(kind: str, names: Sequence[str] | None, count: int, prefix: str) -> list[str]:
     if names is None:
         return [f'{prefix}{i + 1}' for i in range(count)]
@@ -354,7 +358,7 @@ class LinearROM(ABC):
             'output_names': self.output_names,
             'input_units': self.input_units,
             'output_units': self.output_units,
-            'stability_margin': self.stability_margin(),
+            'stability_margin': _finite_or_none(self.stability_margin()),
             'metadata': self.metadata,
         }
 

@@ -124,6 +124,8 @@ CASES = [
     (['simulate', '-o', '{root}', '--episodes', '2', '--steps', '3', '--overwrite'], 2,
      'not written by soft-rom simulate'),
     (['convert', '{bag}', '-o', '{ts}', '--quiet'], 2, 'exists'),
+    (['fit', '{ts}', '--method', 'dmdc', '--r', '2', '-o', '{root}/m2', '--quiet', '--json',
+      '{model}/fit.json'], 2, 'not a folder'),
     # a later method fails: no model at all is written
     (['fit', '{ts}', '--method', 'dmdc,era', '--r', '3', '--decimation', '100000',
       '--era-episode', 'ep1', '-o', '{root}/m3', '--quiet'], 2, 'decimation'),

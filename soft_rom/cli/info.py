@@ -94,6 +94,7 @@ def format_text(d: dict[str, Any]) -> str:
         lines.append(f"  outputs (p = {len(d['output_names'])}): "
                      f"{_fmt_names(d['output_names'], d['output_units'])}")
         margin = d['stability_margin']
+        margin = float('nan') if margin is None else margin
         lines.append(f'  stability margin 1 - max|eig(A)| = {margin:.3e} '
                      f"({'stable' if margin > 0 else 'NOT asymptotically stable'})")
         trust = d.get('trust') or []
