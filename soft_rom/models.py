@@ -65,8 +65,9 @@ __all__ = [
 FORMAT_NAME = 'soft_rom.model'
 FORMAT_VERSION = 1
 _META_KEY = '__metadata__'
-#: Largest state dimension of a model file: r <= 512 for DMDc/ERA, r <= 256 for LOpInf.
-MAX_STATES = 512
+#: Largest state dimension of a model file: r <= 256 for DMDc/ERA, r <= 128 for LOpInf
+#: (loading, discretizing and the trust checks then stay well under a second).
+MAX_STATES = 256
 #: Relative tolerance of the trust checks (spectral radius, definiteness, symmetry).
 TRUST_TOL = 1e-6
 #: Output offsets larger than this (in output units) are reported as absurd.
@@ -676,8 +677,8 @@ def load_model(path: str | os.PathLike[str], *, strict: bool = False) -> LinearR
     is read (:func:`soft_rom.model_io.read_archive`: only the entries a model class needs,
     at most 32 MiB of arrays, float dtypes only, never pickle), the metadata JSON is parsed
     with size and depth limits, and every physical field is checked: ``dt`` finite in
-    [1e-9, 1e4] s, ``1 <= n_states <=`` :data:`MAX_STATES` (r <= 512 for DMDc/ERA,
-    r <= 256 for LOpInf), ``m, p >= 1``, shapes consistent with r, m and p, entries finite
+    [1e-9, 1e4] s, ``1 <= n_states <=`` :data:`MAX_STATES` (r <= 256 for DMDc/ERA,
+    r <= 128 for LOpInf), ``m, p >= 1``, shapes consistent with r, m and p, entries finite
     with magnitude at most 1e150, offsets ``|y_ref| <= 1e12``, and the discrete system at
     the native ``dt`` finite.
 

@@ -71,7 +71,7 @@ CASES = [
     (['fit', '{ts}', '--method', 'dmdc', '--r', '0', '-o', '{root}/m1'], 2, 'positive'),
     (['fit', '{ts}', '--method', 'dmdc', '--energy', 'inf', '-o', '{root}/m1'], 2, '--energy'),
     (['fit', '{ts}', '--method', 'nope', '-o', '{root}/m1'], 2, '--method'),
-    (['fit', '{ts}', '--method', 'lopinf', '--r', '300', '-o', '{root}/m1'], 2, 'r <= 256'),
+    (['fit', '{ts}', '--method', 'lopinf', '--r', '200', '-o', '{root}/m1'], 2, 'r <= 128'),
     (['evaluate', '{model}', '--data', '{ts}', '--t-split', '-1'], 2, '--t-split'),
     (['replay', '{model}', '{bag}', '-o', '{root}/p1', '--publish-rate', 'nan'], 2,
      '--publish-rate'),

@@ -17,7 +17,7 @@ from soft_rom import models
 from soft_rom.errors import ModelFileError
 from soft_rom.models import DiscreteModel, load_model, SecondOrderModel
 
-MAX_STATES = getattr(models, 'MAX_STATES', 512)
+MAX_STATES = getattr(models, 'MAX_STATES', 256)
 
 
 def _refused(path, match: str | None = None) -> str:
