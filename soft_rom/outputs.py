@@ -241,16 +241,17 @@ def atomic_new_dir(dest: str | os.PathLike[str], *, overwrite: bool, kind: str, 
     dest.parent.mkdir(parents=True, exist_ok=True)
     clean_stale(dest.parent)
     check_output(dest, overwrite=overwrite, what=what, kinds=kinds or (kind,))
-    stage = _stage_path(dest)
+    parent = _stage_path(dest)
+    parent.mkdir()
+    stage = parent / dest.name  # same name as the output: writers name their files after it
     try:
         yield stage
         if not stage.is_dir():
             raise OutputExistsError(f'internal: the {what} was not written')
         mark(stage, kind)
         _swap_in(stage, dest)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
+    finally:
+        shutil.rmtree(parent, ignore_errors=True)
 
 
 @contextlib.contextmanager
