@@ -207,7 +207,11 @@ def read_archive(path: str | os.PathLike[str], allowed: Collection[str],
             return {key: _read_member(path, zf, info, key) for key, info in entries.items()}
     except ModelFileError:
         raise
-    except Exception as err:  # BadZipFile, zlib.error, NotImplementedError, OSError, ...
+    except OSError as err:
+        if err.errno is None:
+            raise _fail(path, f'corrupt or not an .npz archive ({str(err)[:160]}).') from None
+        raise _fail(path, f'cannot read ({err.strerror or err}).') from None
+    except Exception as err:  # BadZipFile, zlib.error, NotImplementedError, ...
         detail = str(err)[:160] or type(err).__name__
         raise _fail(path, f'corrupt or not an .npz archive ({detail}).') from None
 
