@@ -124,6 +124,8 @@ CASES = [
     (['simulate', '-o', '{root}', '--episodes', '2', '--steps', '3', '--overwrite'], 2,
      'not written by soft-rom simulate'),
     (['convert', '{bag}', '-o', '{ts}', '--quiet'], 2, 'exists'),
+    (['study', '-o', '{bag}', '--quiet'], 2, 'not a soft_rom study folder'),
+    (['demo', '-o', '{models}', '--quiet'], 2, 'not a soft_rom study folder'),
     (['convert', '{bag}', '-o', '{bag}', '--quiet', '--overwrite'], 2, 'not written by soft_rom'),
     (['convert', '{bag}', '-o', '{root}/mapdir', '--quiet', '--overwrite'], 2,
      'not written by soft_rom'),
