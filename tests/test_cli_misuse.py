@@ -53,6 +53,8 @@ def ws(tmp_path_factory) -> dict[str, Path]:
             w.write(0.5 + 0.01 * j, np.full(6, float(j)), np.zeros((20, 3)), np.zeros((2, 3)))
     (root / 'mapdir').mkdir()
     (root / 'user.json').write_text('{"mine": true}\n')
+    (root / 'sims').mkdir()
+    (root / 'sims' / 'ep1.json').write_text('{"my": "notes"}\n')
     models = root / 'models'
     models.mkdir()
     (models / 'chain_dmdc_r4.npz').write_bytes(b'a file that is not a model: my notes')
@@ -122,6 +124,8 @@ CASES = [
     (['replay', '{model}', '{bag}', '-o', '{root}/chain.zarr', '--overwrite'], 2,
      'not written by soft_rom'),
     (['simulate', '-o', '{root}', '--episodes', '2', '--steps', '3', '--overwrite'], 2,
+     'not written by soft-rom simulate'),
+    (['simulate', '-o', '{root}/sims', '--episodes', '1', '--steps', '3', '--overwrite'], 2,
      'not written by soft-rom simulate'),
     (['convert', '{bag}', '-o', '{ts}', '--quiet'], 2, 'exists'),
     (['study', '-o', '{bag}', '--quiet'], 2, 'not a soft_rom study folder'),
