@@ -314,7 +314,8 @@ def test_huge_grid_is_refused_before_writing(tmp_path, capsys, monkeypatch):
     from soft_rom import outputs
     monkeypatch.setattr(outputs.shutil, 'disk_usage',
                         lambda p: type('U', (), {'free': 10_000})())
-    assert main(['convert', str(bag), '-o', str(out), '--dt', '0.0002', '--quiet']) == 2
+    # not enough disk is a run-time refusal (exit 1), like every resource refusal
+    assert main(['convert', str(bag), '-o', str(out), '--dt', '0.0002', '--quiet']) == 1
     assert 'needs about' in capsys.readouterr().err
     assert not out.exists() and not _hidden(tmp_path)
     with pytest.raises(OutputExistsError):
