@@ -13,7 +13,7 @@ from soft_rom.data import Episode
 from soft_rom.errors import BagError
 from soft_rom.models import file_sha256, SecondOrderModel
 from soft_rom.predictor import Predictor, PredictorConfig
-from soft_rom.ros.conversions import data_to_array, outputs_to_points, poses_to_points
+from soft_rom.predictor.conversions import data_to_array, outputs_to_points, poses_to_points
 
 N_POINTS = 5
 NODE = '/soft_rom_predictor'

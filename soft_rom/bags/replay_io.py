@@ -45,7 +45,7 @@ from rosbags.typesys import get_typestore, Stores
 from soft_rom.data import Episode
 from soft_rom.errors import BagError
 from soft_rom.predictor import Health, Predictor, replay_episode, ReplayResult
-from soft_rom.ros.conversions import (
+from soft_rom.predictor.conversions import (
     check_components,
     health_key_values,
     model_info_json,

@@ -12,7 +12,7 @@ import pytest
 
 from soft_rom.errors import ConfigError, DimensionError
 from soft_rom.predictor import Health, Level, PredictorConfig
-from soft_rom.ros.conversions import (
+from soft_rom.predictor.conversions import (
     array_to_data,
     check_components,
     data_to_array,
@@ -24,7 +24,7 @@ from soft_rom.ros.conversions import (
     set_points,
     stamp_to_sec,
 )
-from soft_rom.ros.params import load_params_file, PARAMS, predictor_config
+from soft_rom.predictor.params import load_params_file, PARAMS, predictor_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
