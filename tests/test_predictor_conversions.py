@@ -82,7 +82,11 @@ def test_health_key_values_are_strings() -> None:
 
 
 def test_params_file_matches_declarations_and_core_defaults() -> None:
-    values = load_params_file(ROOT / 'config' / 'predictor.yaml')
+    from soft_rom.predictor.params import render_params_file
+
+    path = ROOT / 'config' / 'predictor.yaml'
+    assert path.read_text(encoding='utf-8') == render_params_file()
+    values = load_params_file(path)
     names = {p.name for p in PARAMS}
     assert set(values) == names
     for p in PARAMS:

@@ -146,6 +146,7 @@ class Predictor:
                                      int(self.config.error_window_s * 1e9))
         self._alarms: dict[str, tuple[int, str]] = {}
         self._diverged_latched = False
+        self.totals = [0.0, 0.0, 0.0]     # sums of |y - y_hat|^2, |y|^2, |y - y_ref|^2
 
     @property
     def model(self) -> Any:
@@ -684,6 +685,9 @@ class Predictor:
         if not self._monitor.push(stamp_ns, e2, float(y @ y), float(self._dev @ self._dev)):
             self.counters['measured_dropped'] += 1
             return None
+        self.totals[0] += e2
+        self.totals[1] += float(y @ y)
+        self.totals[2] += float(self._dev @ self._dev)
         if d.L is not None and current:
             self.x += d.L @ self._dy
         self.counters['measurements'] += 1

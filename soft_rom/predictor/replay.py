@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 import math
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -13,13 +14,12 @@ from soft_rom.data import as_signal, Episode
 from soft_rom.errors import DimensionError
 from soft_rom.predictor.config import PredictorConfig
 from soft_rom.predictor.core import Predictor
+from soft_rom.predictor.loop import Publish
 
 __all__ = ['ReplayResult', 'kalman_vs_open_loop', 'replay_episode']
 
 Array = NDArray[np.float64]
 
-
-# -- offline use ----------------------------------------------------------------------------
 @dataclass(frozen=True)
 class ReplayResult:
     """Predictions of a :class:`Predictor` run over an episode.
@@ -47,7 +47,8 @@ class ReplayResult:
 
 def replay_episode(predictor: Predictor, episode: Episode, *, measured: bool = True,
                    callback: Any = None, track_health: bool = False,
-                   t0_ns: int = 0) -> ReplayResult:
+                   t0_ns: int = 0, loop: Any = None,
+                   publish: Callable[[Publish, int], Any] | None = None) -> ReplayResult:
     """Run ``predictor`` over an episode's inputs (and measured outputs), sample by sample.
 
     For each sample ``j``: (clocked stepping: advance to ``t_j``), take ``U[:, j]`` at
@@ -69,7 +70,13 @@ def replay_episode(predictor: Predictor, episode: Episode, *, measured: bool = T
     t0_ns : int
         Absolute time of ``t = 0`` in nanoseconds (e.g. the recording's epoch start); the
         stamps fed are ``t0_ns + round(t_j * 1e9)``, so the model steps exactly as live.
+    loop : RuntimeLoop, optional
+        Feed through this loop (around ``predictor``) instead of the bare predictor;
+        ``publish(pub, t_ns)`` then receives what is due after each sample, the
+        measurement of the sample included (its marker and the error go with it).
     """
+    if loop is not None and loop.predictor is not predictor:
+        raise ValueError('the loop must run the predictor given.')
     t = np.asarray(episode.t, dtype=np.float64)
     U = as_signal('U', episode.U, rows=predictor.model.n_inputs)
     Y = as_signal('Y', episode.Y, cols=t.size)
@@ -87,13 +94,18 @@ def replay_episode(predictor: Predictor, episode: Episode, *, measured: bool = T
     stamps = (int(t0_ns) + np.round(t * 1e9).astype(np.int64)).tolist()
     clocked = predictor.config.stepping != 'event'
     for j, (tj, sj) in enumerate(zip(t.tolist(), stamps)):
-        if clocked:
-            predictor.advance_to_ns(sj)
-        predictor.set_input_ns(Ut[j], sj)
-        Yhat[:, j] = predictor.output(ybuf)
-        if Yt is not None:
-            e = predictor.measure_ns(Yt[j], sj)
-            errors[j] = math.nan if e is None else e
+        if loop is not None:
+            e = _loop_sample(loop, Ut[j], None if Yt is None else Yt[j], sj, clocked, publish)
+            Yhat[:, j] = predictor.output(ybuf)
+            errors[j] = e
+        else:
+            if clocked:
+                predictor.advance_to_ns(sj)
+            predictor.set_input_ns(Ut[j], sj)
+            Yhat[:, j] = predictor.output(ybuf)
+            if Yt is not None:
+                e = predictor.measure_ns(Yt[j], sj)
+                errors[j] = math.nan if e is None else e
         if levels is not None:
             levels[j] = int(predictor.health(sj).level)
         if callback is not None:
@@ -114,6 +126,30 @@ def replay_episode(predictor: Predictor, episode: Episode, *, measured: bool = T
         summary['relative_deviation_error'] = float(
             np.linalg.norm(E) / max(np.linalg.norm(D), 1e-300))
     return ReplayResult(t, Yhat, errors, levels, summary)
+
+
+def _loop_sample(loop: Any, u: Array, y: Array | None, t_ns: int, clocked: bool,
+                 publish: Callable[[Publish, int], Any] | None) -> float:
+    """One sample through a runtime loop; returns the windowed error after it."""
+    if clocked:
+        pub = loop.tick(t_ns)
+        if publish is not None and pub:
+            publish(pub, t_ns)
+    pub = loop.on_array(u, t_ns, t_ns)
+    if y is not None:
+        after = loop.on_measured(y, t_ns, t_ns)
+        pub.outputs.extend(after.outputs)
+        if after.centerline is not None and pub.centerline is None:
+            pub.centerline = after.centerline
+        if pub.centerline is not None:
+            pub.measured_points = after.measured_points if after.measured_points is not None \
+                else loop.measured_points()
+            err = loop.predictor.windowed_error(t_ns)
+            pub.error = err if math.isfinite(err) else None
+        pub.diagnostics_due = pub.diagnostics_due or after.diagnostics_due
+    if publish is not None and pub:
+        publish(pub, t_ns)
+    return loop.predictor.windowed_error(t_ns)
 
 
 def kalman_vs_open_loop(model: Any, episode: Episode, *,
