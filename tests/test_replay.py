@@ -154,7 +154,8 @@ def test_cli_replay_with_params_file_and_kalman_comparison(tmp_path, capsys) -> 
     assert data['config']['kalman'] is True and data['config']['measurement_noise'] == 1e-8
     assert data['compare']['kalman'] <= 0.5 * data['compare']['open_loop']
     count = Counter(tp for tp, _, _ in read_messages(tmp_path / 'pred'))
-    assert count[f'{NODE}/centerline'] == 30                 # 100 Hz from 1 kHz
+    assert count[f'{NODE}/output'] == 30                     # 100 Hz from 1 kHz
+    assert count[f'{NODE}/centerline'] == 10                 # 30 Hz default: every 33 steps
     assert main(['replay', str(tmp_path / 'nope.npz'), str(bag), '-o',
                  str(tmp_path / 'x')]) == 2
 

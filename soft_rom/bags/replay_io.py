@@ -49,10 +49,9 @@ from soft_rom.predictor import Predictor, replay_episode, ReplayResult
 from soft_rom.predictor.conversions import (
     check_components,
     model_info_json,
-    outputs_to_points,
-    points_to_outputs,
-    poses_to_points,
     ns_to_stamp,
+    outputs_to_points,
+    poses_to_points,
     stamp_to_ns,
 )
 from soft_rom.predictor.loop import Diagnostics, LoopSettings, MARKER_STYLES, Publish, RuntimeLoop

@@ -1,4 +1,4 @@
-"""Settings and health of the predictor: :class:`PredictorConfig`, :class:`Level`, :class:`Health`."""
+"""Settings and health levels of the predictor: PredictorConfig, Level, Health."""
 
 from __future__ import annotations
 

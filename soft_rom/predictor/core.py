@@ -56,7 +56,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.errors import ModelFileError
-from soft_rom.models import LinearROM, load_model
+from soft_rom.models import load_model
 from soft_rom.predictor.channels import ChannelStats
 from soft_rom.predictor.config import Health, Level, PredictorConfig, REBUILD_FIELDS, SEVERITY
 from soft_rom.predictor.dynamics import Dynamics

@@ -30,8 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.errors import ConfigError
 from soft_rom.predictor.config import Health, PredictorConfig
-from soft_rom.predictor.conversions import check_components, outputs_to_points, \
-    points_to_outputs
+from soft_rom.predictor.conversions import check_components, outputs_to_points, points_to_outputs
 from soft_rom.predictor.core import Predictor
 
 __all__ = ['Diagnostics', 'LoopSettings', 'MARKER_STYLES', 'Publish', 'RuntimeLoop']
