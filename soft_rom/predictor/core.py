@@ -140,7 +140,8 @@ class Predictor:
         self._dy = np.zeros(d.p)
         self._dev = np.zeros(d.p)
         self.channels = ChannelStats(list(self.model.input_names))
-        self._bound2 = self._env.y_bound ** 2
+        slack = self._env.y_bound - float(np.linalg.norm(self._dyn.y_ref))
+        self._fast2 = slack * slack if slack > 0 else -1.0
         self._hist = np.zeros((_HISTORY, d.p))
         self._hist_k = np.full(_HISTORY, _NONE, dtype=np.int64)
         self._monitor = ErrorMonitor(self.config.error_window,
@@ -611,11 +612,12 @@ class Predictor:
     def _check_output(self, t_ns: int | None, y: Array | None = None) -> bool:
         """Divergence check; returns False if the state was found outside the envelope."""
         y = self._output_into(self._y) if y is None else y
-        np.subtract(y, self._dyn.y_ref, out=self._dev)
-        # fast path: |dev|_inf <= |dev|_2 <= bound (NaN fails every comparison)
-        if float(self._dev @ self._dev) <= self._bound2 and float(self.x @ self.x) < math.inf:
+        # fast path: |y - y_ref|_inf <= |y|_2 + |y_ref|_2 <= bound (one dot; NaN fails every
+        # comparison). A non-finite state always reaches y through C x (0 * inf is NaN).
+        if float(y @ y) <= self._fast2:
             self._diverged_latched = False
             return True
+        np.subtract(y, self._dyn.y_ref, out=self._dev)
         dev = float(np.max(np.abs(self._dev))) if self._dev.size else 0.0
         if self._env.output_ok(dev) and math.isfinite(float(self.x.sum())):
             self._diverged_latched = False
