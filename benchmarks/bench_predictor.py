@@ -31,7 +31,6 @@ import numpy as np
 from soft_rom.data import Episode
 from soft_rom.models import SecondOrderModel
 from soft_rom.predictor import Predictor, PredictorConfig, replay_episode
-from soft_rom.predictor.loop import LoopSettings, RuntimeLoop
 from soft_rom.predictor.conversions import (
     array_to_data,
     data_to_array,
@@ -39,6 +38,7 @@ from soft_rom.predictor.conversions import (
     poses_to_points,
     set_points,
 )
+from soft_rom.predictor.loop import LoopSettings, RuntimeLoop
 
 
 def _model(r: int, m: int = 6, p: int = 40, seed: int = 0) -> SecondOrderModel:

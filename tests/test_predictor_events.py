@@ -322,9 +322,27 @@ def test_loop_schedules_outputs_centerline_and_diagnostics() -> None:
     assert float(kv['input.chamber_1.rate_hz']) == pytest.approx(1000.0, rel=0.01)
     assert float(kv['measured.rate_hz']) == pytest.approx(1000.0, rel=0.01)
     assert kv['input.chamber_2.late'] == '0' and kv['input.chamber_3.timed_out'] == 'false'
-    assert float(kv['input.chamber_1.age_s']) == pytest.approx(3e-4, abs=1e-6)
+    assert float(kv['input.chamber_1.age_s']) == pytest.approx(1e-4, abs=1e-7)   # received
+    assert float(kv['input.chamber_1.stamp_lag_s']) == 0.0
     assert diags[-1].level == int(Level.OK)
     assert loop.timer_period_ns() == 250_000_000         # event stepping: diagnostics only
+
+
+def test_sensor_clock_far_from_the_node_clock_is_fine_until_messages_stop() -> None:
+    model = _model(m=3)
+    loop = RuntimeLoop(Predictor(model, PredictorConfig(input_timeout_s=0.1)))
+    offset = 3 * 3600 * 10 ** 9                         # the sensors stamp 3 h behind the node
+    U = _inputs(3, 500, seed=8)
+    for j in range(500):
+        t = T0_NS + j * H_NS
+        loop.on_array(U[:, j], t - offset, t)
+        loop.on_measured(loop.predictor.output(), t - offset, t)
+    d = loop.diagnostics(T0_NS + 500 * H_NS)
+    assert d.level == int(Level.OK), d.message
+    d = loop.diagnostics(T0_NS + 800 * H_NS)             # 0.3 s without a message
+    assert d.level == int(Level.STALE) and 'nothing received' in d.message
+    d = loop.diagnostics(T0_NS + 3000 * H_NS)            # and no measurement for 2.5 s
+    assert 'no measurement received' in d.message
 
 
 def test_loop_zero_stamp_falls_back_to_reception_time_and_scales_inputs() -> None:

@@ -161,6 +161,8 @@ class RuntimeLoop:
         self._last_t: int | None = None
         self._measured: Array | None = None
         self._rate_mark: tuple[int, list[int], int, int, int] | None = None
+        self._recv: list[int | None] = [None] * pred.model.n_inputs
+        self._recv_measured: int | None = None
         pred.take_emitted()
 
     def set_settings(self, settings: LoopSettings) -> None:
@@ -218,8 +220,9 @@ class RuntimeLoop:
     def on_channel(self, index: int, value: float, stamp_ns: int, now_ns: int) -> Publish:
         """One per-chamber value (raw units; scale and offset applied here)."""
         s = self.settings
-        self.predictor.set_channel_ns(index, s.input_scale * value + s.input_offset,
-                                      self._stamp(stamp_ns, now_ns))
+        if self.predictor.set_channel_ns(index, s.input_scale * value + s.input_offset,
+                                         self._stamp(stamp_ns, now_ns)):
+            self._recv[index] = now_ns
         return self._collect(now_ns)
 
     def on_array(self, values: ArrayLike, stamp_ns: int, now_ns: int) -> Publish:
@@ -228,7 +231,8 @@ class RuntimeLoop:
         u = np.asarray(values, dtype=np.float64).reshape(-1)
         if s.input_scale != 1.0 or s.input_offset != 0.0:
             u = s.input_scale * u + s.input_offset
-        self.predictor.set_input_ns(u, self._stamp(stamp_ns, now_ns))
+        if self.predictor.set_input_ns(u, self._stamp(stamp_ns, now_ns)):
+            self._recv = [now_ns] * len(self._recv)
         return self._collect(now_ns)
 
     def on_measured(self, measured: ArrayLike, stamp_ns: int, now_ns: int) -> Publish:
@@ -244,6 +248,7 @@ class RuntimeLoop:
         pred.measure_ns(arr, self._stamp(stamp_ns, now_ns))
         if pred.counters['measured_dropped'] == before:     # compared, or queued
             self._measured = arr
+            self._recv_measured = now_ns
         return self._collect(now_ns)
 
     def measured_points(self) -> Array | None:
@@ -285,7 +290,7 @@ class RuntimeLoop:
                 if self._measured is not None:
                     pub.measured_points = outputs_to_points(self._measured, s.components,
                                                             s.fill_value)
-                err = pred.windowed_error(now_ns)
+                err = pred.windowed_error(pred.stamp_now())
                 pub.error = err if math.isfinite(err) else None
                 self._next_cl = t_last + self._cl_period
                 self.counts['centerlines'] += 1
@@ -301,23 +306,50 @@ class RuntimeLoop:
     # -- diagnostics -----------------------------------------------------------------
     def diagnostics(self, now_ns: int, extra: list[tuple[str, str]] | None = None
                     ) -> Diagnostics:
-        """Health at ``now_ns`` with global and per-input figures (rates since last call)."""
+        """Health with global and per-input figures (rates since the last call).
+
+        The predictor's health is judged on the stamps' clock; ``now_ns`` is the reception
+        clock, on which the loop adds: inputs from which nothing was received for longer
+        than ``input_timeout_s``, measurements stopped for longer than ``error_window_s``.
+        Per input: ``rate_hz``, ``age_s`` (since the last message received), ``stamp_lag_s``
+        (behind the newest input stamp), ``received``, ``late``, ``dropped``, ``clipped``,
+        ``timed_out``.
+        """
+        from soft_rom.predictor.config import Level, SEVERITY
+
         pred = self.predictor
-        health = pred.health(int(now_ns))
+        cfg = pred.config
+        health = pred.health()
+        reasons = [(health.level, health.message)] if health.level != Level.OK else []
         values = [(str(k), _fmt(v)) for k, v in health.values.items()]
         ch = pred.channels
         mark = self._rate_mark
         dt = (now_ns - mark[0]) * 1e-9 if mark is not None else 0.0
+        newest = ch.newest_max()
+        silent = []
         for i, name in enumerate(ch.names):
-            age = math.inf if ch.newest[i] == -(2 ** 63) else (now_ns - ch.newest[i]) * 1e-9
+            recv = self._recv[i]
+            age = math.inf if recv is None else (now_ns - recv) * 1e-9
+            if recv is not None and age > cfg.input_timeout_s:
+                silent.append(f'{name} {age:.2f} s')
+            lag = math.inf if ch.newest[i] == -(2 ** 63) else (newest - ch.newest[i]) * 1e-9
             rate = (ch.received[i] - mark[1][i]) / dt if mark and dt > 0 else math.nan
             values += [(f'input.{name}.rate_hz', _fmt(float(rate))),
                        (f'input.{name}.age_s', _fmt(float(age))),
+                       (f'input.{name}.stamp_lag_s', _fmt(float(lag))),
                        (f'input.{name}.received', str(ch.received[i])),
                        (f'input.{name}.late', str(ch.late[i])),
                        (f'input.{name}.dropped', str(ch.dropped[i])),
                        (f'input.{name}.clipped', str(ch.clipped[i])),
                        (f'input.{name}.timed_out', str(ch.timed_out[i]).lower())]
+        if silent:
+            reasons.append((Level.STALE, f'nothing received from input(s) {", ".join(silent)} '
+                                         f'(timeout {cfg.input_timeout_s:g} s)'))
+        if self._recv_measured is not None:
+            m_age = (now_ns - self._recv_measured) * 1e-9
+            values.append(('measured.age_s', _fmt(float(m_age))))
+            if m_age > cfg.error_window_s:
+                reasons.append((Level.STALE, f'no measurement received for {m_age:.2f} s'))
         m_rate = (ch.measured - mark[2]) / dt if mark and dt > 0 else math.nan
         o_rate = (self.counts['outputs'] - mark[3]) / dt if mark and dt > 0 else math.nan
         values += [('measured.rate_hz', _fmt(float(m_rate))),
@@ -329,4 +361,6 @@ class RuntimeLoop:
         self._rate_mark = (int(now_ns), list(ch.received), ch.measured, self.counts['outputs'],
                            pred.counters['inputs'])
         self.counts['diagnostics'] += 1
-        return Diagnostics(int(health.level), health.message, values, health)
+        level = max((lv for lv, _ in reasons), key=SEVERITY.__getitem__, default=Level.OK)
+        message = '; '.join(msg for _, msg in reasons) or 'ok'
+        return Diagnostics(int(level), message, values, health)
