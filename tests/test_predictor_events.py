@@ -345,6 +345,16 @@ def test_sensor_clock_far_from_the_node_clock_is_fine_until_messages_stop() -> N
     assert 'no measurement received' in d.message
 
 
+def test_stalled_sensor_clock_is_reported() -> None:
+    loop = RuntimeLoop(Predictor(_model(m=3), PredictorConfig(input_timeout_s=0.1)))
+    for j in range(400):                                 # stamps stop at step 100
+        stamp = T0_NS + min(j, 100) * H_NS
+        loop.on_array(np.zeros(3), stamp, T0_NS + j * H_NS)
+    d = loop.diagnostics(T0_NS + 400 * H_NS)
+    assert d.level == int(Level.WARN) and 'stamps not advancing' in d.message
+    assert loop.predictor.counters['late'] == 299       # each repeat applied from now on
+
+
 def test_loop_zero_stamp_falls_back_to_reception_time_and_scales_inputs() -> None:
     model = _model(m=3)
     loop = RuntimeLoop(Predictor(model), LoopSettings(input_scale=1e-3, input_offset=1.0))

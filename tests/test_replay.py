@@ -237,3 +237,16 @@ def test_cli_replay_stream(tmp_path, capsys) -> None:
     data = json.loads(summary.read_text())
     assert data['messages']['inputs'] == 60 and data['messages']['measured'] == 60
     assert data['relative_error'] <= 1e-12
+
+
+def test_bags_do_not_import_the_ros_package() -> None:
+    import ast
+    from pathlib import Path
+
+    import soft_rom.bags
+
+    for path in Path(soft_rom.bags.__file__).parent.glob('*.py'):
+        tree = ast.parse(path.read_text(encoding='utf-8'))
+        names = [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+        names += [n.module or '' for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+        assert not [n for n in names if n.startswith('soft_rom.ros')], path.name

@@ -162,6 +162,8 @@ class RuntimeLoop:
         self._measured: Array | None = None
         self._rate_mark: tuple[int, list[int], int, int, int] | None = None
         self._recv: list[int | None] = [None] * pred.model.n_inputs
+        self._moved: list[int | None] = [None] * pred.model.n_inputs    # stamp last advanced
+        self._seen = list(pred.channels.newest)
         self._recv_measured: int | None = None
         pred.take_emitted()
 
@@ -222,7 +224,7 @@ class RuntimeLoop:
         s = self.settings
         if self.predictor.set_channel_ns(index, s.input_scale * value + s.input_offset,
                                          self._stamp(stamp_ns, now_ns)):
-            self._recv[index] = now_ns
+            self._received(index, now_ns)
         return self._collect(now_ns)
 
     def on_array(self, values: ArrayLike, stamp_ns: int, now_ns: int) -> Publish:
@@ -232,8 +234,16 @@ class RuntimeLoop:
         if s.input_scale != 1.0 or s.input_offset != 0.0:
             u = s.input_scale * u + s.input_offset
         if self.predictor.set_input_ns(u, self._stamp(stamp_ns, now_ns)):
-            self._recv = [now_ns] * len(self._recv)
+            for i in range(len(self._recv)):
+                self._received(i, now_ns)
         return self._collect(now_ns)
+
+    def _received(self, i: int, now_ns: int) -> None:
+        self._recv[i] = now_ns
+        newest = self.predictor.channels.newest[i]
+        if newest != self._seen[i] or self._moved[i] is None:
+            self._seen[i] = newest
+            self._moved[i] = now_ns
 
     def on_measured(self, measured: ArrayLike, stamp_ns: int, now_ns: int) -> Publish:
         """A measured output: points ``(N, 3)`` (centerline) or the vector ``(p,)``."""
@@ -345,6 +355,12 @@ class RuntimeLoop:
         if silent:
             reasons.append((Level.STALE, f'nothing received from input(s) {", ".join(silent)} '
                                          f'(timeout {cfg.input_timeout_s:g} s)'))
+        stalled = [f'{name} {(now_ns - moved) * 1e-9:.2f} s' for name, recv, moved in zip(
+            ch.names, self._recv, self._moved) if recv is not None and moved is not None
+            and recv > moved and now_ns - moved > cfg.input_timeout_s * 1e9]
+        if stalled:
+            reasons.append((Level.WARN, f'stamps not advancing (clock stalled?) on input(s) '
+                                        f'{", ".join(stalled)} while messages arrive'))
         if self._recv_measured is not None:
             m_age = (now_ns - self._recv_measured) * 1e-9
             values.append(('measured.age_s', _fmt(float(m_age))))
