@@ -13,12 +13,15 @@ Stepping (:attr:`PredictorConfig.stepping`)
 ``'event'`` (default): steps of ``h`` on a grid aligned to whole multiples of ``h`` (epoch
 aligned); a stamp belongs to the nearest grid step. Inputs are queued and the model
 advances to the *watermark* -- the smallest over inputs of their newest step -- and never
-past it, so inputs arriving in any order whose step is not yet taken are applied at their
-stamp: the outputs equal ``model.simulate(U)``. An input whose newest stamp trails the
+past it, so inputs arriving in any order across inputs whose step is not yet taken are
+applied at their stamp: the outputs equal ``model.simulate(U)``. Each input's own messages
+are assumed in stamp order (a ROS topic delivers a publisher's messages in order); an
+older stamp of the same input is still applied at its step if that step is not taken. An input whose newest stamp trails the
 newest stamp of all inputs by more than ``input_timeout_s`` stops holding the model back
 (value held, ``STALE``, counted ``timeouts``); ``max_lag_s`` caps how far the model trails
 the newest stamp (counted ``lag_forced``). Measurements are compared with the prediction
-at their own step (kept in a short history) once the model has reached it.
+at their own step once the model has reached it (the last 512 steps are kept for
+measurements that arrive after the model passed their step).
 Inputs for a step already taken are applied from the current step on (``late``).
 
 ``'fixed'``: a clock drives the model (:meth:`Predictor.advance_to_ns` takes every whole
