@@ -17,8 +17,9 @@ past it, so inputs arriving in any order across inputs whose step is not yet tak
 applied at their stamp: the outputs equal ``model.simulate(U)``. Each input's own messages
 are assumed in stamp order (a ROS topic delivers a publisher's messages in order); an
 older stamp of the same input is still applied at its step if that step is not taken.
-An input whose newest stamp trails the newest stamp of all inputs by more than ``input_timeout_s`` stops holding the model back
-(value held, ``STALE``, counted ``timeouts``); ``max_lag_s`` caps how far the model trails
+An input whose newest stamp trails the newest stamp of all inputs by more than
+``input_timeout_s`` stops holding the model back (value held, ``STALE``, counted
+``timeouts``); ``max_lag_s`` caps how far the model trails
 the newest stamp (counted ``lag_forced``). Measurements are compared with the prediction
 at their own step once the model has reached it (the last 512 steps are kept for
 measurements that arrive after the model passed their step).
