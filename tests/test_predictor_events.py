@@ -421,6 +421,34 @@ def test_nonlinear_model_protocol_runs_in_the_predictor() -> None:
     assert pred.info['class'] == '_Cubic' and pred.info['stability_margin'] is None
 
 
+class _SteppedSecondOrder(SecondOrderModel):
+    """A LinearROM subclass that says it is non-linear and offers step/step_jacobian only."""
+
+    is_nonlinear = True
+
+    def step(self, x, u, dt=None):
+        s = self.discretize(self.dt if dt is None else dt)
+        return s.A @ x + s.B @ u + 0.0 * np.tanh(x)          # through the generic path
+
+    def step_jacobian(self, x, u, dt=None):
+        s = self.discretize(self.dt if dt is None else dt)
+        return self.step(x, u, dt), s.A, s.B
+
+
+def test_nonlinear_flagged_linear_rom_subclass_takes_the_generic_path() -> None:
+    base = _model(m=3)
+    model = _SteppedSecondOrder(base.K, base.C, base.B, base.E, dt=DT, y_ref=base.y_ref)
+    pred = Predictor(model, PredictorConfig(kalman=True))
+    assert not pred._dyn.linear and pred._dyn.L is not None
+    U = _inputs(3, 300, seed=9)
+    Y = base.simulate(U)
+    got = []
+    for j in range(300):
+        pred.set_input_ns(U[:, j], T0_NS + j * H_NS)
+        got.append(pred.output())
+    assert np.abs(np.array(got).T - Y).max() <= 1e-12 * np.abs(Y).max()
+
+
 def test_training_envelope_from_episodes() -> None:
     U = np.array([[0.0, 1.0, -2.0], [5.0, 5.0, 6.0]])
     Y = np.array([[1.0, 1.5, 0.0]])
