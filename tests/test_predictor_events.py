@@ -263,7 +263,7 @@ def test_error_expires_with_time_and_goes_stale() -> None:
     assert math.isnan(pred.windowed_error(T0_NS + 799 * H_NS))
 
 
-@pytest.mark.parametrize('stepping', ['fixed', 'event'])
+@pytest.mark.parametrize('stepping', ['fixed', 'event', 'input'])
 def test_clock_stall_of_60_s_is_reported(stepping: str) -> None:
     pred = Predictor(_model(m=3), PredictorConfig(stepping=stepping, max_catchup_steps=10000))
     pred.set_input_ns(np.zeros(3), T0_NS)

@@ -80,6 +80,7 @@ class Stepping:
         if self._k is None:
             self._anchor(t_ns, exact=self.config.stepping != 'event')
             if self.config.stepping == 'event':
+                self._first = t_ns
                 self._release(self._k)
             return 0
         if self.config.stepping == 'event':
@@ -98,6 +99,13 @@ class Stepping:
             if n:
                 self._check_output(self.t_ns)
             return n
+        limit_ns = int(self.config.max_catchup_steps * d.h_ns)
+        if elapsed > limit_ns:          # exact stepping: the state is held over the gap too
+            self.counters['catchup_skipped'] += int((elapsed - limit_ns) // d.h_ns)
+            self.counters['clock_jump'] += 1
+            self._alarm('clock', t_ns, f'clock stalled or jumped: {elapsed * 1e-9:.3g} s '
+                                       'in one step, state held')
+            elapsed = limit_ns
         A, B = d.matrices_for(elapsed)
         self.x = A @ self.x + B @ self.u
         self._origin, self._k = t_ns, 0
