@@ -356,6 +356,37 @@ def test_stalled_sensor_clock_is_reported() -> None:
     assert loop.predictor.counters['late'] == 299       # each repeat applied from now on
 
 
+def test_loop_reload_and_settings_at_run_time(tmp_path) -> None:
+    from soft_rom.errors import ModelFileError
+
+    model = _model(m=3)
+    loop = RuntimeLoop(Predictor(model))
+    for j in range(50):
+        loop.on_array(np.ones(3), T0_NS + j * H_NS, T0_NS + j * H_NS)
+    x = loop.predictor.x.copy()
+    bad = tmp_path / 'bad.npz'
+    bad.write_bytes(b'not a zip')
+    with pytest.raises(ModelFileError):
+        loop.reload(bad)
+    odd = _model(m=3, p=9)                                # 9 outputs do not split into xz
+    with pytest.raises(ValueError, match='components'):
+        loop.reload(odd)
+    assert loop.predictor.model is model and np.array_equal(loop.predictor.x, x)
+    loop.replace_settings(output_rate_hz=100.0)
+    outs = []
+    for j in range(50, 100):
+        outs += loop.on_array(np.ones(3), T0_NS + j * H_NS, T0_NS + j * H_NS).outputs
+    assert [t for t, _ in outs] == [T0_NS + j * H_NS for j in range(50, 100, 10)]
+    assert loop.diagnostics(T0_NS + 100 * H_NS).level == int(Level.OK)
+    loop.set_config(loop.predictor.config.replace(warn_threshold=0.05))
+    assert np.array_equal(loop.predictor.u, np.ones(3))
+    path = _model(m=3, seed=4).save(tmp_path / 'new.npz')
+    loop.reload(path)
+    assert loop.predictor.info['sha256'] and loop.predictor.t_ns == T0_NS + 99 * H_NS
+    outs = loop.on_array(np.ones(3), T0_NS + 100 * H_NS, T0_NS + 100 * H_NS).outputs
+    assert [t for t, _ in outs] == [T0_NS + 100 * H_NS]
+
+
 def test_loop_zero_stamp_falls_back_to_reception_time_and_scales_inputs() -> None:
     model = _model(m=3)
     loop = RuntimeLoop(Predictor(model), LoopSettings(input_scale=1e-3, input_offset=1.0))

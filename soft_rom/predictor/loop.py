@@ -148,7 +148,8 @@ class RuntimeLoop:
         self._install()
 
     # -- configuration -------------------------------------------------------------------
-    def _install(self) -> None:
+    def _install(self, keep_figures: bool = False) -> None:
+        """(Re)build the schedule; ``keep_figures`` keeps the reception figures and rates."""
         pred = self.predictor
         check_components(self.settings.components, pred.model.n_outputs)
         self._n_points = pred.model.n_outputs // len(self.settings.components)
@@ -159,19 +160,21 @@ class RuntimeLoop:
         self._next_cl: int | None = None
         self._next_diag: int | None = None
         self._last_t: int | None = None
+        pred.take_emitted()
+        if keep_figures and len(self._recv) == pred.model.n_inputs:
+            return
         self._measured: Array | None = None
         self._rate_mark: tuple[int, list[int], int, int, int] | None = None
         self._recv: list[int | None] = [None] * pred.model.n_inputs
         self._moved: list[int | None] = [None] * pred.model.n_inputs    # stamp last advanced
         self._seen = list(pred.channels.newest)
         self._recv_measured: int | None = None
-        pred.take_emitted()
 
     def set_settings(self, settings: LoopSettings) -> None:
         """New publish rates / conversion (checked against the model first)."""
         check_components(settings.components, self.predictor.model.n_outputs)
         self.settings = settings
-        self._install()
+        self._install(keep_figures=True)
 
     def replace_settings(self, **changes: Any) -> None:
         """:meth:`set_settings` with some fields changed."""
@@ -210,7 +213,7 @@ class RuntimeLoop:
         """Change core settings (see :meth:`Predictor.set_config`)."""
         self.predictor.set_config(config)
         self.predictor.emit_outputs = True
-        self._install()
+        self._install(keep_figures=True)
 
     # -- feeding -------------------------------------------------------------------------
     def _stamp(self, stamp_ns: int, now_ns: int) -> int:
