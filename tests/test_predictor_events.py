@@ -288,6 +288,7 @@ def test_non_finite_times_are_refused_without_freezing_or_raising(stepping: str)
     assert not pred.set_channel(0, 1.0, math.inf)
     assert pred.measure(pred.output(), math.nan) is None
     assert pred.counters['bad_time'] == 6
+    assert 'time not finite or out of range' in pred.health().message     # said, counted
     assert pred.set_input(np.ones(3), 1.0) and pred.t == 1.0          # not frozen
     assert pred.advance_to(math.inf) == 0 and pred.t == 1.0
     assert pred.set_input(np.ones(3), 1.001) and pred.t == pytest.approx(1.001, abs=1e-12)

@@ -4,28 +4,32 @@
 (:mod:`soft_rom.ros.predictor_node`) publishes, under the node's name
 (default ``soft_rom_predictor``):
 
-================================== ====================================== =====================
+================================== ====================================== ======================
 topic                              type                                   when
-================================== ====================================== =====================
-``/<node>/centerline``             ``geometry_msgs/msg/PoseArray``        every published step
+================================== ====================================== ======================
+``/<node>/output``                 ``std_msgs/msg/Float64MultiArray``     every step (or at the
+                                                                          output rate)
+``/<node>/centerline``             ``geometry_msgs/msg/PoseArray``        at the centerline rate
 ``/<node>/centerline_marker``      ``visualization_msgs/msg/Marker``      idem (ns ``predicted``,
                                                                           and ``measured``)
-``/<node>/output``                 ``std_msgs/msg/Float64MultiArray``     every published step
-``/<node>/error``                  ``std_msgs/msg/Float64``               with measurements
+``/<node>/error``                  ``std_msgs/msg/Float64``               idem, with measurements
 ``/diagnostics``                   ``diagnostic_msgs/msg/DiagnosticArray`` every period
 ``/<node>/model_info``             ``std_msgs/msg/String`` (JSON)         once, transient local
-================================== ====================================== =====================
+================================== ====================================== ======================
 
-:func:`replay_to_bag` runs a :class:`~soft_rom.predictor.Predictor` over an episode and
-writes those topics; :func:`replay_stream_to_bag` feeds a bag's messages one by one with
-their own stamps and emulates the node's publish timer (what the node does under
-``ros2 bag play --clock`` with ``use_sim_time``); :func:`write_input_bag` writes an
-episode as the *inputs* of the bag contract (pressures per chamber or as one array,
-measured centerline), for tests and demos; :func:`read_messages` reads any bag back as
-deserialized messages.
+What is due when is decided by the node's own
+:class:`~soft_rom.predictor.loop.RuntimeLoop`, so a replay bag holds what the node would
+have published. :func:`replay_to_bag` runs the loop over an episode;
+:func:`replay_stream_to_bag` feeds a bag's messages one by one with their own stamps and
+the bag time as reception clock (what the node does under ``ros2 bag play --clock`` with
+``use_sim_time``); :func:`write_input_bag` writes an episode as the *inputs* of the bag
+contract (pressures per chamber or as one array, measured centerline), for tests and
+demos; :func:`read_messages` / :func:`read_messages_ns` read any bag back as deserialized
+messages.
 
 Both rosbag2 storage formats are supported: ``'sqlite3'`` and ``'mcap'`` (Jazzy's
-default). Bag time stamps are nanoseconds here and seconds everywhere else.
+default). Times are int nanoseconds (exact at epoch stamps); the writer also takes float
+seconds.
 """
 
 from __future__ import annotations
@@ -72,6 +76,7 @@ __all__ = [
     'DEFAULT_NODE_NAME',
     'PredictionBagWriter',
     'read_messages',
+    'read_messages_ns',
     'replay_stream_to_bag',
     'replay_to_bag',
     'storage_plugin',

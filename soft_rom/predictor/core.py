@@ -275,7 +275,9 @@ class Predictor(Stepping):
             self._k = self._step_of(t_ns)
 
     def _alarm(self, key: str, t_ns: int | None, why: str) -> None:
-        self._alarms[key] = (self.t_ns if t_ns is None else t_ns) or 0, why
+        """Remember a WARN/ERROR event at ``t_ns`` (default the newest known time)."""
+        when = self.stamp_now() if t_ns is None else t_ns
+        self._alarms[key] = (_NONE if when is None else when), why
 
     def _bad_time(self, what: str) -> bool:
         self.counters['bad_time'] += 1
