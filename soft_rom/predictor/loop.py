@@ -295,8 +295,10 @@ class RuntimeLoop:
                         self._next_out = t_e + self._out_period
             else:
                 pub.outputs = emitted
-            t_last, y_last = emitted[-1]
-            if not self._cl_period or self._next_cl is None or t_last >= self._next_cl:
+            t_last, y_last = pub.outputs[-1] if not self._cl_period and pub.outputs \
+                else emitted[-1]
+            if (pub.outputs if not self._cl_period else
+                    self._next_cl is None or t_last >= self._next_cl):
                 s = self.settings
                 pub.centerline = (t_last, outputs_to_points(y_last, s.components,
                                                             s.fill_value))
