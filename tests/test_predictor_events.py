@@ -433,6 +433,16 @@ def test_unstamped_slower_sender_gets_its_own_period() -> None:
     assert abs(times[-1] - int(recv[-1])) <= 100 * H_NS  # never far from the reception clock
 
 
+def test_unstamped_sender_faster_than_the_model_never_runs_ahead_or_back() -> None:
+    from soft_rom.predictor.loop import SequenceClock
+
+    clock = SequenceClock(H_NS, 100 * H_NS)
+    stamps = [clock.stamp(T0_NS + j * H_NS // 2) for j in range(2000)]     # 2 kHz sender
+    assert all(b >= a for a, b in zip(stamps, stamps[1:]))                  # never backwards
+    lead = max(s - (T0_NS + j * H_NS // 2) for j, s in enumerate(stamps))
+    assert lead <= 101 * H_NS and clock.resyncs > 0
+
+
 def test_loop_zero_stamp_falls_back_to_reception_time_and_scales_inputs() -> None:
     model = _model(m=3)
     loop = RuntimeLoop(Predictor(model), LoopSettings(input_scale=1e-3, input_offset=1.0))

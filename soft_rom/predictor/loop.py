@@ -131,7 +131,8 @@ class SequenceClock:
     (so a 1 kHz sender on a 1 kHz model gets exactly one step per message, however the
     executor bunches them). When that sequence and the reception clock disagree by more
     than ``resync_ns`` (a pause, lost messages, a different rate) the reception time is
-    taken instead (counted in :attr:`resyncs`). Until 8 intervals are seen the period is
+    taken instead when it is later, or the previous stamp when the sequence ran ahead (stamps
+    never go backwards); both counted in :attr:`resyncs`. Until 8 intervals are seen the period is
     taken to be one step (the recommended set-up: the sender at the model rate).
 
     Parameters
@@ -166,6 +167,9 @@ class SequenceClock:
             candidate = self.last + self.period
             if abs(now_ns - candidate) <= self.resync_ns:
                 t = candidate
+            elif now_ns < candidate:    # far ahead of the reception clock: never backwards,
+                t = self.last           # hold (the message joins the current step)
+                self.resyncs += 1
             else:
                 self.resyncs += 1
         self.last = t
