@@ -127,7 +127,8 @@ class SequenceClock:
     """Stamps for un-stamped messages: the sender's sequence, not the reception jitter.
 
     A message without a stamp is placed one *sender period* after the previous one; the
-    period is the median of the last 64 reception intervals, rounded to whole steps ``h``
+    period is the mean reception interval over the last 64 messages (a burst after a stall
+    averages out), rounded to whole steps ``h``
     (so a 1 kHz sender on a 1 kHz model gets exactly one step per message, however the
     executor bunches them). When that sequence and the reception clock disagree by more
     than ``resync_ns`` (a pause, lost messages, a different rate) the reception time is
@@ -150,17 +151,17 @@ class SequenceClock:
         self.last_received: int | None = None
         self.period = self.h_ns
         self.resyncs = 0
-        self._intervals: deque[int] = deque(maxlen=64)
+        self._times: deque[int] = deque(maxlen=65)
         self._count = 0
 
     def stamp(self, now_ns: int) -> int:
         """The stamp of a message received at ``now_ns``."""
-        if self.last_received is not None:
-            self._intervals.append(now_ns - self.last_received)
-            self._count += 1
-            if len(self._intervals) >= 8 and (self._count == 8 or self._count % 16 == 0):
-                med = sorted(self._intervals)[len(self._intervals) // 2]
-                self.period = max(1, round(med / self.h_ns)) * self.h_ns
+        self._times.append(now_ns)
+        self._count += 1
+        n = len(self._times)
+        if n >= 9 and (self._count == 9 or self._count % 16 == 0):
+            mean = (self._times[-1] - self._times[0]) / (n - 1)
+            self.period = max(1, round(mean / self.h_ns)) * self.h_ns
         self.last_received = now_ns
         t = now_ns
         if self.last is not None:
