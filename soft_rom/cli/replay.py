@@ -61,8 +61,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser.add_argument('--measurement-noise', type=finite_float(0.0, lo_open=True),
                         default=None,
                         help='Kalman measurement noise variance')
-    parser.add_argument('--stepping', choices=('fixed', 'input'), default=None,
-                        help='fixed integration rate or stepping by input stamps')
+    parser.add_argument('--stepping', choices=('event', 'fixed', 'input'), default=None,
+                        help='event time (the newest time every input is known; the node\'s '
+                             'default), a fixed integration rate, or a step to each input stamp')
     parser.add_argument('--publish-rate', type=finite_float(0.0, 1e6), default=None,
                         help='publish rate in Hz, 0 = every step (default: the params file, '
                              'else every step)')
@@ -138,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
     from soft_rom.models import load_model
     from soft_rom.outputs import atomic_new_dir
     from soft_rom.predictor import kalman_vs_open_loop, Predictor
-    from soft_rom.ros.params import load_params_file, predictor_config
+    from soft_rom.predictor.params import load_params_file, predictor_config
 
     _check_paths(args)
     if not Path(args.bag).exists():
@@ -166,6 +167,7 @@ def run(args: argparse.Namespace) -> int:
                   disable=args.quiet) as bar:
             result = replay_to_bag(
                 predictor, episode, stage, storage=args.storage, publish_every=every,
+                centerline_rate_hz=float(values.get('centerline_rate_hz', 30.0)),
                 measured=measured, node_name=args.node_name,
                 frame_id=str(values.get('frame_id', 'world')),
                 components=str(values.get('output_components', 'xz')), overwrite=False,
@@ -205,7 +207,7 @@ def _run_stream(args: argparse.Namespace, values: dict[str, Any], predictor: Any
     """``replay --stream``: message by message, with the node's parameters."""
     from soft_rom.bags.replay_io import replay_stream_to_bag
     from soft_rom.outputs import atomic_new_dir
-    from soft_rom.ros.params import PARAMS
+    from soft_rom.predictor.params import PARAMS
 
     v = {p.name: p.default for p in PARAMS}
     v.update(values)
@@ -217,7 +219,8 @@ def _run_stream(args: argparse.Namespace, values: dict[str, Any], predictor: Any
             input_scale=float(v['input_scale']), input_offset=float(v['input_offset']),
             measured_topic='' if args.no_measured else str(v['measured_topic']),
             components=str(v['output_components']),
-            publish_rate_hz=float(v['publish_rate_hz']), storage=args.storage,
+            publish_rate_hz=float(v['publish_rate_hz']),
+            centerline_rate_hz=float(v['centerline_rate_hz']), storage=args.storage,
             node_name=args.node_name, frame_id=str(v['frame_id']), overwrite=False)
     model = predictor.model
     health = predictor.health()
