@@ -62,8 +62,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         default=None,
                         help='Kalman measurement noise variance')
     parser.add_argument('--stepping', choices=('event', 'fixed', 'input'), default=None,
-                        help='event time (the newest time every input is known; the node\'s '
-                             'default), a fixed integration rate, or a step to each input stamp')
+                        help='event time (the newest time every input is known; default of the '
+                             'node), a fixed integration rate, or a step to each input stamp')
     parser.add_argument('--publish-rate', type=finite_float(0.0, 1e6), default=None,
                         help='publish rate in Hz, 0 = every step (default: the params file, '
                              'else every step)')
