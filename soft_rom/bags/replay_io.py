@@ -49,6 +49,7 @@ from rosbags.typesys import get_typestore, Stores
 
 from soft_rom.data import Episode
 from soft_rom.errors import BagError
+from soft_rom.metrics import relative_error_from_squares
 from soft_rom.predictor import Predictor, replay_episode, ReplayResult
 from soft_rom.predictor.conversions import (
     check_components,
@@ -572,10 +573,11 @@ def replay_stream_to_bag(predictor: Predictor, bag: str | os.PathLike[str],
     counts['published'] = loop.counts['outputs']
     e2, y2, d2 = (a - b for a, b in zip(predictor.totals, totals_before))
     n_meas = predictor.counters['measurements']
-    tiny = np.finfo(float).tiny
     return {
-        'relative_error': math.sqrt(e2 / max(y2, tiny)) if n_meas else math.nan,
-        'relative_deviation_error': math.sqrt(e2 / max(d2, tiny)) if n_meas else math.nan,
+        'relative_error': relative_error_from_squares(e2, y2, if_zero=0.0) if n_meas
+        else math.nan,
+        'relative_deviation_error': relative_error_from_squares(e2, d2, if_zero=0.0) if n_meas
+        else math.nan,
         'messages': counts,
         'counters': dict(predictor.counters),
         'loop': dict(loop.counts),
