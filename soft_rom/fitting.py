@@ -18,7 +18,6 @@ from inputs either way, so the predictor, replay, evaluate and the node use them
 
 from __future__ import annotations
 
-from pathlib import Path
 import sys
 import time
 from typing import Any
@@ -31,20 +30,10 @@ from soft_rom.errors import ConfigError, DatasetError
 from soft_rom.models import LinearROM
 
 __all__ = ['COORDINATES', 'choose_coordinates', 'fit_models', 'fit_models_streaming',
-           'open_training_set', 'select_episodes']
+           'select_episodes']
 
 #: Choices of generalized coordinates for LOpInf and DMDc.
 COORDINATES = ('state', 'outputs')
-
-
-def open_training_set(path: str | Path) -> Any:
-    """Open a training set (:class:`soft_rom.dataset.TrainingSet`); clear error if missing."""
-    p = Path(path)
-    if not p.exists():
-        raise FileNotFoundError(f'training set {p} does not exist; create it with '
-                                '`soft-rom convert BAG... -o OUT.zarr`.')
-    from soft_rom.dataset import TrainingSet
-    return TrainingSet.open(p)
 
 
 def select_episodes(ts: Any, names: str | list[str] | None,

@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 import scipy.linalg as sla
 
-from soft_rom.data import as_signal
+from soft_rom.data import all_finite, as_signal
 from soft_rom.errors import DimensionError, ModelFileError
 from soft_rom.model_io import (
     _META_KEY,
@@ -109,7 +109,7 @@ def _arr(name: str, value: ArrayLike, shape: tuple[int, ...] | None = None) -> A
     a = np.array(value, dtype=np.float64, copy=True)
     if shape is not None and a.shape != shape:
         raise DimensionError(f'{name} must have shape {shape}; got {a.shape}.')
-    if not np.all(np.isfinite(a)):
+    if not all_finite(a):
         raise DimensionError(f'{name} contains NaN or Inf.')
     a.setflags(write=False)
     return a
@@ -122,13 +122,13 @@ def _eigvals(A: Array) -> NDArray[np.complex128]:
             ev = np.linalg.eigvals(A)
     except (np.linalg.LinAlgError, ValueError) as err:
         raise DimensionError(f'eigenvalues cannot be computed ({err}).') from None
-    if not np.all(np.isfinite(ev)):
+    if not all_finite(ev):
         raise DimensionError('eigenvalues cannot be computed (overflow).')
     return np.asarray(ev, dtype=np.complex128)
 
 
 def _finite_system(sys_: DiscreteSystem, what: str) -> DiscreteSystem:
-    if not (np.all(np.isfinite(sys_.A)) and np.all(np.isfinite(sys_.B))):
+    if not (all_finite(sys_.A) and all_finite(sys_.B)):
         raise DimensionError(f'{what}: the discrete system at dt = {sys_.dt:g} s overflows '
                              '(entries are not finite); the model is unusable at that step.')
     return sys_

@@ -31,8 +31,9 @@ from soft_rom.cli._common import (
     is_summary_json,
     parse_r_list,
 )
+from soft_rom.dataset import TrainingSet
 from soft_rom.errors import ConfigError
-from soft_rom.fitting import fit_models, fit_models_streaming, open_training_set, select_episodes
+from soft_rom.fitting import fit_models, fit_models_streaming, select_episodes
 
 __all__ = ['add_parser', 'run']
 
@@ -160,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
     if '/' in prefix or prefix in ('.', '..'):
         raise ConfigError(f'--prefix must be a file-name prefix, not a path; got {prefix!r}')
     _check_outputs_early(args, outdir, prefix)
-    ts = open_training_set(args.training_set)
+    ts = TrainingSet.open(args.training_set)
     episodes = select_episodes(ts, args.episodes, args.t_max)
     streaming = args.streaming or args.dask is not None
     provenance = {'training_set': str(Path(args.training_set).resolve()),

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from soft_rom.data import all_finite
 from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError
 
@@ -121,4 +122,4 @@ def _floats(values: Any, m: int) -> Array | None:
         arr = np.array([float(v) for v in values], dtype=np.float64)
     except (TypeError, ValueError):
         return None
-    return arr if np.all(np.isfinite(arr)) else None
+    return arr if all_finite(arr) else None
