@@ -71,6 +71,7 @@ __all__ = [
     'file_sha256',
     'load_model',
     'register_model_class',
+    'run_states',
 ]
 
 #: Relative tolerance of the trust checks (spectral radius, definiteness, symmetry).
@@ -103,6 +104,31 @@ class DiscreteSystem:
 
     def __iter__(self):  # allows ``A, B, C, D, dt = system``
         return iter((self.A, self.B, self.C, self.D, self.dt))
+
+
+def run_states(A: Array, B: Array, x0: Array, U: Array) -> Array:
+    """States ``x_0 .. x_k`` of ``x_{j+1} = A x_j + B u_j`` for inputs ``U``: the one loop.
+
+    Parameters
+    ----------
+    A : ndarray, shape (n, n)
+    B : ndarray, shape (n, m)
+    x0 : ndarray, shape (n,)
+    U : ndarray, shape (m, k)
+
+    Returns
+    -------
+    X : ndarray, shape (n, k + 1)
+    """
+    k = U.shape[1]
+    X = np.empty((A.shape[0], k + 1))
+    BU = B @ U
+    x = x0
+    for j in range(k):
+        X[:, j] = x
+        x = A @ x + BU[:, j]
+    X[:, k] = x
+    return X
 
 
 def _arr(name: str, value: ArrayLike, shape: tuple[int, ...] | None = None) -> Array:
@@ -277,11 +303,7 @@ class LinearROM(ABC):
         A, B, C, D, _ = self.system
         k = U.shape[1]
         x = self.initial_state() if x0 is None else _arr('x0', x0, (self.n_states,)).copy()
-        X = np.empty((self.n_states, k))
-        BU = B @ U
-        for j in range(k):
-            X[:, j] = x
-            x = A @ x + BU[:, j]
+        X = run_states(A, B, x, U)[:, :k]
         Y = C @ X + D @ U + self.y_ref[:, None]
         return (Y, X) if return_states else Y
 
