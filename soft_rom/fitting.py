@@ -201,7 +201,16 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             raise ConfigError(f'unknown method {method!r}.')
     finally:
         bar.close()
+    for model, _ in out:
+        _record_layout(model, ts)
     return out
+
+
+def _record_layout(model: LinearROM, ts: Any) -> None:
+    """Carry the training set's output layout into the model's metadata."""
+    layout = getattr(ts, 'output_layout', None)
+    if layout is not None:
+        model.metadata['output_layout'] = layout.to_dict()
 
 
 def _need_states(episodes: list[Episode], what: str) -> None:
@@ -244,7 +253,7 @@ def fit_models_streaming(ts: Any, method: str, *, r_values: tuple[int, ...] | No
                          ) -> list[tuple[LinearROM, float]]:
     """Like :func:`fit_models`, streaming the snapshots from disk (or on a Dask cluster).
 
-    One streamed POD pass (:func:`soft_rom.scale.fit.reduce_streaming`) serves every ``r``;
+    One streamed POD pass (:func:`soft_rom.scale.streaming.reduce_streaming`) serves every ``r``;
     ``client`` is a ``dask.distributed.Client`` or a scheduler address.
     """
     if method in ('lopinf', 'dmdc') and getattr(ts, 'q_ref', None) is None:
@@ -272,7 +281,7 @@ def _fit_streaming(ts: Any, method: str, r_values: tuple[int, ...] | None,
                    provenance: dict[str, Any], dmdc_p: int | None, opts: dict[str, Any],
                    era_episode: str | None, client: Any,
                    progress: bool) -> list[tuple[LinearROM, float]]:
-    from soft_rom.scale.fit import fit_reduced_model, reduce_streaming
+    from soft_rom.scale.streaming import fit_reduced_model, reduce_streaming
     t0 = time.perf_counter()
     red = None
     if method in ('lopinf', 'dmdc'):
@@ -280,11 +289,9 @@ def _fit_streaming(ts: Any, method: str, r_values: tuple[int, ...] | None,
         n_coords = None
         if r_max is not None:
             n_coords = max(r_max, (dmdc_p or r_max + len(ts.input_names))) + 10
-        bar = _progress(1, f'stream POD ({method})', progress)
         red = reduce_streaming(ts, r=r_max, energy=0.95 if energy is None else energy,
                                n_coords=n_coords, client=client, episodes=episodes,
                                t_max=t_max)
-        bar.close()
     t_pass = time.perf_counter() - t0
     out: list[tuple[LinearROM, float]] = []
     envelope = training_envelope(select_episodes(ts, episodes, t_max), ts.y_ref)
@@ -303,5 +310,6 @@ def _fit_streaming(ts: Any, method: str, r_values: tuple[int, ...] | None,
             model = fit_reduced_model(red, method, r, **kw)
         model.metadata.setdefault('training', provenance)
         model.metadata.setdefault('envelope', envelope)
+        _record_layout(model, ts)
         out.append((model, t_pass / len(r_values or (1,)) + time.perf_counter() - t1))
     return out
