@@ -74,6 +74,10 @@ class OutputLayout:
             return [(c, i) for c in self.components for i in self.points]
         return [(c, i) for i in self.points for c in self.components]
 
+    def index(self) -> dict[tuple[str, int], int]:
+        """Row of ``y`` holding each ``(component, point index)``."""
+        return {entry: row for row, entry in enumerate(self.entries())}
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form (stored in training sets and model metadata)."""
         return {'components': list(self.components), 'order': self.order,

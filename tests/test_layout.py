@@ -19,6 +19,7 @@ def test_names_and_round_trip_for_both_orders() -> None:
     assert cm.names() == ['x1', 'x2', 'x3', 'z1', 'z2', 'z3']
     assert pm.names() == ['x1', 'z1', 'x2', 'z2', 'x3', 'z3']
     assert cm.size == pm.size == 6 and cm.component_string == 'xz'
+    assert pm.index()[('z', 1)] == 3 and cm.index()[('z', 1)] == 4
     for lay in (cm, pm):
         assert OutputLayout.from_dict(lay.to_dict()) == lay
         assert OutputLayout.from_names(lay.names()) == lay
