@@ -270,7 +270,7 @@ def fit_models_streaming(ts: Any, method: str, *, r_values: tuple[int, ...] | No
         client = connect(client)
     try:
         return _fit_streaming(ts, method, r_values, energy, episodes, t_max, provenance,
-                              dmdc_p, opts, era_episode, client, progress)
+                              dmdc_p, opts, era_episode, client)
     finally:
         if own_client:
             client.close()
@@ -279,8 +279,7 @@ def fit_models_streaming(ts: Any, method: str, *, r_values: tuple[int, ...] | No
 def _fit_streaming(ts: Any, method: str, r_values: tuple[int, ...] | None,
                    energy: float | None, episodes: list[str] | None, t_max: float | None,
                    provenance: dict[str, Any], dmdc_p: int | None, opts: dict[str, Any],
-                   era_episode: str | None, client: Any,
-                   progress: bool) -> list[tuple[LinearROM, float]]:
+                   era_episode: str | None, client: Any) -> list[tuple[LinearROM, float]]:
     from soft_rom.scale.streaming import fit_reduced_model, reduce_streaming
     t0 = time.perf_counter()
     red = None

@@ -434,11 +434,6 @@ class LinearROM(ABC):
         common.pop('method', None)
         return cls(*(arrays[name] for name in cls._matrix_names), **common)
 
-    def _common_kwargs(self) -> dict[str, Any]:
-        return dict(dt=self.dt, y_ref=self.y_ref, input_names=self.input_names,
-                    output_names=self.output_names, input_units=self.input_units,
-                    output_units=self.output_units, metadata=self.metadata)
-
     def __repr__(self) -> str:
         return (f'{type(self).__name__}(method={self.method!r}, r={self.r}, m={self.n_inputs}, '
                 f'p={self.n_outputs}, dt={self.dt:g})')

@@ -186,9 +186,9 @@ def test_overwrite_replaces_what_soft_rom_wrote(ws, tmp_path, capsys) -> None:
 
 
 def test_replay_output_marked_and_recording_never_replaced(tmp_path, capsys) -> None:
+    from _bags import write_input_bag
     import test_replay as tr
 
-    from soft_rom.bags.replay_io import write_input_bag
     from soft_rom.outputs import is_marked
 
     model = tr._model()

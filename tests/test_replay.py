@@ -5,10 +5,11 @@ from __future__ import annotations
 from collections import Counter
 import json
 
+from _bags import write_input_bag
 import numpy as np
 import pytest
 
-from soft_rom.bags.replay_io import read_messages, replay_to_bag, write_input_bag
+from soft_rom.bags.replay_io import read_messages, replay_to_bag
 from soft_rom.data import Episode
 from soft_rom.errors import BagError
 from soft_rom.models import file_sha256, SecondOrderModel

@@ -163,7 +163,6 @@ class EpisodeBagWriter:
         self._writer: Writer | None = None
         self._tmp: Path | None = None
         self._conns: dict[str, Any] = {}
-        self.n_written = 0
         ts = typestore()
         self._ts = ts
         self._T = ts.types
@@ -254,7 +253,6 @@ class EpisodeBagWriter:
         conn = self._conn(topic, msgtype)
         data = self._ts.serialize_cdr(msg, msgtype)
         self._writer.write(conn, _to_ns(log_time), data)  # type: ignore[union-attr]
-        self.n_written += 1
 
     def message(self, msgtype: str, **fields: Any) -> Any:
         """Build a message of type ``msgtype`` (for hand-made or deliberately bad bags)."""
