@@ -5,9 +5,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import numpy as np
+
 from soft_rom.bags.replay_io import _float64_array, _header, _open_writer, _pose_array, _T, _TS
 from soft_rom.data import Episode
 from soft_rom.errors import BagError
+from soft_rom.models import SecondOrderModel
 from soft_rom.predictor.conversions import check_components, outputs_to_points
 
 
@@ -59,3 +62,25 @@ def write_input_bag(path: str | os.PathLike[str], episode: Episode, *, storage: 
     finally:
         writer.close()
     return Path(path)
+
+
+N_POINTS = 5
+
+
+def small_model() -> SecondOrderModel:
+    """A stable second-order model, 3 inputs, 5 centerline points (xz)."""
+    rng = np.random.default_rng(7)
+    r, m, p = 4, 3, 2 * N_POINTS
+    M = rng.standard_normal((r, r))
+    K = (M @ M.T / r + 4.0 * np.eye(r)) * 100.0
+    y_ref = np.concatenate([np.linspace(0.0, 0.4, N_POINTS), np.zeros(N_POINTS)])
+    return SecondOrderModel(K, 0.5 * np.eye(r) + 0.01 * K, rng.standard_normal((r, m)),
+                            0.01 * rng.standard_normal((p, r)), dt=1e-3, y_ref=y_ref)
+
+
+def small_episode(model: SecondOrderModel, k: int = 120) -> Episode:
+    """``k`` samples of held random inputs and the model's exact outputs, from t = 2 s."""
+    rng = np.random.default_rng(8)
+    U = np.repeat(rng.standard_normal((model.n_inputs, k // 10)), 10, axis=1)
+    t = 2.0 + np.arange(k) * model.dt
+    return Episode(t=t, U=U, Y=model.simulate(U), name='ep')
