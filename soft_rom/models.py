@@ -17,7 +17,8 @@ Two families, one interface (:class:`LinearROM`):
 
 The file format (the bounded reader, :func:`load_model`, the class registry) lives in
 :mod:`soft_rom.model_io`; this module holds the models, their discretization and their
-trust checks (about 640 lines: two families sharing one interface).
+trust checks (about 660 lines: two families sharing one interface, and the one simulation loop
+:func:`run_states`).
 
 Models know nothing of how they were made (no training arrays); they carry matrices,
 offsets, names/units and JSON metadata. States are deviations from the reference

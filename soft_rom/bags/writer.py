@@ -1,7 +1,7 @@
 """Streaming writer of episode bags, laid out exactly as a SOFA + ROS 2 recording.
 
 :class:`EpisodeBagWriter` writes one ROS 2 bag (sqlite3 or MCAP) per episode with the topics
-of the bag contract (``SPEC.md``):
+of the bag contract (``docs/bag_contract.md``):
 
 =================================== ================================= ======================
 topic                               type                              stamp
@@ -62,7 +62,7 @@ def typestore() -> Any:
 
 @dataclass(frozen=True)
 class BagTopics:
-    """Topic names of the bag contract; the defaults are those of ``SPEC.md``.
+    """Topic names of the bag contract; the defaults are those of ``docs/bag_contract.md``.
 
     Parameters
     ----------
