@@ -201,8 +201,8 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             raise ConfigError(f'unknown method {method!r}.')
     finally:
         bar.close()
-    for model, _ in out:
-        _record_layout(model, ts)
+    for fitted, _ in out:
+        _record_layout(fitted, ts)
     return out
 
 

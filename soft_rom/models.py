@@ -142,6 +142,22 @@ def _arr(name: str, value: ArrayLike, shape: tuple[int, ...] | None = None) -> A
     return a
 
 
+def _state_input_output(square: tuple[str, ArrayLike], inp: tuple[str, ArrayLike],
+                        out: tuple[str, ArrayLike]) -> tuple[Array, Array, Array, int]:
+    """The constructors' shape checks: ``square (r, r)``, ``inp (r, m)``, ``out (p, r)``."""
+    (sn, S), (bn, B), (on, O) = square, inp, out
+    S = np.asarray(S, dtype=np.float64)
+    if S.ndim != 2 or S.shape[0] != S.shape[1]:
+        raise DimensionError(f'{sn} must be square (r, r); got shape {S.shape}.')
+    r = S.shape[0]
+    B, O = np.asarray(B, dtype=np.float64), np.asarray(O, dtype=np.float64)
+    if B.ndim != 2 or B.shape[0] != r:
+        raise DimensionError(f'{bn} must have shape ({r}, m); got {B.shape}.')
+    if O.ndim != 2 or O.shape[1] != r:
+        raise DimensionError(f'{on} must have shape (p, {r}); got {O.shape}.')
+    return S, B, O, r
+
+
 def _eigvals(A: Array) -> NDArray[np.complex128]:
     """Eigenvalues of ``A``; :class:`DimensionError` when LAPACK cannot compute them."""
     try:
@@ -488,16 +504,7 @@ class SecondOrderModel(LinearROM):
 
     def __init__(self, K: ArrayLike, C: ArrayLike, B: ArrayLike, E: ArrayLike, *, dt: float,
                  y_ref: ArrayLike | None = None, **kwargs: Any) -> None:
-        K = np.asarray(K, dtype=np.float64)
-        if K.ndim != 2 or K.shape[0] != K.shape[1]:
-            raise DimensionError(f'K must be square (r, r); got shape {K.shape}.')
-        r = K.shape[0]
-        B = np.asarray(B, dtype=np.float64)
-        E = np.asarray(E, dtype=np.float64)
-        if B.ndim != 2 or B.shape[0] != r:
-            raise DimensionError(f'B must have shape ({r}, m); got {B.shape}.')
-        if E.ndim != 2 or E.shape[1] != r:
-            raise DimensionError(f'E must have shape (p, {r}); got {E.shape}.')
+        K, B, E, r = _state_input_output(('K', K), ('B', B), ('E', E))
         super().__init__(dt=dt, y_ref=y_ref, n_inputs=B.shape[1], n_outputs=E.shape[0],
                          **kwargs)
         self.K = _arr('K', K, (r, r))
@@ -600,16 +607,7 @@ class DiscreteModel(LinearROM):
     def __init__(self, A: ArrayLike, B: ArrayLike, C: ArrayLike, D: ArrayLike | None = None, *,
                  dt: float, method: str = 'discrete', y_ref: ArrayLike | None = None,
                  **kwargs: Any) -> None:
-        A = np.asarray(A, dtype=np.float64)
-        if A.ndim != 2 or A.shape[0] != A.shape[1]:
-            raise DimensionError(f'A must be square (r, r); got shape {A.shape}.')
-        r = A.shape[0]
-        B = np.asarray(B, dtype=np.float64)
-        C = np.asarray(C, dtype=np.float64)
-        if B.ndim != 2 or B.shape[0] != r:
-            raise DimensionError(f'B must have shape ({r}, m); got {B.shape}.')
-        if C.ndim != 2 or C.shape[1] != r:
-            raise DimensionError(f'C must have shape (p, {r}); got {C.shape}.')
+        A, B, C, r = _state_input_output(('A', A), ('B', B), ('C', C))
         super().__init__(dt=dt, y_ref=y_ref, n_inputs=B.shape[1], n_outputs=C.shape[0],
                          **kwargs)
         self.method = str(method)  # type: ignore[misc]

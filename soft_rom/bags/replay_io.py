@@ -142,7 +142,7 @@ def _pose_array(t: float | int, frame_id: str, points: Array) -> Any:
 
 def _marker(t: float | int, frame_id: str, points: Array, ns: str, marker_id: int,
             rgba: tuple[float, float, float, float], width: float) -> Any:
-    M = _T['visualization_msgs/msg/Marker']
+    M: Any = _T['visualization_msgs/msg/Marker']     # its constants are not in the stubs
     empty = np.zeros(0, dtype=np.uint8)
     return M(
         header=_header(t, frame_id), ns=ns, id=marker_id, type=M.LINE_STRIP, action=M.ADD,

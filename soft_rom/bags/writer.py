@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 import shutil
 from types import TracebackType
-from typing import Any
+from typing import Any, Literal
 import uuid
 
 import numpy as np
@@ -47,7 +47,7 @@ __all__ = ['BagTopics', 'EpisodeBagWriter', 'STORAGES', 'typestore']
 #: Storage plugins accepted by ``storage=``.
 STORAGES = ('mcap', 'sqlite3')
 #: rosbag2 metadata version written (Jazzy writes 9).
-BAG_VERSION = 9
+BAG_VERSION: Literal[9] = 9
 
 _TYPESTORE = None
 

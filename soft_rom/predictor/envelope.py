@@ -90,13 +90,13 @@ class Envelopes:
 
     def input_ok(self, index: int, value: float) -> bool:
         """Whether one channel's value is inside the input envelope."""
-        if self.u_lo is None:
+        if self.u_lo is None or self.u_hi is None:
             return True
         return bool(self.u_lo[index] <= value <= self.u_hi[index])
 
     def clip(self, index: int, value: float) -> float:
         """``value`` clipped into channel ``index``'s envelope."""
-        if self.u_lo is None:
+        if self.u_lo is None or self.u_hi is None:
             return value
         return float(min(max(value, self.u_lo[index]), self.u_hi[index]))
 

@@ -96,9 +96,9 @@ def replay_episode(predictor: Predictor, episode: Episode, *, measured: bool = T
     clocked = predictor.config.stepping != 'event'
     for j, (tj, sj) in enumerate(zip(t.tolist(), stamps)):
         if loop is not None:
-            e = _loop_sample(loop, Ut[j], None if Yt is None else Yt[j], sj, clocked, publish)
+            errors[j] = _loop_sample(loop, Ut[j], None if Yt is None else Yt[j], sj, clocked,
+                                     publish)
             Yhat[:, j] = predictor.output(ybuf)
-            errors[j] = e
         else:
             if clocked:
                 predictor.advance_to_ns(sj)
