@@ -191,16 +191,7 @@ class FiniteDifference:
         trimmed : list of ndarray
             One stacked, trimmed array per entry of ``others``.
         """
-        parts = [self.derivatives(Q, dt) for Q in Qs]
-        if not parts:
-            raise DimensionError('no episode given.')
-        stacked = [np.concatenate([p[j] for p in parts], axis=1) for j in range(3)]
-        trimmed = []
-        for signal in others:
-            if len(signal) != len(parts):
-                raise DimensionError('every signal in others needs one array per episode.')
-            trimmed.append(np.concatenate([self.trim(x) for x in signal], axis=1))
-        return stacked[0], stacked[1], stacked[2], trimmed
+        return _episodes(self, Qs, dt, others)
 
 
 class SavitzkyGolay:
@@ -272,16 +263,22 @@ class SavitzkyGolay:
                  others: Sequence[Sequence[ArrayLike]] = ()
                  ) -> tuple[Array, Array, Array, list[Array]]:
         """Derivatives of several episodes, each on its own (as :class:`FiniteDifference`)."""
-        parts = [self.derivatives(Q, dt) for Q in Qs]
-        if not parts:
-            raise DimensionError('no episode given.')
-        stacked = [np.concatenate([p[j] for p in parts], axis=1) for j in range(3)]
-        trimmed = []
-        for signal in others:
-            if len(signal) != len(parts):
-                raise DimensionError('every signal in others needs one array per episode.')
-            trimmed.append(np.concatenate([self.trim(x) for x in signal], axis=1))
-        return stacked[0], stacked[1], stacked[2], trimmed
+        return _episodes(self, Qs, dt, others)
+
+
+def _episodes(est: FiniteDifference | SavitzkyGolay, Qs: Sequence[ArrayLike], dt: float,
+              others: Sequence[Sequence[ArrayLike]]) -> tuple[Array, Array, Array, list[Array]]:
+    """``est.episodes``: each episode differentiated on its own, then stacked along time."""
+    parts = [est.derivatives(Q, dt) for Q in Qs]
+    if not parts:
+        raise DimensionError('no episode given.')
+    stacked = [np.concatenate([p[j] for p in parts], axis=1) for j in range(3)]
+    trimmed = []
+    for signal in others:
+        if len(signal) != len(parts):
+            raise DimensionError('every signal in others needs one array per episode.')
+        trimmed.append(np.concatenate([est.trim(x) for x in signal], axis=1))
+    return stacked[0], stacked[1], stacked[2], trimmed
 
 
 def parse_estimator(text: str) -> DerivativeEstimator:
