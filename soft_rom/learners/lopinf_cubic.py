@@ -50,11 +50,13 @@ from numpy.typing import NDArray
 import scipy.linalg as sla
 import scipy.sparse as sp
 
-from soft_rom.errors import SolverError
-from soft_rom.learners.lopinf_solvers import DEFAULT_EPS, FastSPDSolver, OperatorSolver
+from soft_rom.errors import ConfigError, SolverError
+from soft_rom.learners.lopinf_solvers import (DEFAULT_EPS, FastSPDSolver, LOpInfSolution,
+                                             OperatorSolver)
 from soft_rom.models_cubic import symmetric_from_entries, symmetric_index
 
-__all__ = ['CubicSolution', 'DEFAULT_EPS4', 'DEFAULT_REG', 'fit_cubic', 'quartic_lower_bound',
+__all__ = ['CubicSolution', 'DEFAULT_EPS4', 'DEFAULT_REG', 'fit_cubic', 'fit_scaled',
+           'quartic_lower_bound',
            'isotropic_quartic']
 
 Array = NDArray[np.float64]
@@ -227,8 +229,7 @@ def quartic_lower_bound(H: Array, *, target: float | None = None, sdp: bool = Tr
 
 def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT_EPS,
               reg: float = DEFAULT_REG, eps4: float = DEFAULT_EPS4,
-              linear_solver: OperatorSolver | None = None, max_alternations: int = 8
-              ) -> CubicSolution:
+              linear_solver: OperatorSolver | None = None) -> CubicSolution:
     """Fit ``K, C, G, H, B`` to ``Q̈ + C Q̇ + ∇V(Q) = B U`` (columns are samples).
 
     Parameters
@@ -243,8 +244,6 @@ def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT
         Relative floor of the quartic form (see module docstring).
     linear_solver : OperatorSolver, optional
         SPD solver of the linear block (default :class:`FastSPDSolver`).
-    max_alternations : int
-        Block coordinate descent sweeps when a constraint is active.
     """
     t0 = time.perf_counter()
     Q, Qd, Qdd, U = (np.asarray(a, dtype=np.float64) for a in (Q, Qd, Qdd, U))
@@ -277,50 +276,29 @@ def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT
     K, C, G, H, B = lay.unpack(theta)
     info: dict[str, Any] = {'solver': 'cubic-potential-least-squares', 'reg': float(reg),
                             'eps': float(eps), 'eps4': float(eps4), 'n_unknowns': lay.n_theta,
-                            'n_features': lay.n_z, 'alternations': 0, 'quartic_shift': 0.0}
-    solver = FastSPDSolver() if linear_solver is None else linear_solver
-    lin_cols = np.r_[np.arange(o['K'], o['G']), np.arange(o['C'], lay.n_theta)]
+                            'n_features': lay.n_z}
 
     def spd_ok(Km: Array, Cm: Array) -> bool:
         return bool(np.linalg.eigvalsh(Km)[0] >= eps and np.linalg.eigvalsh(Cm)[0] >= eps)
 
-    def refit_linear(G: Array, H: Array) -> tuple[Array, Array, Array]:
-        sol = solver.solve(Q, Qd, Qdd + _nl_force(Q, G, H), U, eps=eps)
-        return 0.5 * (sol.K + sol.K.T), 0.5 * (sol.C + sol.C.T), np.asarray(sol.B)
+    def target_of(Km: Array) -> float:
+        return float(eps4) * max(float(np.linalg.eigvalsh(Km)[-1]), 1e-300)
 
-    def refit_nl(K: Array, C: Array, B: Array, H: Array | None) -> tuple[Array, Array]:
-        th_lin = np.concatenate([_entries(K, 2), _entries(C, 2), B.ravel()])
-        rhs = b - A[:, lin_cols] @ th_lin
-        if H is None:
-            th = solve_cols(nl, rhs)
-            Gn = symmetric_from_entries(th[:o['H'] - o['G']], r, 3)
-            Hn = symmetric_from_entries(th[o['H'] - o['G']:], r, 4)
-            return Gn, Hn
-        gcols = np.arange(o['G'], o['H'])
-        th_h = _entries(H, 4)
-        th = solve_cols(gcols, rhs - A[:, o['H']:o['C']] @ th_h)
-        return symmetric_from_entries(th, r, 3), H
-
-    if not spd_ok(K, C):
-        for sweep in range(max_alternations):
-            K, C, B = refit_linear(G, H)
-            G, H = refit_nl(K, C, B, None)
-            info['alternations'] = sweep + 1
-    target = float(eps4) * max(float(np.linalg.eigvalsh(K)[-1]), 1e-300)
-    t_low, how = quartic_lower_bound(H, target=target)
-    info['quartic_certificate'] = how
-    if t_low < target:
-        alpha = target - t_low
-        H = H + alpha * isotropic_quartic(r)
-        info['quartic_shift'] = float(alpha)
-        for _sweep in range(2):
-            K, C, B = refit_linear(G, H)
-            G, H = refit_nl(K, C, B, H)
+    target = target_of(K)
+    t_low, how = quartic_lower_bound(H, target=target) if spd_ok(K, C) else (-1.0, '')
+    if spd_ok(K, C) and t_low >= target:
+        info['method'] = 'least-squares (constraints inactive)'
+    else:
+        lin = FastSPDSolver() if linear_solver is None else linear_solver
+        K0 = lin.solve(Q, Qd, Qdd, U, eps=eps).K
+        target = target_of(K0)
+        K, C, G, H, B, sdp_info = _constrained(A, b, lay, lam * w_all, eps, target)
+        info.update(sdp_info)
+        info['method'] = 'conic (K, C ⪰ eps, sum-of-squares quartic)'
         t_low, how = quartic_lower_bound(H, target=target)
-        info['quartic_certificate'] = how
-    if not spd_ok(K, C):
-        K, C, B = refit_linear(G, H)
-    if not (spd_ok(K, C) and t_low >= 0.999 * target):
+    info['quartic_certificate'] = how
+    if not (np.linalg.eigvalsh(K)[0] >= 0.999 * eps and np.linalg.eigvalsh(C)[0] >= 0.999 * eps
+            and t_low >= 0.99 * target):
         raise SolverError('the cubic LOpInf fit could not satisfy K, C ⪰ eps and a '
                           'positive quartic potential; try a larger reg.')
     res = Qdd + C @ Qd + K @ Q + _nl_force(Q, G, H) - B @ U
@@ -333,5 +311,89 @@ def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT
     return CubicSolution(K, C, G, H, B, info)
 
 
+def _sym_map(r: int) -> Array:
+    """``vec(S) = M θ`` for a symmetric ``S`` from its independent entries (row-major)."""
+    idx = symmetric_index(r, 2)
+    M = np.zeros((r * r, len(idx)))
+    for j, (a, b) in enumerate(idx):
+        M[a * r + b, j] = M[b * r + a, j] = 1.0
+    return M
+
+
+def _gram_map(r: int) -> tuple[sp.csr_matrix, int]:
+    """Map ``vec(X)`` (Gram matrix on scaled quadratic monomials) to the entries of ``H``."""
+    pairs = symmetric_index(r, 2)
+    quads = symmetric_index(r, 4)
+    qpos = {b: j for j, b in enumerate(quads)}
+    ns = len(pairs)
+    c = np.array([1.0 if a == b else math.sqrt(2.0) for a, b in pairs])
+    rows, cols, vals = [], [], []
+    for p in range(ns):
+        for q in range(ns):
+            beta = tuple(sorted(pairs[p] + pairs[q]))
+            rows.append(qpos[beta])
+            cols.append(p * ns + q)
+            vals.append(c[p] * c[q] / _mult(beta))
+    return sp.csr_matrix((vals, (rows, cols)), shape=(len(quads), ns * ns)), ns
+
+
+def _constrained(A: Array, b: Array, lay: _Layout, ridge: Array, eps: float, t4: float
+                 ) -> tuple[Array, Array, Array, Array, Array, dict[str, Any]]:
+    """``min |Aθ - b|² + Σ ridge θ²`` s.t. ``K, C ⪰ eps``, ``H = Gram(X)``, ``X ⪰ t4 I``."""
+    import cvxpy as cp
+    r, o = lay.r, lay.t_off
+    t0 = time.perf_counter()
+    N = A.T @ A + np.diag(ridge)
+    N += 1e-13 * float(np.trace(N)) / N.shape[0] * np.eye(N.shape[0])
+    Lc = np.linalg.cholesky(N)
+    c = sla.solve_triangular(Lc, A.T @ b, lower=True)
+    scale = max(float(np.linalg.norm(c)), 1e-300)
+    Tg, ns = _gram_map(r)
+    th_K = cp.Variable(o['G'] - o['K'])
+    th_G = cp.Variable(o['H'] - o['G'])
+    th_C = cp.Variable(o['B'] - o['C'])
+    th_B = cp.Variable(lay.n_theta - o['B'])
+    X = cp.Variable((ns, ns), symmetric=True)
+    th_H = Tg @ cp.vec(X, order='C')
+    theta = cp.hstack([th_K, th_G, th_H, th_C, th_B])
+    Ms = _sym_map(r)
+    Kx = cp.reshape(Ms @ th_K, (r, r), order='C')
+    Cx = cp.reshape(Ms @ th_C, (r, r), order='C')
+    cons = [0.5 * (Kx + Kx.T) - eps * np.eye(r) >> 0, 0.5 * (Cx + Cx.T) - eps * np.eye(r) >> 0,
+            X - t4 * np.eye(ns) >> 0]
+    prob = cp.Problem(cp.Minimize(cp.sum_squares(Lc.T @ theta - c) / scale ** 2), cons)
+    try:
+        prob.solve(solver='CLARABEL')
+    except Exception as err:
+        raise SolverError(f'the conic cubic LOpInf problem failed: {err}') from err
+    if prob.status not in ('optimal', 'optimal_inaccurate') or th_K.value is None:
+        raise SolverError(f'the conic cubic LOpInf problem ended {prob.status}.')
+    th = np.concatenate([np.asarray(v.value) for v in (th_K, th_G)]
+                        + [Tg @ np.asarray(X.value).ravel()]
+                        + [np.asarray(v.value) for v in (th_C, th_B)])
+    K, C, G, H, B = lay.unpack(th)
+    info = {'conic_status': str(prob.status), 'conic_seconds': time.perf_counter() - t0}
+    return K, C, G, H, B, info
+
+
 def _entries(T: Array, degree: int) -> Array:
     return np.array([T[a] for a in symmetric_index(T.shape[0], degree)])
+
+
+def fit_scaled(Q: Array, Qd: Array, Qdd: Array, U: Array, state_scale: float,
+               solver: OperatorSolver, eps: float, options: dict[str, Any] | None
+               ) -> tuple[LOpInfSolution, dict[str, Array]]:
+    """What :class:`~soft_rom.learners.lopinf.LOpInf` calls for ``forces='cubic'``.
+
+    ``Q`` are the reduced coordinates divided by ``state_scale``; the returned ``K, C, B``
+    are in those scaled units (as the linear solvers return them) and ``G, H`` already in
+    the original units (``G = G̃ / s``, ``H = H̃ / s²``).
+    """
+    opts = dict(options or {})
+    unknown = set(opts) - {'reg', 'eps4'}
+    if unknown:
+        raise ConfigError(f'unknown cubic option(s) {sorted(unknown)}; known: reg, eps4.')
+    sol = fit_cubic(Q, Qd, Qdd, U, eps=eps, linear_solver=solver, **opts)
+    s = float(state_scale)
+    return (LOpInfSolution(sol.K, sol.C, sol.B, sol.info),
+            {'G': sol.G / s, 'H': sol.H / s ** 2})
