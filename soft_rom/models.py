@@ -21,8 +21,12 @@ configuration; outputs are returned in absolute coordinates.
 
 Model files are ``.npz`` archives of plain numeric arrays plus one JSON document stored as
 a ``uint8`` array; they are read with ``allow_pickle=False`` and validated (format
-version, shapes, finite values, dtypes) before any model is built. See
-:func:`load_model`.
+version, sizes, shapes, finite and plausible values, dtypes) before any model is built, by
+the bounded reader of :mod:`soft_rom.model_io`. See :func:`load_model`.
+
+A model that loads may still not deserve trust (unstable, indefinite stiffness or damping,
+absurd offsets): :meth:`LinearROM.trust_issues` says why; ``load_model(..., strict=True)``
+refuses such models.
 """
 
 from __future__ import annotations
@@ -34,13 +38,13 @@ import hashlib
 import json
 import os
 from pathlib import Path
-from typing import Any, ClassVar
-import zipfile
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 import scipy.linalg as sla
 
+from soft_rom import model_io
 from soft_rom.data import as_signal
 from soft_rom.errors import DimensionError, ModelFileError
 
@@ -50,14 +54,24 @@ __all__ = [
     'FORMAT_NAME',
     'FORMAT_VERSION',
     'LinearROM',
+    'MAX_STATES',
     'SecondOrderModel',
+    'TRUST_TOL',
     'file_sha256',
     'load_model',
+    'register_model_class',
 ]
 
 FORMAT_NAME = 'soft_rom.model'
 FORMAT_VERSION = 1
 _META_KEY = '__metadata__'
+#: Largest state dimension of a model file: r <= 256 for DMDc/ERA, r <= 128 for LOpInf
+#: (loading, discretizing and the trust checks then stay well under a second).
+MAX_STATES = 256
+#: Relative tolerance of the trust checks (spectral radius, definiteness, symmetry).
+TRUST_TOL = 1e-6
+#: Output offsets larger than this (in output units) are reported as absurd.
+ABSURD_OFFSET = 1e6
 
 Array = NDArray[np.float64]
 
@@ -96,6 +110,29 @@ def _arr(name: str, value: ArrayLike, shape: tuple[int, ...] | None = None) -> A
     return a
 
 
+def _eigvals(A: Array) -> NDArray[np.complex128]:
+    """Eigenvalues of ``A``; :class:`DimensionError` when LAPACK cannot compute them."""
+    try:
+        with np.errstate(all='ignore'):
+            ev = np.linalg.eigvals(A)
+    except (np.linalg.LinAlgError, ValueError) as err:
+        raise DimensionError(f'eigenvalues cannot be computed ({err}).') from None
+    if not np.all(np.isfinite(ev)):
+        raise DimensionError('eigenvalues cannot be computed (overflow).')
+    return np.asarray(ev, dtype=np.complex128)
+
+
+def _finite_system(sys_: DiscreteSystem, what: str) -> DiscreteSystem:
+    if not (np.all(np.isfinite(sys_.A)) and np.all(np.isfinite(sys_.B))):
+        raise DimensionError(f'{what}: the discrete system at dt = {sys_.dt:g} s overflows '
+                             '(entries are not finite); the model is unusable at that step.')
+    return sys_
+
+
+def _finite_or_none(value: float) -> float | None:
+    return value if np.isfinite(value) else None
+
+
 def _names(kind: str, names: Sequence[str] | None, count: int, prefix: str) -> list[str]:
     if names is None:
         return [f'{prefix}{i + 1}' for i in range(count)]
@@ -124,6 +161,10 @@ class LinearROM(ABC):
 
     method: ClassVar[str] = ''
     _matrix_names: ClassVar[tuple[str, ...]] = ()
+    #: Arrays a file of this class may hold besides :attr:`_matrix_names` (loader hook).
+    _optional_matrices: ClassVar[tuple[str, ...]] = ()
+    #: Methods a file of this class may declare (empty: any short name).
+    _file_methods: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, *, dt: float, y_ref: ArrayLike | None, n_inputs: int, n_outputs: int,
                  input_names: Sequence[str] | None = None,
@@ -143,6 +184,7 @@ class LinearROM(ABC):
                                    n_outputs, '')
         self.metadata: dict[str, Any] = json.loads(json.dumps(dict(metadata or {})))
         self._native: DiscreteSystem | None = None
+        self._trust: list[str] | None = None
 
     # -- sizes --------------------------------------------------------------------------
     @property
@@ -247,17 +289,56 @@ class LinearROM(ABC):
         if u is not None:
             dy = dy - self.system.D @ np.asarray(u, dtype=np.float64)
         x, *_ = np.linalg.lstsq(self.system.C, dy, rcond=None)
-        return x
+        return np.asarray(x, dtype=np.float64)
 
     # -- spectrum -----------------------------------------------------------------------
     def discrete_eigenvalues(self) -> NDArray[np.complex128]:
         """Eigenvalues of the native discrete state matrix ``A``."""
-        return np.linalg.eigvals(self.system.A)
+        return _eigvals(self.system.A)
 
     def stability_margin(self) -> float:
-        """``1 - max |λ(A)|`` at the native ``dt``: positive means asymptotically stable."""
-        ev = self.discrete_eigenvalues()
+        """``1 - max |λ(A)|`` at the native ``dt``: positive means asymptotically stable.
+
+        NaN when the eigenvalues cannot be computed (see :meth:`trust_issues`).
+        """
+        try:
+            ev = self.discrete_eigenvalues()
+        except DimensionError:
+            return float('nan')
         return float(1.0 - np.max(np.abs(ev))) if ev.size else 1.0
+
+    # -- trust --------------------------------------------------------------------------
+    def trust_issues(self) -> list[str]:
+        """Reasons not to trust this model's predictions; empty when there are none.
+
+        Checked (relative tolerance :data:`TRUST_TOL`): the native discrete system is
+        unstable (spectral radius of ``A`` above ``1 + tol``), the output offsets are absurd
+        (``|y_ref| >`` :data:`ABSURD_OFFSET`), and for LOpInf models an eigenvalue of the
+        continuous system with positive real part and a stiffness ``K`` or damping ``C``
+        that is not symmetric positive semidefinite. Computed once, then cached.
+        """
+        if self._trust is None:
+            self._trust = self._check_trust()
+        return list(self._trust)
+
+    @property
+    def trusted(self) -> bool:
+        """Whether :meth:`trust_issues` found nothing."""
+        return not self.trust_issues()
+
+    def _check_trust(self) -> list[str]:
+        issues: list[str] = []
+        margin = self.stability_margin()
+        if not np.isfinite(margin):
+            issues.append('the eigenvalues of its discrete system cannot be computed')
+        elif margin < -TRUST_TOL:
+            issues.append(f'unstable: spectral radius of the discrete A is {1 - margin:.6g} '
+                          f'> 1 at dt = {self.dt:g} s')
+        if self.y_ref.size:
+            peak = float(np.max(np.abs(self.y_ref)))
+            if peak > ABSURD_OFFSET:
+                issues.append(f'absurd output offset: max |y_ref| = {peak:.3g}')
+        return issues
 
     # -- files --------------------------------------------------------------------------
     def matrices(self) -> dict[str, Array]:
@@ -278,12 +359,15 @@ class LinearROM(ABC):
             'output_names': self.output_names,
             'input_units': self.input_units,
             'output_units': self.output_units,
-            'stability_margin': self.stability_margin(),
+            'stability_margin': _finite_or_none(self.stability_margin()),
             'metadata': self.metadata,
         }
 
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write the model to ``path`` (``.npz``), atomically; returns the path written."""
+        if self.n_states > MAX_STATES:
+            raise ModelFileError(f'a model with {self.n_states} states cannot be saved: model '
+                                 f'files hold at most {MAX_STATES} states.')
         path = Path(path)
         if path.suffix != '.npz':
             path = path.with_suffix(path.suffix + '.npz') if path.suffix else path.with_suffix(
@@ -296,7 +380,7 @@ class LinearROM(ABC):
         path.parent.mkdir(parents=True, exist_ok=True)
         try:
             with open(tmp, 'wb') as fh:
-                np.savez(fh, **arrays)
+                np.savez(fh, **arrays)  # type: ignore[arg-type]
             os.replace(tmp, path)
         finally:
             if tmp.exists():
@@ -304,13 +388,24 @@ class LinearROM(ABC):
         return path
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str]) -> LinearROM:
+    def load(cls, path: str | os.PathLike[str], *, strict: bool = False) -> LinearROM:
         """Load a model file (see :func:`load_model`) and check it is of this class."""
-        model = load_model(path)
+        model = load_model(path, strict=strict)
         if not isinstance(model, cls):
             raise ModelFileError(
                 f'{path}: holds a {type(model).__name__} ({model.method}), not a {cls.__name__}.')
         return model
+
+    @classmethod
+    def _from_file(cls, arrays: dict[str, Array], **common: Any) -> LinearROM:
+        """Build a model from a file's arrays (loader hook; see :func:`register_model_class`).
+
+        ``arrays`` holds :attr:`_matrix_names` (and any :attr:`_optional_matrices` present)
+        as float64; ``common`` holds ``dt``, ``y_ref``, names, units, ``metadata`` and the
+        declared ``method``.
+        """
+        common.pop('method', None)
+        return cls(*(arrays[name] for name in cls._matrix_names), **common)
 
     def _common_kwargs(self) -> dict[str, Any]:
         return dict(dt=self.dt, y_ref=self.y_ref, input_names=self.input_names,
@@ -331,7 +426,11 @@ def _zoh_cached(key: bytes, r: int, m: int, dt: float) -> tuple[Array, Array]:
     M = np.zeros((n + m, n + m))
     M[:n, :n] = Ac * dt
     M[:n, n:] = Bc * dt
-    F = sla.expm(M)
+    try:
+        with np.errstate(all='ignore'):
+            F = sla.expm(M)
+    except (np.linalg.LinAlgError, ValueError, OverflowError, ArithmeticError) as err:
+        raise DimensionError(f'the matrix exponential at dt = {dt:g} s fails ({err}).') from None
     Ad, Bd = F[:n, :n].copy(), F[:n, n:].copy()
     Ad.setflags(write=False)
     Bd.setflags(write=False)
@@ -406,7 +505,7 @@ class SecondOrderModel(LinearROM):
 
     def eigenvalues(self) -> NDArray[np.complex128]:
         """Continuous-time eigenvalues of ``[[0, I], [-K, -C]]``."""
-        return np.linalg.eigvals(self.first_order()[0])
+        return np.asarray(np.linalg.eigvals(self.first_order()[0]), dtype=np.complex128)
 
     def discretize(self, dt: float | None = None) -> DiscreteSystem:
         dt = self.dt if dt is None else float(dt)
@@ -415,7 +514,38 @@ class SecondOrderModel(LinearROM):
         Ac, Bc, Cc = self.first_order()
         key = np.concatenate([Ac.ravel(), Bc.ravel()]).tobytes()
         Ad, Bd = _zoh_cached(key, self.r, self.n_inputs, dt)
-        return DiscreteSystem(Ad, Bd, Cc, np.zeros((self.n_outputs, self.n_inputs)), dt)
+        return _finite_system(
+            DiscreteSystem(Ad, Bd, Cc, np.zeros((self.n_outputs, self.n_inputs)), dt),
+            'LOpInf model')
+
+    def _check_trust(self) -> list[str]:
+        issues = super()._check_trust()
+        try:
+            ev = _eigvals(self.first_order()[0])
+        except DimensionError:
+            ev = np.zeros(0, dtype=np.complex128)
+        if ev.size:
+            scale = max(1.0, float(np.max(np.abs(ev))))
+            worst = float(np.max(ev.real))
+            if worst > TRUST_TOL * scale and not any(i.startswith('unstable') for i in issues):
+                issues.append(f'unstable: a continuous eigenvalue has real part {worst:.3g} > 0')
+        for name in ('K', 'C'):
+            M = getattr(self, name)
+            norm = float(np.linalg.norm(M))
+            if norm == 0.0:
+                continue
+            if float(np.linalg.norm(M - M.T)) > TRUST_TOL * norm:
+                issues.append(f'{name} is not symmetric')
+            try:
+                lam = np.linalg.eigvalsh(0.5 * (M + M.T))
+            except np.linalg.LinAlgError:
+                issues.append(f'the eigenvalues of {name} cannot be computed')
+                continue
+            if lam[0] < -TRUST_TOL * max(abs(lam[0]), abs(lam[-1])):
+                kind = 'negative definite' if lam[-1] < 0 else 'indefinite'
+                issues.append(f'{name} is {kind} (eigenvalues in [{lam[0]:.3g}, {lam[-1]:.3g}]'
+                              '); LOpInf stiffness and damping are positive')
+        return issues
 
     def state_from_output(self, y: ArrayLike, u: ArrayLike | None = None) -> Array:
         dy = np.asarray(y, dtype=np.float64) - self.y_ref
@@ -495,19 +625,40 @@ class DiscreteModel(LinearROM):
             raise DimensionError(
                 f'{self.method} model has sample time {self.dt:g} s; it can step by whole '
                 f'multiples of it only, not {dt:g} s. Step at the model rate instead.')
-        Aj = np.linalg.matrix_power(self.A, j)
-        S = np.zeros_like(self.A)
-        P = np.eye(self.r)
-        for _ in range(j):
-            S += P
-            P = P @ self.A
-        return DiscreteSystem(Aj, S @ self.B, self.C, self.D, j * self.dt)
+        with np.errstate(all='ignore'):
+            Aj = np.linalg.matrix_power(self.A, j)
+            S = np.zeros_like(self.A)
+            P = np.eye(self.r)
+            for _ in range(j):
+                S += P
+                P = P @ self.A
+            sys_ = DiscreteSystem(Aj, S @ self.B, self.C, self.D, j * self.dt)
+        return _finite_system(sys_, f'{self.method} model')
+
+    @classmethod
+    def _from_file(cls, arrays: dict[str, Array], **common: Any) -> LinearROM:
+        return cls(*(arrays[name] for name in cls._matrix_names), **common)
 
 
 _CLASSES: dict[str, type[LinearROM]] = {
     'SecondOrderModel': SecondOrderModel,
     'DiscreteModel': DiscreteModel,
 }
+
+_M = TypeVar('_M', bound=type[LinearROM])
+
+
+def register_model_class(cls: _M) -> _M:
+    """Let :func:`load_model` read files of ``cls`` (usable as a class decorator).
+
+    The file's ``class`` field is ``cls.__name__``; the loader accepts exactly the arrays
+    ``cls._matrix_names`` (plus any of ``cls._optional_matrices``) and ``y_ref``, and builds
+    the model with ``cls._from_file(arrays, **common)``.
+    """
+    if not (isinstance(cls, type) and issubclass(cls, LinearROM)):
+        raise TypeError('register_model_class needs a LinearROM subclass')
+    _CLASSES[cls.__name__] = cls
+    return cls
 
 
 def file_sha256(path: str | os.PathLike[str]) -> str:
@@ -519,85 +670,84 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
     return h.hexdigest()
 
 
-def load_model(path: str | os.PathLike[str]) -> LinearROM:
+def load_model(path: str | os.PathLike[str], *, strict: bool = False) -> LinearROM:
     """Load a model file written by :meth:`LinearROM.save`, without executing any code.
 
-    The archive is opened with ``allow_pickle=False``; object arrays, unknown keys, unknown
-    format versions, wrong shapes, non-float dtypes and NaN/Inf are refused with
-    :class:`~soft_rom.errors.ModelFileError` (a ``ValueError``). A missing file raises
-    ``FileNotFoundError``.
+    Every size is checked from the zip directory and the ``.npy`` headers before anything
+    is read (:func:`soft_rom.model_io.read_archive`: only the entries a model class needs,
+    at most 32 MiB of arrays, float dtypes only, never pickle), the metadata JSON is parsed
+    with size and depth limits, and every physical field is checked: ``dt`` finite in
+    [1e-9, 1e4] s, ``1 <= n_states <=`` :data:`MAX_STATES` (r <= 256 for DMDc/ERA,
+    r <= 128 for LOpInf), ``m, p >= 1``, shapes consistent with r, m and p, entries finite
+    with magnitude at most 1e150, offsets ``|y_ref| <= 1e12``, and the discrete system at
+    the native ``dt`` finite.
+
+    Parameters
+    ----------
+    path : path
+        The ``.npz`` model file.
+    strict : bool
+        Also refuse a model that loads but cannot be trusted
+        (:meth:`LinearROM.trust_issues`).
+
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    ModelFileError
+        Anything else wrong with the file, whatever its bytes (a ``ValueError``).
     """
     path = Path(path)
-    if not path.is_file():
+    if not os.path.lexists(path):
         raise FileNotFoundError(f'model file not found: {path}')
-    if not zipfile.is_zipfile(path):
-        raise ModelFileError(f'{path}: corrupt or not an .npz archive (no zip structure).')
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            names = list(npz.files)
-            if _META_KEY not in names:
-                raise ModelFileError(
-                    f'{path}: not a soft_rom model file (no {_META_KEY} entry); '
-                    'write models with LinearROM.save().')
-            raw: dict[str, np.ndarray] = {}
-            for name in names:
-                try:
-                    raw[name] = npz[name]
-                except ValueError as err:  # object arrays need pickle: refuse
-                    raise ModelFileError(
-                        f'{path}: entry {name!r} is an object array, which would need '
-                        'pickle to load; refusing it (model files hold numeric arrays '
-                        'only).') from err
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as err:
-        if isinstance(err, ModelFileError):
-            raise
-        raise ModelFileError(f'{path}: corrupt or not an .npz archive ({err}).') from err
-
+    if not path.is_file():
+        raise ModelFileError(f'{path}: not a regular file.')
+    allowed = {_META_KEY, 'y_ref'}
+    for known in _CLASSES.values():
+        allowed.update(known._matrix_names, known._optional_matrices)
+    raw = model_io.read_archive(path, allowed, first=_META_KEY)
     meta_arr = raw.pop(_META_KEY)
     if meta_arr.dtype != np.uint8 or meta_arr.ndim != 1:
         raise ModelFileError(f'{path}: metadata entry must be a 1-D uint8 array.')
-    try:
-        header = json.loads(meta_arr.tobytes().decode('utf-8'))
-    except (UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ModelFileError(f'{path}: metadata is not valid UTF-8 JSON ({err}).') from err
+    header = model_io.parse_json(path, meta_arr.tobytes())
     if not isinstance(header, dict) or header.get('format') != FORMAT_NAME:
         raise ModelFileError(f'{path}: metadata does not declare format {FORMAT_NAME!r}.')
     version = header.get('format_version')
     if version != FORMAT_VERSION:
         raise ModelFileError(
-            f'{path}: model file format version {version!r} is not supported by this soft_rom '
-            f'(it reads version {FORMAT_VERSION}); upgrade soft_rom or re-export the model.')
-    cls = _CLASSES.get(str(header.get('class')))
+            f'{path}: model file format version {str(version)[:20]} is not supported by this '
+            f'soft_rom (it reads version {FORMAT_VERSION}); upgrade soft_rom or re-export the '
+            'model.')
+    cls = _CLASSES.get(str(header.get('class'))[:100])
     if cls is None:
-        raise ModelFileError(f'{path}: unknown model class {header.get("class")!r}.')
-    expected = set(cls._matrix_names) | {'y_ref'}
-    if set(raw) != expected:
+        raise ModelFileError(f'{path}: unknown model class {str(header.get("class"))[:60]!r}.')
+    needed = set(cls._matrix_names) | {'y_ref'}
+    if not needed <= set(raw) <= needed | set(cls._optional_matrices):
         raise ModelFileError(
-            f'{path}: {cls.__name__} needs arrays {sorted(expected)}; found {sorted(raw)}.')
+            f'{path}: {cls.__name__} needs arrays {sorted(needed)}; found {sorted(raw)}.')
+    common = model_io.check_header(path, header)
+    if cls._file_methods and common['method'] not in cls._file_methods:
+        raise ModelFileError(f'{path}: a {cls.__name__} cannot have method '
+                             f'{common["method"]!r}.')
     for name, arr in raw.items():
-        if arr.dtype.kind != 'f':
-            raise ModelFileError(f'{path}: array {name!r} has dtype {arr.dtype}; expected float.')
-        if not np.all(np.isfinite(arr)):
-            raise ModelFileError(f'{path}: array {name!r} contains NaN or Inf.')
-    kwargs: dict[str, Any] = {}
-    for key in ('input_names', 'output_names', 'input_units', 'output_units'):
-        value = header.get(key)
-        if value is not None and (not isinstance(value, list)
-                                  or not all(isinstance(v, str) for v in value)):
-            raise ModelFileError(f'{path}: metadata {key!r} must be a list of strings.')
-        kwargs[key] = value
-    kwargs['metadata'] = header.get('metadata') or {}
+        if arr.ndim > (1 if name == 'y_ref' else 3):
+            raise ModelFileError(f'{path}: array {name!r} has {arr.ndim} dimensions.')
+    model_io.check_arrays(path, raw)
+    y_ref = raw.pop('y_ref')
     try:
-        dt = float(header['dt'])
-        if cls is DiscreteModel:
-            model: LinearROM = DiscreteModel(raw['A'], raw['B'], raw['C'], raw['D'], dt=dt,
-                                             method=str(header.get('method', 'discrete')),
-                                             y_ref=raw['y_ref'], **kwargs)
-        else:
-            model = SecondOrderModel(raw['K'], raw['C'], raw['B'], raw['E'], dt=dt,
-                                     y_ref=raw['y_ref'], **kwargs)
-    except (KeyError, TypeError, ValueError) as err:
-        raise ModelFileError(f'{path}: inconsistent model file: {err}') from err
-    if header.get('r') is not None and header['r'] != model.r:
-        raise ModelFileError(f'{path}: metadata says r={header["r"]}, arrays give r={model.r}.')
+        model = cls._from_file(raw, y_ref=y_ref, **common)
+        n, m, p = model.n_states, model.n_inputs, model.n_outputs
+        if not 1 <= n <= MAX_STATES:
+            raise DimensionError(f'{n} states; a model file holds 1 to {MAX_STATES}')
+        if m < 1 or p < 1:
+            raise DimensionError(f'{m} inputs and {p} outputs; needs at least one of each')
+        for key, value in (('r', model.r), ('n_states', n)):
+            if header.get(key) is not None and header[key] != value:
+                raise DimensionError(f'metadata says {key}={header[key]}, arrays give {value}')
+        model.system  # noqa: B018  (discretize now: an unusable model is refused here)
+    except (DimensionError, ValueError, TypeError, KeyError) as err:
+        raise ModelFileError(f'{path}: inconsistent model file: {err}') from None
+    if strict and not model.trusted:
+        raise ModelFileError(f'{path}: the model cannot be trusted: '
+                             f'{"; ".join(model.trust_issues())} (strict mode refuses it).')
     return model
