@@ -28,7 +28,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 from soft_rom.data import Episode  # noqa: E402
 from soft_rom.models import SecondOrderModel  # noqa: E402
 from soft_rom.predictor import Predictor, PredictorConfig, replay_episode  # noqa: E402
-from soft_rom.ros.conversions import (  # noqa: E402
+from soft_rom.predictor.conversions import (  # noqa: E402
     outputs_to_points,
     poses_to_points,
     sec_to_stamp,

@@ -54,7 +54,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
 
 from soft_rom.predictor import Predictor
-from soft_rom.ros.conversions import (
+from soft_rom.predictor.conversions import (
     array_to_data,
     check_components,
     data_to_array,
@@ -67,7 +67,7 @@ from soft_rom.ros.conversions import (
     set_points,
     stamp_to_sec,
 )
-from soft_rom.ros.params import NODE_NAME, PARAMS, predictor_config
+from soft_rom.predictor.params import NODE_NAME, PARAMS, predictor_config
 
 __all__ = ['PredictorNode', 'main']
 
