@@ -64,6 +64,8 @@ __all__ = [
 
 FORMAT_NAME = 'soft_rom.model'
 FORMAT_VERSION = 1
+#: Versions the loader reads: 1 (linear models), 2 (adds the cubic LOpInf model's tensors).
+READ_VERSIONS = (1, 2)
 _META_KEY = '__metadata__'
 #: Largest state dimension of a model file: r <= 256 for DMDc/ERA, r <= 128 for LOpInf
 #: (loading, discretizing and the trust checks then stay well under a second).
@@ -702,6 +704,7 @@ def load_model(path: str | os.PathLike[str], *, strict: bool = False) -> LinearR
         raise FileNotFoundError(f'model file not found: {path}')
     if not path.is_file():
         raise ModelFileError(f'{path}: not a regular file.')
+    import soft_rom.models_cubic  # noqa: F401  (registers CubicSecondOrderModel)
     allowed = {_META_KEY, 'y_ref'}
     for known in _CLASSES.values():
         allowed.update(known._matrix_names, known._optional_matrices)
@@ -713,7 +716,7 @@ def load_model(path: str | os.PathLike[str], *, strict: bool = False) -> LinearR
     if not isinstance(header, dict) or header.get('format') != FORMAT_NAME:
         raise ModelFileError(f'{path}: metadata does not declare format {FORMAT_NAME!r}.')
     version = header.get('format_version')
-    if version != FORMAT_VERSION:
+    if version not in READ_VERSIONS:
         raise ModelFileError(
             f'{path}: model file format version {str(version)[:20]} is not supported by this '
             f'soft_rom (it reads version {FORMAT_VERSION}); upgrade soft_rom or re-export the '

@@ -38,7 +38,6 @@ derivative of this step map.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from itertools import combinations_with_replacement, permutations
 import math
 from typing import Any
@@ -48,7 +47,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.data import as_signal
 from soft_rom.errors import DimensionError, SolverError
-from soft_rom.models import _arr, DiscreteSystem, LinearROM, SecondOrderModel
+from soft_rom.models import (_arr, DiscreteSystem, LinearROM, register_model_class,
+                             SecondOrderModel)
 
 __all__ = ['CUBIC_FORMAT_VERSION', 'CubicSecondOrderModel', 'StepCache', 'symmetrize',
            'symmetric_from_entries', 'symmetric_entries', 'symmetric_index']
@@ -130,6 +130,7 @@ class StepCache:
         self.Wv = np.ascontiguousarray(W[r:])
 
 
+@register_model_class
 class CubicSecondOrderModel(LinearROM):
     """Second-order ROM whose restoring force is the gradient of a quartic potential.
 
@@ -163,6 +164,7 @@ class CubicSecondOrderModel(LinearROM):
 
     method = 'lopinf'
     _matrix_names = ('K', 'C', 'G', 'H', 'B', 'E')
+    _file_methods = ('lopinf',)
 
     def __init__(self, K: ArrayLike, C: ArrayLike, G: ArrayLike, H: ArrayLike, B: ArrayLike,
                  E: ArrayLike, *, dt: float, y_ref: ArrayLike | None = None,
@@ -445,12 +447,33 @@ class CubicSecondOrderModel(LinearROM):
         }
         return head
 
+    def matrices(self) -> dict[str, Array]:
+        """The defining arrays; ``H`` as ``(r, r, r²)`` (files hold arrays of at most 3 axes)."""
+        out = super().matrices()
+        r = self.r
+        out['H'] = self.H.reshape(r, r, r * r)
+        return out
+
     @classmethod
-    def from_arrays(cls, raw: Mapping[str, Array], dt: float,
-                    **kwargs: Any) -> CubicSecondOrderModel:
-        """Build from the arrays of a model file (the loader's validation comes first)."""
-        return cls(raw['K'], raw['C'], raw['G'], raw['H'], raw['B'], raw['E'], dt=dt,
-                   y_ref=raw['y_ref'], **kwargs)
+    def _from_file(cls, arrays: dict[str, Array], **common: Any) -> LinearROM:
+        common.pop('method', None)
+        K, H = arrays['K'], arrays['H']
+        r = K.shape[0] if K.ndim == 2 else -1
+        if r < 1 or H.shape != (r, r, r * r):
+            raise DimensionError(f'H must have shape (r, r, r*r) = ({r}, {r}, {r * r}) in a '
+                                 f'file; got {H.shape}.')
+        return cls(K, arrays['C'], arrays['G'], H.reshape(r, r, r, r), arrays['B'],
+                   arrays['E'], **common)
+
+    def _check_trust(self) -> list[str]:
+        issues = self._linear._check_trust()
+        if self.r <= 16:      # certificate cost grows like r^6
+            from soft_rom.learners.lopinf_cubic import quartic_lower_bound
+            t, _how = quartic_lower_bound(self.H, target=0.0)
+            if not t > 0:
+                issues.append('the quartic part of the potential is not certified positive '
+                              '(the potential may be unbounded below)')
+        return issues
 
     def __repr__(self) -> str:
         return (f'{type(self).__name__}(method={self.method!r}, forces=cubic, r={self.r}, '

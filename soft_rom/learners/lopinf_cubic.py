@@ -65,6 +65,7 @@ Array = NDArray[np.float64]
 DEFAULT_REG = 1e-4
 #: The quartic form must satisfy ``H(q⁴) ≥ eps4 · λ_max(K) · |q|⁴`` (scaled coordinates).
 DEFAULT_EPS4 = 1e-6
+_VERBOSE = False
 
 
 class CubicSolution(NamedTuple):
@@ -363,7 +364,7 @@ def _constrained(A: Array, b: Array, lay: _Layout, ridge: Array, eps: float, t4:
             X - t4 * np.eye(ns) >> 0]
     prob = cp.Problem(cp.Minimize(cp.sum_squares(Lc.T @ theta - c) / scale ** 2), cons)
     try:
-        prob.solve(solver='CLARABEL')
+        prob.solve(solver='CLARABEL', verbose=_VERBOSE)
     except Exception as err:
         raise SolverError(f'the conic cubic LOpInf problem failed: {err}') from err
     if prob.status not in ('optimal', 'optimal_inaccurate') or th_K.value is None:
