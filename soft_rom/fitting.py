@@ -69,8 +69,11 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
                energy: float | None, episodes: list[Episode], provenance: dict[str, Any],
                solver: str = 'fast', ddt_order: int = 8, dmdc_p: int | None = None,
                era_options: dict[str, Any] | None = None,
-               progress: bool = True) -> list[tuple[LinearROM, float]]:
+               progress: bool = True, forces: str = 'linear',
+               cubic_options: dict[str, Any] | None = None) -> list[tuple[LinearROM, float]]:
     """Fit ``method`` for each r; returns ``[(model, seconds), ...]``.
+
+    ``forces`` and ``cubic_options`` are passed to :class:`~soft_rom.learners.lopinf.LOpInf`.
 
     The expensive step is shared between the r values (module docstring).
     """
@@ -96,7 +99,8 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             for r in (r_values or (pod.r_,)):
                 t1 = time.perf_counter()
                 slv = FastSPDSolver() if solver == 'fast' else CvxpySolver()
-                learner = LOpInf(r=r, ddt=ddt_order, solver=slv)
+                learner = LOpInf(r=r, ddt=ddt_order, solver=slv, forces=forces,
+                                 cubic_options=cubic_options)
                 learner.fit_reduced(
                     [q[:r] for q in Qhat], [ep.U for ep in episodes],
                     [ep.Y for ep in episodes], dt, y_ref, names=[ep.name for ep in episodes],
