@@ -38,6 +38,7 @@ derivative of this step map.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from itertools import combinations_with_replacement, permutations
 import math
 from typing import Any
@@ -47,8 +48,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.data import as_signal
 from soft_rom.errors import DimensionError, SolverError
-from soft_rom.models import (_arr, DiscreteSystem, LinearROM, register_model_class,
-                             SecondOrderModel)
+from soft_rom.models import _arr, DiscreteSystem, LinearROM, register_model_class, SecondOrderModel
 
 __all__ = ['CUBIC_FORMAT_VERSION', 'CubicSecondOrderModel', 'StepCache', 'symmetrize',
            'symmetric_from_entries', 'symmetric_entries', 'symmetric_index']
@@ -59,6 +59,10 @@ Array = NDArray[np.float64]
 CUBIC_FORMAT_VERSION = 2
 
 _GAUSS = (0.5 - math.sqrt(3.0) / 6.0, 0.5 + math.sqrt(3.0) / 6.0)
+_S = np.array([_GAUSS])                                          # (1, 2)
+_SC = _S.T                                                       # (2, 1)
+_W01 = np.array([[0.5 * (1.0 - _GAUSS[0]), 0.5 * _GAUSS[0]],
+                 [0.5 * (1.0 - _GAUSS[1]), 0.5 * _GAUSS[1]]])    # d ḡ / d(q0, q1) weights
 
 
 # ------------------------------------------------------------------ symmetric tensors
@@ -74,7 +78,10 @@ def symmetrize(T: ArrayLike) -> Array:
     """Average of a tensor over all permutations of its axes (its fully symmetric part)."""
     T = np.asarray(T, dtype=np.float64)
     perms = list(permutations(range(T.ndim)))
-    return sum(np.transpose(T, p) for p in perms) / len(perms)
+    out = np.zeros_like(T)
+    for p in perms:
+        out += np.transpose(T, p)
+    return out / len(perms)
 
 
 def symmetric_from_entries(values: ArrayLike, r: int, degree: int) -> Array:
@@ -121,13 +128,14 @@ class StepCache:
         ``Γ = (A_d - I) P^{-1} [I; 0]``: response to the discrete-gradient force.
     """
 
-    __slots__ = ('h', 'Ad', 'Bd', 'W', 'Wq', 'Wv')
+    __slots__ = ('h', 'Ad', 'Bd', 'W', 'Wq', 'Wv', 'Jinv')
 
     def __init__(self, h: float, Ad: Array, Bd: Array, W: Array) -> None:
         r = W.shape[1]
         self.h, self.Ad, self.Bd, self.W = h, Ad, Bd, W
         self.Wq = np.ascontiguousarray(W[:r])
         self.Wv = np.ascontiguousarray(W[r:])
+        self.Jinv: Array | None = None
 
 
 @register_model_class
@@ -186,11 +194,25 @@ class CubicSecondOrderModel(LinearROM):
         # = (M1 q + M2 kron(q, q)).reshape(r, r).
         self._F2 = np.ascontiguousarray(0.5 * self.G.reshape(r, r * r))
         self._F3 = np.ascontiguousarray(self.H.reshape(r, r ** 3) / 6.0)
-        self._F = np.ascontiguousarray(np.hstack([self._F2, self._F3]))
         self._M1 = np.ascontiguousarray(self.G.reshape(r * r, r))
         self._M2 = np.ascontiguousarray(0.5 * self.H.reshape(r * r, r * r))
-        self._M = np.ascontiguousarray(np.hstack([self._M1, self._M2]))
         self._caches: dict[float, StepCache] = {}
+        # The same force on the unique monomials (fewer flops on the hot path):
+        # ḡ = Fu · mean over the two Gauss points of [q_a q_b; q_a q_b q_c].
+        i2 = symmetric_index(r, 2)
+        i3 = symmetric_index(r, 3)
+        pos2 = {t: j for j, t in enumerate(i2)}
+        self._i2a = np.array([a for a, _ in i2], dtype=np.intp)
+        self._i2b = np.array([b for _, b in i2], dtype=np.intp)
+        self._i3p = np.array([pos2[(a, b)] for a, b, _ in i3], dtype=np.intp)
+        self._i3c = np.array([c for _, _, c in i3], dtype=np.intp)
+        mult2 = np.array([1.0 if a == b else 2.0 for a, b in i2])
+        mult3 = np.array([6.0 / np.prod([math.factorial(t.count(v)) for v in set(t)])
+                          for t in i3])
+        F2u = np.stack([0.5 * self.G[(i,) + tuple(np.array(i2).T)] for i in range(r)]) * mult2
+        F3u = np.stack([self.H[(i,) + tuple(np.array(i3).T)] / 6.0 for i in range(r)]) * mult3
+        self._Fu = np.ascontiguousarray(0.5 * np.hstack([F2u, F3u]))
+        self._n2 = len(i2)
 
     # -- sizes ---------------------------------------------------------------------------
     @property
@@ -276,47 +298,60 @@ class CubicSecondOrderModel(LinearROM):
 
     def _gbar(self, q0: Array, q1: Array) -> Array:
         """AVF discrete gradient of the nonlinear potential (exact 2-point Gauss rule)."""
-        d = q1 - q0
-        Qg = np.column_stack((q0 + _GAUSS[0] * d, q0 + _GAUSS[1] * d))
-        r = q0.shape[0]
-        Q2 = (Qg[:, None, :] * Qg[None, :, :]).reshape(r * r, 2)
-        Q3 = (Qg[:, None, :] * Q2[None, :, :]).reshape(r ** 3, 2)
-        g = self._F @ np.vstack((Q2, Q3))
-        return 0.5 * (g[:, 0] + g[:, 1])
+        Qg = q0 + (q1 - q0) * _SC                          # (2, r): the Gauss points
+        P2 = Qg[:, self._i2a] * Qg[:, self._i2b]
+        P3 = P2[:, self._i3p] * Qg[:, self._i3c]
+        return self._Fu @ np.concatenate((P2, P3), axis=1).sum(axis=0)
 
     def _gbar_jac(self, q0: Array, q1: Array) -> tuple[Array, Array]:
         """Derivatives of ``ḡ(q0, q1)`` with respect to ``q0`` and ``q1``, shape (r, r) each."""
-        d = q1 - q0
-        s = np.array(_GAUSS)
-        Qg = q0[:, None] + d[:, None] * s[None, :]
         r = q0.shape[0]
+        Qg = q0[:, None] + (q1 - q0)[:, None] * _S
         Q2 = (Qg[:, None, :] * Qg[None, :, :]).reshape(r * r, 2)
-        w1 = 0.5 * s
-        w0 = 0.5 * (1.0 - s)
-        Z = np.vstack((Qg, Q2)) @ np.column_stack((w0, w1))
-        J = self._M @ Z
+        J = self._M1 @ (Qg @ _W01) + self._M2 @ (Q2 @ _W01)
         return J[:, 0].reshape(r, r), J[:, 1].reshape(r, r)
 
-    def _solve_step(self, cache: StepCache, x: Array, bu: Array, guess: Array | None
+    def _newton_inverse(self, cache: StepCache, q0: Array, q1: Array) -> Array:
+        _J0, J1 = self._gbar_jac(q0, q1)
+        return np.asarray(np.linalg.inv(np.eye(self.r) - cache.Wq @ J1), dtype=np.float64)
+
+    def _solve_step(self, cache: StepCache, x: Array, bu: Array, g_prev: Array | None
                     ) -> tuple[Array, Array] | None:
-        """Newton solve of one step; ``None`` if it does not converge."""
+        """Solve ``q1 = z_q + W_q ḡ(q0, q1)``; returns ``(x1, ḡ)`` or ``None`` if no convergence.
+
+        Simplified Newton: the inverse Newton matrix of an earlier step is reused (cached per
+        step length) and refreshed when the iteration contracts slowly; the first iterate uses
+        the previous step's discrete force (``g_prev``).
+        """
         r = self.r
         z = cache.Ad @ x + bu
         q0 = x[:r]
         zq = z[:r]
-        q1 = zq + cache.Wq @ self._gbar(q0, q0) if guess is None else guess.copy()
-        tol = self.newton_tol * (1.0 + float(np.max(np.abs(zq))))
-        eye = np.eye(r)
-        for _ in range(30):
+        Wq = cache.Wq
+        q1 = zq + Wq @ (self._gbar(q0, q0) if g_prev is None else g_prev)
+        tol = self.newton_tol * (1.0 + float(np.abs(zq).max()))
+        Jinv = cache.Jinv
+        if Jinv is None:
+            Jinv = cache.Jinv = self._newton_inverse(cache, q0, q1)
+        last = np.inf
+        fresh = False
+        for _ in range(40):
             g = self._gbar(q0, q1)
-            F = q1 - zq - cache.Wq @ g
-            err = float(np.max(np.abs(F)))
-            if not np.isfinite(err):
-                return None
+            F = q1 - zq - Wq @ g
+            err = float(np.abs(F).max())
             if err <= tol:
                 return z + cache.W @ g, g
-            _J0, J1 = self._gbar_jac(q0, q1)
-            q1 = q1 - np.linalg.solve(eye - cache.Wq @ J1, F)
+            if not err < 1e300:
+                return None
+            if err > 0.1 * last and not fresh:          # slow: refresh the Newton matrix
+                Jinv = cache.Jinv = self._newton_inverse(cache, q0, q1)
+                fresh = True
+            elif err > 0.5 * last:                      # diverging even with a fresh one
+                return None
+            else:
+                fresh = False
+            last = err
+            q1 = q1 - Jinv @ F
         return None
 
     def _advance(self, x: Array, u: Array, h: float, depth: int = 0) -> Array:
@@ -329,6 +364,34 @@ class CubicSecondOrderModel(LinearROM):
                               f'(state norm {float(np.linalg.norm(x)):.3g}).')
         half = self._advance(x, u, 0.5 * h, depth + 1)
         return self._advance(half, u, 0.5 * h, depth + 1)
+
+    def stepper(self, h: float) -> Callable[[Array, Array], Array]:
+        """One ZOH step of ``h`` seconds as a function ``x_next = f(x, u)`` (predictor API).
+
+        The function remembers the last discrete force for its warm start only; the result
+        depends on ``(x, u)`` alone (to the Newton tolerance).
+        """
+        cache = self.step_cache(h)
+        state: list[Array | None] = [None]
+
+        def step(x: Array, u: Array) -> Array:
+            out = self._solve_step(cache, x, cache.Bd @ u, state[0])
+            if out is None:
+                state[0] = None
+                return self._advance(np.asarray(x, dtype=np.float64),
+                                     np.asarray(u, dtype=np.float64), h)
+            state[0] = out[1]
+            return out[0]
+
+        return step
+
+    def linearize(self, x: ArrayLike, u: ArrayLike, h: float
+                  ) -> tuple[Array, Array, Array, Array]:
+        """Discrete Jacobians ``(A, B, C, D)`` of the step at ``(x, u)`` (extended Kalman)."""
+        _x1, A, Bu = self.step_jacobian(x, u, h)
+        C = np.zeros((self.n_outputs, self.n_states))
+        C[:, :self.r] = self.E
+        return A, Bu, C, np.zeros((self.n_outputs, self.n_inputs))
 
     def step(self, x: ArrayLike, u: ArrayLike, dt: float | None = None) -> Array:
         """Advance the state ``x = [q; q̇]`` by one step with ``u`` held (nonlinear).
@@ -411,22 +474,16 @@ class CubicSecondOrderModel(LinearROM):
         X = np.empty((n, k))
         BU = cache.Bd @ U
         r = self.r
-        guess: Array | None = None
-        prev: Array | None = None
+        g: Array | None = None
         for j in range(k):
             X[:, j] = x
             if j == k - 1:
                 break
-            out = self._solve_step(cache, x, BU[:, j], guess)
+            out = self._solve_step(cache, x, BU[:, j], g)
             if out is None:
-                x_new = self._advance(x, U[:, j], h)
+                x, g = self._advance(x, U[:, j], h), None
             else:
-                x_new = out[0]
-            q_prev = x[:r] if prev is None else prev
-            prev = x[:r].copy()
-            x = x_new
-            # warm start: quadratic extrapolation of q
-            guess = 3.0 * x[:r] - 3.0 * prev + q_prev if j > 0 else None
+                x, g = out
         Y = self.E @ X[:r] + self.y_ref[:, None]
         return (Y, X) if return_states else Y
 

@@ -12,8 +12,13 @@ from soft_rom.learners.lopinf import LOpInf
 from soft_rom.learners.lopinf_cubic import fit_cubic, quartic_lower_bound
 from soft_rom.metrics import relative_error
 from soft_rom.models import load_model
-from soft_rom.models_cubic import (CubicSecondOrderModel, symmetric_entries,
-                                   symmetric_from_entries, symmetric_index, symmetrize)
+from soft_rom.models_cubic import (
+    CubicSecondOrderModel,
+    symmetric_entries,
+    symmetric_from_entries,
+    symmetric_index,
+    symmetrize,
+)
 
 DT = 1e-3
 

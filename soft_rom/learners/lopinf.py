@@ -384,11 +384,11 @@ class LOpInf:
         self.model_ = self._make_model(meta, kw)
 
     def _make_model(self, meta: dict[str, Any], kw: dict[str, Any]) -> Any:
-        if getattr(self, 'nonlinear_', None) is not None:
+        nl = getattr(self, 'nonlinear_', None)
+        if nl is not None:
             from soft_rom.models_cubic import CubicSecondOrderModel
-            return CubicSecondOrderModel(self.K_, self.C_, self.nonlinear_['G'],
-                                         self.nonlinear_['H'], self.B_, self.E_, dt=self.dt_,
-                                         y_ref=self.y_ref_, metadata=meta, **kw)
+            return CubicSecondOrderModel(self.K_, self.C_, nl['G'], nl['H'], self.B_, self.E_,
+                                         dt=self.dt_, y_ref=self.y_ref_, metadata=meta, **kw)
         return SecondOrderModel(self.K_, self.C_, self.B_, self.E_, dt=self.dt_,
                                 y_ref=self.y_ref_, metadata=meta, **kw)
 

@@ -51,8 +51,12 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from soft_rom.errors import ConfigError, SolverError
-from soft_rom.learners.lopinf_solvers import (DEFAULT_EPS, FastSPDSolver, LOpInfSolution,
-                                             OperatorSolver)
+from soft_rom.learners.lopinf_solvers import (
+    DEFAULT_EPS,
+    FastSPDSolver,
+    LOpInfSolution,
+    OperatorSolver,
+)
 from soft_rom.models_cubic import symmetric_from_entries, symmetric_index
 
 __all__ = ['CubicSolution', 'DEFAULT_EPS4', 'DEFAULT_REG', 'fit_cubic', 'fit_scaled',
@@ -127,10 +131,11 @@ class _Layout:
                 for i in sorted(set(alpha)):
                     beta = list(alpha)
                     beta.remove(i)
-                    b = tuple(beta)
-                    put(i, self.z_off[zkey] + self.pos[deg - 1][b], self.t_off[name] + j,
-                        scale * _mult(b))
-        for j, (a, b) in enumerate(self.idx[2]):        # C, symmetric
+                    rest = tuple(beta)
+                    put(i, self.z_off[zkey] + self.pos[deg - 1][rest], self.t_off[name] + j,
+                        scale * _mult(rest))
+        for j, pair in enumerate(self.idx[2]):          # C, symmetric
+            a, b = pair
             put(a, self.z_off['qd'] + b, self.t_off['C'] + j, 1.0)
             if a != b:
                 put(b, self.z_off['qd'] + a, self.t_off['C'] + j, 1.0)
@@ -264,7 +269,7 @@ def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT
     w_all = np.zeros(lay.n_theta)
     w_all[nl] = w_nl
 
-    def solve_cols(cols: Array, rhs: Array) -> Array:
+    def solve_cols(cols: NDArray[np.intp], rhs: Array) -> Array:
         """Least squares over the columns ``cols`` (regularized where they are nonlinear)."""
         d = np.sqrt(lam * w_all[cols])
         keep = d > 0
