@@ -716,7 +716,7 @@ def load_model(path: str | os.PathLike[str], *, strict: bool = False) -> LinearR
     if not isinstance(header, dict) or header.get('format') != FORMAT_NAME:
         raise ModelFileError(f'{path}: metadata does not declare format {FORMAT_NAME!r}.')
     version = header.get('format_version')
-    if version not in READ_VERSIONS:
+    if isinstance(version, bool) or version not in READ_VERSIONS:
         raise ModelFileError(
             f'{path}: model file format version {str(version)[:20]} is not supported by this '
             f'soft_rom (it reads version {FORMAT_VERSION}); upgrade soft_rom or re-export the '
@@ -724,6 +724,10 @@ def load_model(path: str | os.PathLike[str], *, strict: bool = False) -> LinearR
     cls = _CLASSES.get(str(header.get('class'))[:100])
     if cls is None:
         raise ModelFileError(f'{path}: unknown model class {str(header.get("class"))[:60]!r}.')
+    cls_version = int(getattr(cls, '_format_version', FORMAT_VERSION))
+    if version > cls_version:
+        raise ModelFileError(f'{path}: a {cls.__name__} file has format version at most '
+                             f'{cls_version}, not {version}.')
     needed = set(cls._matrix_names) | {'y_ref'}
     if not needed <= set(raw) <= needed | set(cls._optional_matrices):
         raise ModelFileError(

@@ -173,6 +173,7 @@ class CubicSecondOrderModel(LinearROM):
     method = 'lopinf'
     _matrix_names = ('K', 'C', 'G', 'H', 'B', 'E')
     _file_methods = ('lopinf',)
+    _format_version = CUBIC_FORMAT_VERSION
 
     def __init__(self, K: ArrayLike, C: ArrayLike, G: ArrayLike, H: ArrayLike, B: ArrayLike,
                  E: ArrayLike, *, dt: float, y_ref: ArrayLike | None = None,

@@ -49,6 +49,11 @@ ERA_EEL_OPTIONS: dict[str, Any] = {'decimation': 1, 'output_rank': 4, 'observer_
                                    'n_markov': 500}
 
 
+#: Cubic LOpInf settings for the eel: a stronger quartic floor than the learner's default keeps
+#: the fitted potential from developing distant wells the test inputs can reach.
+CUBIC_EEL_OPTIONS: dict[str, Any] = {'reg': 1e-3, 'eps4': 1e-2}
+
+
 @dataclass(frozen=True)
 class StudyConfig:
     """What the studies run.
@@ -102,7 +107,7 @@ class StudyConfig:
     sim_options: dict[str, Any] = field(default_factory=dict)
     era_options: dict[str, Any] = field(default_factory=lambda: dict(ERA_EEL_OPTIONS))
     r_cubic: tuple[int, ...] = (4, 6)
-    cubic_options: dict[str, Any] = field(default_factory=dict)
+    cubic_options: dict[str, Any] = field(default_factory=lambda: dict(CUBIC_EEL_OPTIONS))
 
     def __post_init__(self) -> None:
         if self.n_episodes < 2:
