@@ -232,3 +232,32 @@ def test_predictor_replay_equals_simulate() -> None:
     out = replay_episode(pk, noisy, measured=True)
     assert np.all(np.isfinite(out.Y))
     assert relative_error(ep.Y, out.Y) < 0.05
+
+
+def test_cli_fit_forces_cubic_then_info(tmp_path, capsys) -> None:
+    pytest.importorskip('zarr')
+    from soft_rom.cli import main
+    from soft_rom.dataset import TrainingSet
+    truth = duffing_chain(4)
+    Q, _Qd, _Qdd, U = exact_data(truth, T=2.0)
+    k = Q.shape[1] // 2
+    q_ref = np.linspace(0.0, 0.5, 4)
+    eps = [Episode(t=np.arange(k) * DT, U=U[:, s], Y=truth.E @ Q[:, s] + 1.0,
+                   Q=Q[:, s] + q_ref[:, None], name=f'ep{i + 1}')
+           for i, s in enumerate((slice(0, k), slice(k, 2 * k)))]
+    ts = TrainingSet.from_episodes(tmp_path / 'chain.zarr', eps, q_ref=q_ref,
+                                   y_ref=eps[0].Y[:, 0]).path
+    out = tmp_path / 'models'
+    rc = main(['fit', str(ts), '--method', 'lopinf', '--forces', 'cubic', '--r', '3,4',
+               '-o', str(out), '--no-progress'])
+    assert rc == 0
+    assert 'chain_lopinf_cubic_r4.npz' in capsys.readouterr().out
+    model = load_model(out / 'chain_lopinf_cubic_r4.npz')
+    assert isinstance(model, CubicSecondOrderModel) and model.r == 4
+    assert main(['info', str(out / 'chain_lopinf_cubic_r4.npz')]) == 0
+    text = capsys.readouterr().out
+    assert 'forces: cubic' in text and 'H 35' in text
+    rc = main(['fit', str(ts), '--forces', 'cubic', '--r', '4', '--streaming', '-o',
+               str(tmp_path / 'm2')])
+    assert rc != 0
+    assert '--forces cubic' in capsys.readouterr().err
