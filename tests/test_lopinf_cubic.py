@@ -261,3 +261,15 @@ def test_cli_fit_forces_cubic_then_info(tmp_path, capsys) -> None:
                str(tmp_path / 'm2')])
     assert rc != 0
     assert '--forces cubic' in capsys.readouterr().err
+
+
+def test_quartic_certificate_known_values() -> None:
+    """|q|⁴: canonical Gram bound 2/3, sum-of-squares bound 1 (the exact minimum on |q| = 1)."""
+    from soft_rom.learners.lopinf_cubic import isotropic_quartic
+    S = isotropic_quartic(3)
+    t, how = quartic_lower_bound(S, target=None)
+    assert how == 'gram' and abs(t - 2.0 / 3.0) < 1e-12
+    t, how = quartic_lower_bound(S, target=0.9)
+    assert how == 'sos' and abs(t - 1.0) < 1e-5
+    t, _how = quartic_lower_bound(-S, target=0.0)
+    assert t < 0
