@@ -21,8 +21,8 @@ Time stepping (:meth:`CubicSecondOrderModel.step`): with ``x = [q; q̇]``, the s
 where ``A_d, B_d`` are the exact ZOH matrices of the linear part (those of
 :class:`~soft_rom.models.SecondOrderModel`), ``Γ = (A_d - I) P^{-1} [I; 0]`` with
 ``P = diag(K, I)`` is the exact response to a force held over the step, and ``ḡ`` is the
-average-vector-field discrete gradient of the nonlinear potential (two-point Gauss-Legendre
-quadrature, exact for the cubic ``∇V_nl``). Properties:
+average-vector-field discrete gradient of the nonlinear potential (integrated in closed form,
+exact for the cubic ``∇V_nl``). Properties:
 
 * exact for the linear part (``V_nl = 0`` gives the ZOH map of the linear model);
 * with ``u = 0`` the discrete energy ``½|q̇|² + V(q)`` never increases: the scheme is the
@@ -60,7 +60,6 @@ CUBIC_FORMAT_VERSION = 2
 
 _GAUSS = (0.5 - math.sqrt(3.0) / 6.0, 0.5 + math.sqrt(3.0) / 6.0)
 _S = np.array([_GAUSS])                                          # (1, 2)
-_SC = _S.T                                                       # (2, 1)
 _W01 = np.array([[0.5 * (1.0 - _GAUSS[0]), 0.5 * _GAUSS[0]],
                  [0.5 * (1.0 - _GAUSS[1]), 0.5 * _GAUSS[1]]])    # d ḡ / d(q0, q1) weights
 
@@ -198,22 +197,6 @@ class CubicSecondOrderModel(LinearROM):
         self._M1 = np.ascontiguousarray(self.G.reshape(r * r, r))
         self._M2 = np.ascontiguousarray(0.5 * self.H.reshape(r * r, r * r))
         self._caches: dict[float, StepCache] = {}
-        # The same force on the unique monomials (fewer flops on the hot path):
-        # ḡ = Fu · mean over the two Gauss points of [q_a q_b; q_a q_b q_c].
-        i2 = symmetric_index(r, 2)
-        i3 = symmetric_index(r, 3)
-        pos2 = {t: j for j, t in enumerate(i2)}
-        self._i2a = np.array([a for a, _ in i2], dtype=np.intp)
-        self._i2b = np.array([b for _, b in i2], dtype=np.intp)
-        self._i3p = np.array([pos2[(a, b)] for a, b, _ in i3], dtype=np.intp)
-        self._i3c = np.array([c for _, _, c in i3], dtype=np.intp)
-        mult2 = np.array([1.0 if a == b else 2.0 for a, b in i2])
-        mult3 = np.array([6.0 / np.prod([math.factorial(t.count(v)) for v in set(t)])
-                          for t in i3])
-        F2u = np.stack([0.5 * self.G[(i,) + tuple(np.array(i2).T)] for i in range(r)]) * mult2
-        F3u = np.stack([self.H[(i,) + tuple(np.array(i3).T)] / 6.0 for i in range(r)]) * mult3
-        self._Fu = np.ascontiguousarray(0.5 * np.hstack([F2u, F3u]))
-        self._n2 = len(i2)
 
     # -- sizes ---------------------------------------------------------------------------
     @property
@@ -298,11 +281,17 @@ class CubicSecondOrderModel(LinearROM):
         return cache
 
     def _gbar(self, q0: Array, q1: Array) -> Array:
-        """AVF discrete gradient of the nonlinear potential (exact 2-point Gauss rule)."""
-        Qg = q0 + (q1 - q0) * _SC                          # (2, r): the Gauss points
-        P2 = Qg[:, self._i2a] * Qg[:, self._i2b]
-        P3 = P2[:, self._i3p] * Qg[:, self._i3c]
-        return self._Fu @ np.concatenate((P2, P3), axis=1).sum(axis=0)
+        """AVF discrete gradient of the nonlinear potential, in closed form.
+
+        With ``m = (q0 + q1)/2`` and ``d = q1 - q0`` the segment is ``m + (s - ½) d`` and
+        ``∫ q⊗q ds = m⊗m + d⊗d/12``, ``∫ q⊗q⊗q ds = m⊗m⊗m + (m⊗d⊗d + d⊗m⊗d + d⊗d⊗m)/12``;
+        ``H`` is symmetric, so the cubic term is ``⅙ H(·, m⊗m + d⊗d/4, m)``.
+        """
+        m = 0.5 * (q0 + q1)
+        d = q1 - q0
+        mm = np.outer(m, m).ravel()
+        dd = np.outer(d, d).ravel()
+        return self._F2 @ (mm + dd / 12.0) + self._F3 @ np.outer(mm + 0.25 * dd, m).ravel()
 
     def _gbar_jac(self, q0: Array, q1: Array) -> tuple[Array, Array]:
         """Derivatives of ``ḡ(q0, q1)`` with respect to ``q0`` and ``q1``, shape (r, r) each."""
