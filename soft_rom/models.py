@@ -15,6 +15,10 @@ Two families, one interface (:class:`LinearROM`):
 
       x_{k+1} = A x_k + B u_k, \\qquad y_k = C x_k + D u_k + y_{ref}.
 
+The file format (the bounded reader, :func:`load_model`, the class registry) lives in
+:mod:`soft_rom.model_io`; this module holds the models, their discretization and their
+trust checks (about 640 lines: two families sharing one interface).
+
 Models know nothing of how they were made (no training arrays); they carry matrices,
 offsets, names/units and JSON metadata. States are deviations from the reference
 configuration; outputs are returned in absolute coordinates.
@@ -34,19 +38,26 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from functools import lru_cache
-import hashlib
 import json
 import os
 from pathlib import Path
-from typing import Any, ClassVar, TypeVar
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 import scipy.linalg as sla
 
-from soft_rom import model_io
 from soft_rom.data import as_signal
 from soft_rom.errors import DimensionError, ModelFileError
+from soft_rom.model_io import (
+    _META_KEY,
+    file_sha256,
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    load_model,
+    MAX_STATES,
+    register_model_class,
+)
 
 __all__ = [
     'DiscreteModel',
@@ -62,14 +73,6 @@ __all__ = [
     'register_model_class',
 ]
 
-FORMAT_NAME = 'soft_rom.model'
-FORMAT_VERSION = 1
-#: Versions the loader reads: 1 (linear models), 2 (adds the cubic LOpInf model's tensors).
-READ_VERSIONS = (1, 2)
-_META_KEY = '__metadata__'
-#: Largest state dimension of a model file: r <= 256 for DMDc/ERA, r <= 128 for LOpInf
-#: (loading, discretizing and the trust checks then stay well under a second).
-MAX_STATES = 256
 #: Relative tolerance of the trust checks (spectral radius, definiteness, symmetry).
 TRUST_TOL = 1e-6
 #: Output offsets larger than this (in output units) are reported as absurd.
@@ -554,13 +557,6 @@ class SecondOrderModel(LinearROM):
         q, *_ = np.linalg.lstsq(self.E, dy, rcond=None)
         return np.concatenate([q, np.zeros(self.r)])
 
-    def to_discrete(self, dt: float | None = None) -> DiscreteModel:
-        """The exact ZOH discretization as a :class:`DiscreteModel` (same outputs)."""
-        A, B, C, D, dt = self.discretize(dt)
-        kw = self._common_kwargs()
-        kw['dt'] = dt
-        return DiscreteModel(A, B, C, D, method='lopinf', **kw)
-
 
 class DiscreteModel(LinearROM):
     """Discrete-time state-space ROM (DMDc, ERA/OKID).
@@ -642,119 +638,5 @@ class DiscreteModel(LinearROM):
         return cls(*(arrays[name] for name in cls._matrix_names), **common)
 
 
-_CLASSES: dict[str, type[LinearROM]] = {
-    'SecondOrderModel': SecondOrderModel,
-    'DiscreteModel': DiscreteModel,
-}
-
-_M = TypeVar('_M', bound=type[LinearROM])
-
-
-def register_model_class(cls: _M) -> _M:
-    """Let :func:`load_model` read files of ``cls`` (usable as a class decorator).
-
-    The file's ``class`` field is ``cls.__name__``; the loader accepts exactly the arrays
-    ``cls._matrix_names`` (plus any of ``cls._optional_matrices``) and ``y_ref``, and builds
-    the model with ``cls._from_file(arrays, **common)``.
-    """
-    if not (isinstance(cls, type) and issubclass(cls, LinearROM)):
-        raise TypeError('register_model_class needs a LinearROM subclass')
-    _CLASSES[cls.__name__] = cls
-    return cls
-
-
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    """Hex SHA-256 of a file (reported by the predictor node as the model's identity)."""
-    h = hashlib.sha256()
-    with open(path, 'rb') as fh:
-        for block in iter(lambda: fh.read(1 << 20), b''):
-            h.update(block)
-    return h.hexdigest()
-
-
-def load_model(path: str | os.PathLike[str], *, strict: bool = False) -> LinearROM:
-    """Load a model file written by :meth:`LinearROM.save`, without executing any code.
-
-    Every size is checked from the zip directory and the ``.npy`` headers before anything
-    is read (:func:`soft_rom.model_io.read_archive`: only the entries a model class needs,
-    at most 32 MiB of arrays, float dtypes only, never pickle), the metadata JSON is parsed
-    with size and depth limits, and every physical field is checked: ``dt`` finite in
-    [1e-9, 1e4] s, ``1 <= n_states <=`` :data:`MAX_STATES` (r <= 256 for DMDc/ERA,
-    r <= 128 for LOpInf), ``m, p >= 1``, shapes consistent with r, m and p, entries finite
-    with magnitude at most 1e150, offsets ``|y_ref| <= 1e12``, and the discrete system at
-    the native ``dt`` finite.
-
-    Parameters
-    ----------
-    path : path
-        The ``.npz`` model file.
-    strict : bool
-        Also refuse a model that loads but cannot be trusted
-        (:meth:`LinearROM.trust_issues`).
-
-    Raises
-    ------
-    FileNotFoundError
-        No such file.
-    ModelFileError
-        Anything else wrong with the file, whatever its bytes (a ``ValueError``).
-    """
-    path = Path(path)
-    if not os.path.lexists(path):
-        raise FileNotFoundError(f'model file not found: {path}')
-    if not path.is_file():
-        raise ModelFileError(f'{path}: not a regular file.')
-    import soft_rom.models_cubic  # noqa: F401  (registers CubicSecondOrderModel)
-    allowed = {_META_KEY, 'y_ref'}
-    for known in _CLASSES.values():
-        allowed.update(known._matrix_names, known._optional_matrices)
-    raw = model_io.read_archive(path, allowed, first=_META_KEY)
-    meta_arr = raw.pop(_META_KEY)
-    if meta_arr.dtype != np.uint8 or meta_arr.ndim != 1:
-        raise ModelFileError(f'{path}: metadata entry must be a 1-D uint8 array.')
-    header = model_io.parse_json(path, meta_arr.tobytes())
-    if not isinstance(header, dict) or header.get('format') != FORMAT_NAME:
-        raise ModelFileError(f'{path}: metadata does not declare format {FORMAT_NAME!r}.')
-    version = header.get('format_version')
-    if isinstance(version, bool) or version not in READ_VERSIONS:
-        raise ModelFileError(
-            f'{path}: model file format version {str(version)[:20]} is not supported by this '
-            f'soft_rom (it reads version {FORMAT_VERSION}); upgrade soft_rom or re-export the '
-            'model.')
-    cls = _CLASSES.get(str(header.get('class'))[:100])
-    if cls is None:
-        raise ModelFileError(f'{path}: unknown model class {str(header.get("class"))[:60]!r}.')
-    cls_version = int(getattr(cls, '_format_version', FORMAT_VERSION))
-    if version > cls_version:
-        raise ModelFileError(f'{path}: a {cls.__name__} file has format version at most '
-                             f'{cls_version}, not {version}.')
-    needed = set(cls._matrix_names) | {'y_ref'}
-    if not needed <= set(raw) <= needed | set(cls._optional_matrices):
-        raise ModelFileError(
-            f'{path}: {cls.__name__} needs arrays {sorted(needed)}; found {sorted(raw)}.')
-    common = model_io.check_header(path, header)
-    if cls._file_methods and common['method'] not in cls._file_methods:
-        raise ModelFileError(f'{path}: a {cls.__name__} cannot have method '
-                             f'{common["method"]!r}.')
-    for name, arr in raw.items():
-        if arr.ndim > (1 if name == 'y_ref' else 3):
-            raise ModelFileError(f'{path}: array {name!r} has {arr.ndim} dimensions.')
-    model_io.check_arrays(path, raw)
-    y_ref = raw.pop('y_ref')
-    try:
-        model = cls._from_file(raw, y_ref=y_ref, **common)
-        n, m, p = model.n_states, model.n_inputs, model.n_outputs
-        if not 1 <= n <= MAX_STATES:
-            raise DimensionError(f'{n} states; a model file holds 1 to {MAX_STATES}')
-        if m < 1 or p < 1:
-            raise DimensionError(f'{m} inputs and {p} outputs; needs at least one of each')
-        for key, value in (('r', model.r), ('n_states', n)):
-            if header.get(key) is not None and header[key] != value:
-                raise DimensionError(f'metadata says {key}={header[key]}, arrays give {value}')
-        model.system  # noqa: B018  (discretize now: an unusable model is refused here)
-    except (DimensionError, ValueError, TypeError, KeyError) as err:
-        raise ModelFileError(f'{path}: inconsistent model file: {err}') from None
-    if strict and not model.trusted:
-        raise ModelFileError(f'{path}: the model cannot be trusted: '
-                             f'{"; ".join(model.trust_issues())} (strict mode refuses it).')
-    return model
+register_model_class(SecondOrderModel)
+register_model_class(DiscreteModel)

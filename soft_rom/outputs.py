@@ -230,33 +230,28 @@ def atomic_dir(dest: str | os.PathLike[str], *, overwrite: bool, kind: str, what
 
 @contextlib.contextmanager
 def atomic_new_dir(dest: str | os.PathLike[str], *, overwrite: bool, kind: str, what: str,
-                   kinds: Sequence[str] | None = None,
-                   is_ours: Checker | None = None) -> Iterator[Path]:
+                   kinds: Sequence[str] | None = None) -> Iterator[Path]:
     """Like :func:`atomic_dir`, for writers that create their folder themselves.
 
     Yields a staging path that does not exist yet (e.g. for a bag writer, which refuses
-    an existing folder); the caller creates the folder there. ``is_ours`` may accept an
-    existing unmarked folder as soft_rom's (outputs written before the marker existed).
+    an existing folder); the caller creates the folder there. If it does not, nothing
+    changes at ``dest``.
     """
     dest = Path(dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
     clean_stale(dest.parent)
-    ours = is_ours is not None and dest.is_dir() and not dest.is_symlink() and is_ours(dest)
-    if not ours:
-        check_output(dest, overwrite=overwrite, what=what, kinds=kinds or (kind,))
-    elif not overwrite:
-        raise OutputExistsError(f'{dest} exists already; choose another output or pass '
-                                f'--overwrite to replace it')
-    stage = _stage_path(dest)
+    check_output(dest, overwrite=overwrite, what=what, kinds=kinds or (kind,))
+    parent = _stage_path(dest)
+    parent.mkdir()
+    stage = parent / dest.name  # same name as the output: writers name their files after it
     try:
         yield stage
         if not stage.is_dir():
             raise OutputExistsError(f'internal: the {what} was not written')
         mark(stage, kind)
         _swap_in(stage, dest)
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
+    finally:
+        shutil.rmtree(parent, ignore_errors=True)
 
 
 @contextlib.contextmanager

@@ -53,6 +53,8 @@ def ws(tmp_path_factory) -> dict[str, Path]:
             w.write(0.5 + 0.01 * j, np.full(6, float(j)), np.zeros((20, 3)), np.zeros((2, 3)))
     (root / 'mapdir').mkdir()
     (root / 'user.json').write_text('{"mine": true}\n')
+    (root / 'sims').mkdir()
+    (root / 'sims' / 'ep1.json').write_text('{"my": "notes"}\n')
     models = root / 'models'
     models.mkdir()
     (models / 'chain_dmdc_r4.npz').write_bytes(b'a file that is not a model: my notes')
@@ -123,7 +125,16 @@ CASES = [
      'not written by soft_rom'),
     (['simulate', '-o', '{root}', '--episodes', '2', '--steps', '3', '--overwrite'], 2,
      'not written by soft-rom simulate'),
+    (['simulate', '-o', '{root}/sims', '--episodes', '1', '--steps', '3', '--overwrite'], 2,
+     'not written by soft-rom simulate'),
     (['convert', '{bag}', '-o', '{ts}', '--quiet'], 2, 'exists'),
+    (['study', '-o', '{bag}', '--quiet'], 2, 'not a soft_rom study folder'),
+    (['demo', '-o', '{models}', '--quiet'], 2, 'not a soft_rom study folder'),
+    (['convert', '{bag}', '-o', '{bag}', '--quiet', '--overwrite'], 2, 'not written by soft_rom'),
+    (['convert', '{bag}', '-o', '{root}/mapdir', '--quiet', '--overwrite'], 2,
+     'not written by soft_rom'),
+    (['convert', '{bag}', '-o', '{root}/user.json', '--quiet', '--overwrite'], 2,
+     'not written by soft_rom'),
     (['fit', '{ts}', '--method', 'dmdc', '--r', '2', '-o', '{root}/m2', '--quiet', '--json',
       '{model}/fit.json'], 2, 'not a folder'),
     # a later method fails: no model at all is written
@@ -208,6 +219,9 @@ def test_old_spellings_are_hidden_aliases(ws, tmp_path, capsys) -> None:
         assert '-o PATH, --output PATH' in text and '--out ' not in text
         assert '--quiet' in text and '--no-progress' not in text
         assert 'default: None' not in text
+    for verb, verb_parser in sub.items():
+        assert 'default: None' not in verb_parser.format_help(), verb
+        assert '--debug' in verb_parser.format_help(), verb
     assert 'default: soft_rom_demo' in sub['demo'].format_help()
     assert 'default: soft_rom_study' in sub['study'].format_help()
     assert '--summary-json' not in sub['replay'].format_help()
@@ -277,3 +291,12 @@ def test_undecodable_path_names_print(tmp_path) -> None:
                                                                    PYTHONIOENCODING='utf-8'))
     assert res.returncode == 0, res.stderr
     assert b'model_\\udcff.npz' in res.stdout and b'Traceback' not in res.stderr
+
+
+def test_convert_overwrite_replaces_a_training_set(ws, tmp_path, capsys) -> None:
+    out = tmp_path / 'set.zarr'
+    argv = ['convert', str(ws['bag']), '-o', str(out), '--quiet']
+    assert main(argv) == 0
+    assert main(argv) == 2
+    assert main(argv + ['--overwrite']) == 0
+    capsys.readouterr()

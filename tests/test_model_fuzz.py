@@ -161,8 +161,10 @@ def run(n: int, seed: int, workdir: Path) -> tuple[Counter[str], list[str]]:
     counts: Counter[str] = Counter()
     bad: list[str] = []
     path = workdir / 'mutant.npz'
+    slowest = 0.0
     for i in range(n):
         path.write_bytes(mutate(rng, rng.choice(corpus)))
+        t0 = time.perf_counter()
         try:
             model = load_model(path)
             trusted = model.trusted if hasattr(model, 'trusted') else True  # (old API)
@@ -177,6 +179,8 @@ def run(n: int, seed: int, workdir: Path) -> tuple[Counter[str], list[str]]:
             counts[type(err).__name__] += 1
             bad.append(f'mutant {i}: {type(err).__name__}: {err}\n{traceback.format_exc()}')
             (workdir / f'bad_{i}.npz').write_bytes(path.read_bytes())
+        slowest = max(slowest, time.perf_counter() - t0)
+    counts['slowest mutant, ms'] = round(1e3 * slowest)
     return counts, bad
 
 

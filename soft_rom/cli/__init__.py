@@ -82,6 +82,25 @@ class _UsageError(ConfigError):
     pass
 
 
+def _guard_outputs(args: argparse.Namespace) -> None:
+    """``--overwrite`` of verbs whose writers replace without asking: only soft_rom's outputs.
+
+    ``convert -o OUT --overwrite`` may replace a training set, never a bag or a folder of
+    someone else's.
+    """
+    from pathlib import Path
+
+    from soft_rom.cli._common import is_training_set
+    from soft_rom.errors import OutputExistsError
+
+    if args.verb != 'convert' or not getattr(args, 'overwrite', False):
+        return
+    out = Path(args.output)
+    if (out.exists() or out.is_symlink()) and not is_training_set(out):
+        raise OutputExistsError(f'{out} was not written by soft_rom as a training set; refusing '
+                                'to replace it (--overwrite only replaces soft_rom outputs)')
+
+
 def _describe(err: BaseException) -> tuple[int, str]:
     """Exit code and one-line message for an exception raised by a verb."""
     if isinstance(err, (ResourceError, SolverError)):
@@ -139,6 +158,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         format='%(levelname)s %(name)s: %(message)s')
     try:
         _check_numbers(args)
+        _guard_outputs(args)
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print(f'soft-rom {args.verb}: interrupted', file=sys.stderr)

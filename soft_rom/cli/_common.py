@@ -33,6 +33,7 @@ __all__ = [
     'int_range',
     'is_model_file',
     'is_summary_json',
+    'is_training_set',
     'parse_r_list',
     'write_text_output',
 ]
@@ -223,3 +224,26 @@ def write_text_output(path: Path, text: str, *, overwrite: bool, what: str,
 
     with atomic_files([path], overwrite=overwrite, what=what, is_ours=is_ours) as staged:
         staged[path].write_text(text, encoding='utf-8')
+
+
+def is_training_set(path: Path) -> bool:
+    """Whether ``path`` is a training set soft_rom wrote (marker, or its zarr attributes)."""
+    from soft_rom.outputs import is_marked
+
+    if not path.is_dir() or path.is_symlink():
+        return False
+    if is_marked(path, ('training_set',)):
+        return True
+    for name, key in (('.zattrs', None), ('zarr.json', 'attributes')):
+        attrs_file = path / name
+        try:
+            if not attrs_file.is_file() or attrs_file.stat().st_size > 64 * 2**20:
+                continue
+            attrs = json.loads(attrs_file.read_text(encoding='utf-8'))
+        except (OSError, ValueError, RecursionError):
+            continue
+        if key is not None and isinstance(attrs, dict):
+            attrs = attrs.get(key)
+        if isinstance(attrs, dict) and attrs.get('format') == 'soft_rom.trainingset':
+            return True
+    return False

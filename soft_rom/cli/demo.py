@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 import time
 
-from soft_rom.cli.study import add_study_options, check_study_resources
+from soft_rom.cli.study import add_study_options, prepare_study
 
 __all__ = ['add_parser', 'run']
 
@@ -29,7 +29,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from soft_rom.study.run import run_study, StudyConfig
 
-    check_study_resources(args)
+    prepare_study(args)
     out = Path(args.output)
     cfg = StudyConfig(resolution=args.resolution, n_episodes=args.episodes, seed=args.seed,
                       storage=args.storage, r_lopinf=DEMO_R_LOPINF, r_dmdc=DEMO_R_DMDC,

@@ -96,6 +96,19 @@ def _check_existing(out: Path, episodes: int, overwrite: bool) -> None:
 
     for e in range(1, episodes + 1):
         bag = out / f'ep{e}'
+        side_path = bag.with_suffix('.json')
+        if side_path.exists() or side_path.is_symlink():
+            if not overwrite:
+                raise OutputExistsError(f'{side_path} exists already; choose another --output '
+                                        'or pass --overwrite to replace it')
+            try:
+                side_info = json.loads(side_path.read_text(encoding='utf-8'))
+            except (OSError, ValueError):
+                side_info = None
+            if not (isinstance(side_info, dict)
+                    and side_info.get('format') == 'soft_rom.sim_episode'):
+                raise OutputExistsError(f'{side_path} was not written by soft-rom simulate; '
+                                        'refusing to replace it')
         if not bag.exists() and not bag.is_symlink():
             continue
         if not overwrite:

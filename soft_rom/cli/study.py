@@ -15,7 +15,7 @@ from soft_rom.cli._common import (
     parse_r_list,
 )
 
-__all__ = ['add_parser', 'add_study_options', 'check_study_resources', 'run']
+__all__ = ['add_parser', 'add_study_options', 'prepare_study', 'run']
 
 
 def add_study_options(parser: argparse.ArgumentParser, *, default_output: Path) -> None:
@@ -39,13 +39,38 @@ def add_study_options(parser: argparse.ArgumentParser, *, default_output: Path) 
     add_quiet(parser, old=True)
 
 
-def check_study_resources(args: argparse.Namespace) -> None:
-    """Refuse a study whose simulation cannot fit in memory or on disk (before any work)."""
+def _check_study_folder(out: Path) -> None:
+    """A study writes into its folder run after run; never into a folder that is not one.
+
+    Accepted: a new or empty folder, one marked as a soft_rom study, or one a study wrote
+    before the marker existed (``summary.json`` and ``report.md``).
+    """
+    from soft_rom.errors import OutputExistsError
+    from soft_rom.outputs import is_marked
+
+    if not out.exists() and not out.is_symlink():
+        return
+    if out.is_dir() and not out.is_symlink():
+        if is_marked(out, ('study',)) or not any(out.iterdir()):
+            return
+        if (out / 'summary.json').is_file() and (out / 'report.md').is_file():
+            return
+    raise OutputExistsError(f'{out} is not a soft_rom study folder (it holds other files); '
+                            'choose a new or empty -o folder')
+
+
+def prepare_study(args: argparse.Namespace) -> None:
+    """Check the folders and resources of a study before any work, then mark its folder.
+
+    Refused: an output folder that is not a study's, a simulation that cannot fit in
+    memory or on disk (with the estimate).
+    """
     from soft_rom.cli.simulate import estimate_resources
     from soft_rom.errors import ResourceError
     from soft_rom.outputs import check_free_space
 
     check_writable_folder(Path(args.output), 'report')
+    _check_study_folder(Path(args.output))
     if args.bags is not None:
         check_writable_folder(Path(args.bags), 'bags')
     n_dof, memory, disk = estimate_resources(args.resolution, jobs=args.jobs,
@@ -58,6 +83,9 @@ def check_study_resources(args: argparse.Namespace) -> None:
             'lower --resolution or fewer --jobs')
     check_free_space(Path(args.bags or args.output), disk,
                      f'the study bags at --resolution {args.resolution}')
+    Path(args.output).mkdir(parents=True, exist_ok=True)
+    from soft_rom.outputs import mark
+    mark(args.output, 'study')
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -84,7 +112,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from soft_rom.study.run import run_study, StudyConfig
 
-    check_study_resources(args)
+    prepare_study(args)
     cfg = StudyConfig(resolution=args.resolution, n_episodes=args.episodes, seed=args.seed,
                       storage=args.storage, t_train=args.t_train, r_lopinf=args.r_lopinf,
                       r_dmdc=args.r_dmdc, r_era=args.r_era, jobs=args.jobs)
