@@ -377,26 +377,29 @@ def _writer_for(loop: RuntimeLoop, writer: PredictionBagWriter
 
 def replay_to_bag(predictor: Predictor, episode: Episode, out: str | os.PathLike[str], *,
                   storage: str = 'mcap', publish_every: int | None = None,
-                  settings: LoopSettings | None = None,
+                  settings: LoopSettings | None = None, centerline_rate_hz: float = 30.0,
                   diagnostics_period: float = 1.0, measured: bool = True,
                   node_name: str = DEFAULT_NODE_NAME, frame_id: str = 'world',
-                  components: str = 'xz', overwrite: bool = False, t0_ns: int = 0,
+                  components: str = 'xz', overwrite: bool = False, t0_ns: int | None = None,
                   progress: Callable[[int], Any] | None = None) -> ReplayResult:
     """Run ``predictor`` over ``episode`` through the node's runtime loop; write its topics.
 
     The loop (:class:`~soft_rom.predictor.loop.RuntimeLoop`) decides what is published:
-    ``~/output`` every step (or at ``settings.output_rate_hz``), centerline and markers at
-    ``settings.centerline_rate_hz``, diagnostics every ``diagnostics_period`` seconds, the
-    model info once. ``publish_every=j`` (legacy) publishes output and centerline every
-    j-th step. Inputs are taken as they are (the episode is in model units). Stamps are
-    ``t0_ns + t`` (``t`` in ns). Returns the :class:`ReplayResult`.
+    ``~/output`` every step (``publish_every=j``: every j-th step), centerline and markers
+    at ``centerline_rate_hz`` (0: with every output), diagnostics every
+    ``diagnostics_period`` seconds, the model info once; ``settings`` replaces all of
+    these. Inputs are taken as they are (the episode is in model units). Stamps are
+    ``t0_ns + t`` in ns; ``t0_ns`` defaults to the episode's ``metadata['t0_ns']`` (the
+    recording's absolute start), else 0. Returns the :class:`ReplayResult`.
     """
     if settings is None:
         rate = 0.0 if publish_every is None else _legacy_rates(predictor, publish_every)
-        settings = LoopSettings(output_rate_hz=rate,
-                                centerline_rate_hz=30.0 if publish_every is None else rate,
+        settings = LoopSettings(output_rate_hz=rate, centerline_rate_hz=centerline_rate_hz,
                                 diagnostics_rate_hz=1.0 / diagnostics_period,
                                 components=components)
+    if t0_ns is None:
+        start = (episode.metadata or {}).get('t0_ns')
+        t0_ns = start if isinstance(start, int) and not isinstance(start, bool) else 0
     settings = replace(settings, input_scale=1.0, input_offset=0.0)
     loop = RuntimeLoop(predictor, settings)
     with PredictionBagWriter(out, storage=storage, node_name=node_name, frame_id=frame_id,

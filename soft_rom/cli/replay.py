@@ -130,16 +130,6 @@ def _write_json(args: argparse.Namespace, summary: dict[str, Any]) -> None:
                           overwrite=args.overwrite, what='replay summary', is_ours=_REPLAY_JSON)
 
 
-def _start_ns(episode: Any) -> int:
-    """Absolute start of an episode in int ns, if the training set recorded it (else 0)."""
-    meta = getattr(episode, 'metadata', None) or {}
-    for key in ('t0_ns', 'start_ns'):
-        value = meta.get(key)
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-    return 0
-
-
 def run(args: argparse.Namespace) -> int:
     """Execute ``soft-rom replay``; returns the exit code."""
     from tqdm import tqdm
@@ -148,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
     from soft_rom.models import load_model
     from soft_rom.outputs import atomic_new_dir
     from soft_rom.predictor import kalman_vs_open_loop, Predictor
-    from soft_rom.predictor.params import load_params_file, loop_settings, predictor_config
+    from soft_rom.predictor.params import load_params_file, predictor_config
 
     _check_paths(args)
     if not Path(args.bag).exists():
@@ -167,19 +157,19 @@ def run(args: argparse.Namespace) -> int:
         return _run_stream(args, values, predictor)
     episode, _report, components = _read(args.bag, args.mapping)
     values.setdefault('output_components', components)
-    if args.publish_rate is not None:       # --publish-rate: output and centerline
-        values.setdefault('centerline_rate_hz', args.publish_rate)
+    publish_rate = float(values.get('publish_rate_hz', 0.0) or 0.0)
+    every = 1 if publish_rate <= 0 else max(1, int(round(1.0 / (publish_rate * model.dt))))
     measured = not args.no_measured and episode.Y.shape[0] > 0
     with atomic_new_dir(args.output, overwrite=args.overwrite, kind='replay',
                         what='replay bag') as stage:
         with tqdm(total=episode.n_samples, desc='replay', unit='step', leave=False,
                   disable=args.quiet) as bar:
             result = replay_to_bag(
-                predictor, episode, stage, storage=args.storage,
-                settings=loop_settings(values), measured=measured, node_name=args.node_name,
-                frame_id=str(values.get('frame_id', 'world')), overwrite=False,
-                t0_ns=_start_ns(episode),
-                progress=lambda j: bar.update(100) if j % 100 == 0 and j else None)
+                predictor, episode, stage, storage=args.storage, publish_every=every,
+                measured=measured, node_name=args.node_name,
+                frame_id=str(values.get('frame_id', 'world')),
+                components=str(values.get('output_components', 'xz')), overwrite=False,
+                progress=lambda j: bar.update(1) if j % 100 == 0 and j else None)
     summary = dict(result.summary)
     summary['output_bag'] = str(Path(args.output))
     health = predictor.health()
@@ -227,11 +217,8 @@ def _run_stream(args: argparse.Namespace, values: dict[str, Any], predictor: Any
             input_scale=float(v['input_scale']), input_offset=float(v['input_offset']),
             measured_topic='' if args.no_measured else str(v['measured_topic']),
             components=str(v['output_components']),
-            publish_rate_hz=float(v['publish_rate_hz']),
-            centerline_rate_hz=float(v['centerline_rate_hz']), fill_value=float(v['fill_value']),
-            diagnostics_period=1.0 / float(v['diagnostics_rate_hz']),
-            storage=args.storage, node_name=args.node_name, frame_id=str(v['frame_id']),
-            overwrite=False)
+            publish_rate_hz=float(v['publish_rate_hz']), storage=args.storage,
+            node_name=args.node_name, frame_id=str(v['frame_id']), overwrite=False)
     model = predictor.model
     health = predictor.health()
     summary.update(output_bag=str(Path(args.output)), final_status=health.level.name,

@@ -10,8 +10,9 @@ epoch (stamps near 1.7e18 ns) loses or gains a step. Non-finite times, and times
 
 Stepping (:attr:`PredictorConfig.stepping`)
 -------------------------------------------
-``'event'`` (default): steps of ``h`` on a grid aligned to whole multiples of ``h`` (epoch
-aligned); a stamp belongs to the nearest grid step. Inputs are queued and the model
+``'event'`` (default): steps of ``h`` on a grid anchored at the first stamp; a stamp
+belongs to the nearest grid step (so stamp jitter up to ``h/2`` around the grid of the
+first input does not move a sample). Inputs are queued and the model
 advances to the *watermark* -- the smallest over inputs of their newest step -- and never
 past it, so inputs arriving in any order across inputs whose step is not yet taken are
 applied at their stamp: the outputs equal ``model.simulate(U)``. Each input's own messages
@@ -210,7 +211,7 @@ class Predictor(Stepping):
             self.channels.take_over(old_ch)
         self.reset()
         if t is not None:
-            self._anchor(t, exact=config.stepping != 'event')
+            self._anchor(t)
             self._done = self._released = True
 
     def set_config(self, config: PredictorConfig) -> None:
@@ -266,13 +267,9 @@ class Predictor(Stepping):
             return (t_ns - self._origin + d.h_ns_int // 2) // d.h_ns_int
         return int(round((t_ns - self._origin) / d.h_ns))
 
-    def _anchor(self, t_ns: int, *, exact: bool) -> None:
-        d = self._dyn
-        if exact or not d.h_ns_int:
-            self._origin, self._k = t_ns, 0
-        else:
-            self._origin = 0
-            self._k = self._step_of(t_ns)
+    def _anchor(self, t_ns: int) -> None:
+        """Model time starts at ``t_ns``: the step grid is ``t_ns + k h``."""
+        self._origin, self._k = t_ns, 0
 
     def _alarm(self, key: str, t_ns: int | None, why: str) -> None:
         """Remember a WARN/ERROR event at ``t_ns`` (default the newest known time)."""

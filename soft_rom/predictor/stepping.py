@@ -52,7 +52,7 @@ class Stepping:
     # -- clocked stepping ('fixed', 'input') ----------------------------------------------
     def _take_clocked(self, index: int | None, value: Any, stamp_ns: int) -> None:
         if self._k is None:
-            self._anchor(stamp_ns, exact=True)
+            self._anchor(stamp_ns)
         elif stamp_ns < self.t_ns:
             self.counters['late'] += 1
             self.channels.late_one(index)
@@ -78,7 +78,7 @@ class Stepping:
             return int(self._bad_time('advance'))
         t_ns = int(t_ns)
         if self._k is None:
-            self._anchor(t_ns, exact=self.config.stepping != 'event')
+            self._anchor(t_ns)
             if self.config.stepping == 'event':
                 self._first = t_ns
                 self._release(self._k)
@@ -146,7 +146,7 @@ class Stepping:
     # -- event stepping ------------------------------------------------------------------
     def _take_event(self, index: int | None, value: Any, stamp_ns: int) -> None:
         if self._k is None:
-            self._anchor(stamp_ns, exact=False)
+            self._anchor(stamp_ns)
             self._first = stamp_ns
         s = self._step_of(stamp_ns)
         if index is None and s == self._k + 1 and self._done and not self._queue:
