@@ -78,6 +78,8 @@ def predict(model: LinearROM, episode: Episode, *, initial: str = 'reference') -
     if not ep.is_uniform():
         raise DimensionError(f'episode {ep.name!r} is not uniformly sampled; resample it first.')
     h = ep.dt
+    if getattr(model, 'is_nonlinear', False):    # continuous nonlinear model: its own stepper
+        return np.asarray(model.simulate(ep.U, x0, dt=h))  # type: ignore[call-arg]
     if isinstance(model, SecondOrderModel):
         sys_ = model.discretize(h)
         X = run_states(sys_.A, sys_.B, x0, ep.U[:, :-1])

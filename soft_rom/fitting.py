@@ -88,8 +88,11 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
                solver: str = 'fast', ddt_order: int = 8, dmdc_p: int | None = None,
                era_options: dict[str, Any] | None = None,
                progress: bool = True, coordinates: str | None = None,
-               ddt: str | None = None) -> list[tuple[LinearROM, float]]:
+               ddt: str | None = None, forces: str = 'linear',
+               cubic_options: dict[str, Any] | None = None) -> list[tuple[LinearROM, float]]:
     """Fit ``method`` for each r; returns ``[(model, seconds), ...]``.
+
+    ``forces`` and ``cubic_options`` are passed to :class:`~soft_rom.learners.lopinf.LOpInf`.
 
     The expensive step is shared between the r values (module docstring).
 
@@ -142,7 +145,8 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             for r in (r_values or (pod.r_,)):
                 t1 = time.perf_counter()
                 slv = FastSPDSolver() if solver == 'fast' else CvxpySolver()
-                learner = LOpInf(r=r, ddt=estimator, solver=slv)
+                learner = LOpInf(r=r, ddt=estimator, solver=slv, forces=forces,
+                                 cubic_options=cubic_options)
                 learner.fit_reduced(
                     [q[:r] for q in Qhat], [ep.U for ep in episodes],
                     [ep.Y for ep in episodes], dt, y_ref, names=[ep.name for ep in episodes],

@@ -62,6 +62,9 @@ __all__ = [
 
 FORMAT_NAME = 'soft_rom.model'
 FORMAT_VERSION = 1
+#: Versions the loader reads: 1 (linear models), 2 (adds the cubic LOpInf model's tensors);
+#: a class declares the newest version its files may have (``_format_version``, default 1).
+READ_VERSIONS = (1, 2)
 _META_KEY = '__metadata__'
 #: Largest state dimension of a model file: r <= 256 for DMDc/ERA, r <= 128 for LOpInf
 #: (loading, discretizing and the trust checks then stay well under a second).
@@ -421,6 +424,7 @@ def load_model(path: str | os.PathLike[str], *, strict: bool = False) -> LinearR
         Anything else wrong with the file, whatever its bytes (a ``ValueError``).
     """
     import soft_rom.models  # noqa: F401  (registers the built-in model classes)
+    import soft_rom.models_cubic  # noqa: F401  (registers CubicSecondOrderModel)
 
     path = Path(path)
     if not os.path.lexists(path):
@@ -438,14 +442,18 @@ def load_model(path: str | os.PathLike[str], *, strict: bool = False) -> LinearR
     if not isinstance(header, dict) or header.get('format') != FORMAT_NAME:
         raise ModelFileError(f'{path}: metadata does not declare format {FORMAT_NAME!r}.')
     version = header.get('format_version')
-    if version != FORMAT_VERSION:
+    if isinstance(version, bool) or version not in READ_VERSIONS:
         raise ModelFileError(
             f'{path}: model file format version {str(version)[:20]} is not supported by this '
-            f'soft_rom (it reads version {FORMAT_VERSION}); upgrade soft_rom or re-export the '
-            'model.')
+            f'soft_rom (it reads versions {", ".join(map(str, READ_VERSIONS))}); upgrade '
+            'soft_rom or re-export the model.')
     cls = _CLASSES.get(str(header.get('class'))[:100])
     if cls is None:
         raise ModelFileError(f'{path}: unknown model class {str(header.get("class"))[:60]!r}.')
+    cls_version = int(getattr(cls, '_format_version', FORMAT_VERSION))
+    if version > cls_version:
+        raise ModelFileError(f'{path}: a {cls.__name__} file has format version at most '
+                             f'{cls_version}, not {version}.')
     needed = set(cls._matrix_names) | {'y_ref'}
     if not needed <= set(raw) <= needed | set(cls._optional_matrices):
         raise ModelFileError(

@@ -69,6 +69,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                            'given; ERA then uses its Hankel singular value rule)')
     parser.add_argument('--solver', choices=('fast', 'cvxpy'), default='fast',
                         help='LOpInf operator solver (default fast)')
+    parser.add_argument('--forces', choices=('linear', 'cubic'), default='linear',
+                        help='LOpInf restoring force: linear (K q) or cubic (gradient of a '
+                             'quartic potential, energy-consistent integrator; default linear)')
     parser.add_argument('--ddt-order', type=int, choices=(2, 4, 6, 8), default=8,
                         help='finite-difference order for LOpInf derivatives (default 8)')
     parser.add_argument('--coordinates', choices=('state', 'outputs'), default=None,
@@ -147,8 +150,14 @@ def _check_outputs_early(args: argparse.Namespace, outdir: Path, prefix: str) ->
     if args.r is not None:
         for method in args.method:
             for r in args.r:
-                check_output(outdir / f'{prefix}_{method}_r{r}.npz', overwrite=args.overwrite,
+                check_output(outdir / f'{prefix}_{_label(method, args)}_r{r}.npz',
+                             overwrite=args.overwrite,
                              what='model file', is_ours=_MODEL_FILE)
+
+
+def _label(method: str, args: argparse.Namespace) -> str:
+    """File-name label: ``lopinf_cubic`` for the cubic LOpInf models."""
+    return 'lopinf_cubic' if method == 'lopinf' and args.forces == 'cubic' else method
 
 
 def run(args: argparse.Namespace) -> int:
@@ -164,6 +173,8 @@ def run(args: argparse.Namespace) -> int:
     ts = TrainingSet.open(args.training_set)
     episodes = select_episodes(ts, args.episodes, args.t_max)
     streaming = args.streaming or args.dask is not None
+    if streaming and args.forces == 'cubic':
+        raise ConfigError('--forces cubic is fitted in memory; drop --streaming/--dask')
     provenance = {'training_set': str(Path(args.training_set).resolve()),
                   'episodes': [ep.name for ep in episodes], 't_max': args.t_max,
                   'source': ts.provenance if hasattr(ts, 'provenance') else {}}
@@ -188,17 +199,18 @@ def run(args: argparse.Namespace) -> int:
             fitted = fit_models(ts, method, r_values=args.r, energy=args.energy,
                                 episodes=episodes, provenance=provenance, solver=args.solver,
                                 ddt_order=args.ddt_order, dmdc_p=args.dmdc_p,
+                                forces=args.forces,
                                 era_options=era_options, progress=not args.quiet,
                                 coordinates=args.coordinates, ddt=args.ddt)
         for model, seconds in fitted:
-            path = outdir / f'{prefix}_{method}_r{model.r}.npz'
+            path = outdir / f'{prefix}_{_label(method, args)}_r{model.r}.npz'
             models[path] = model
             train_eps = episodes
             if method == 'era':
                 train_eps = [e for e in episodes
                              if e.name in model.metadata['training']['episodes']]
             ev = evaluate(model, train_eps).get()
-            rows.append({'method': method, 'r': model.r, 'dt': model.dt,
+            rows.append({'method': _label(method, args), 'r': model.r, 'dt': model.dt,
                          'train_relative_error': ev['relative_error'],
                          'train_relative_deviation_error': ev['relative_deviation_error'],
                          'stability_margin': model.stability_margin(),

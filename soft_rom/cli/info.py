@@ -108,6 +108,13 @@ def format_text(d: dict[str, Any]) -> str:
         margin = float('nan') if margin is None else margin
         lines.append(f'  stability margin 1 - max|eig(A)| = {margin:.3e} '
                      f"({'stable' if margin > 0 else 'NOT asymptotically stable'})")
+        pot = d.get('potential')
+        if isinstance(pot, dict):          # cubic LOpInf: restoring force = grad of V(q)
+            n = pot.get('independent_entries', {})
+            lines.append(f"  forces: cubic, {pot.get('form')}; independent entries K "
+                         f"{n.get('K')}, G {n.get('G')}, H {n.get('H')}; |K| = "
+                         f"{pot.get('norm_K', 0):.3g}, |G| = {pot.get('norm_G', 0):.3g}, "
+                         f"|H| = {pot.get('norm_H', 0):.3g} (margin: linearization at q = 0)")
         trust = d.get('trust') or []
         lines.append('  trust: ' + ('ok' if not trust else 'NOT TRUSTED: ' + '; '.join(trust)))
         meta = d.get('metadata') or {}
