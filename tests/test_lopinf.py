@@ -133,7 +133,7 @@ def test_constrained_fit_is_spd_and_matches_clarabel(rank_deficient):
               np.linalg.eigvalsh(0.5 * (W[:, r:2 * r] + W[:, r:2 * r].T))[0])
     assert lam < 0
     fast = FastSPDSolver().solve(Q, Qd, Qdd, U)
-    assert fast.info['method'] == 'log-barrier-newton'
+    assert fast.info['method'] == 'primal-dual-interior-point'
     for M in (fast.K, fast.C):
         np.testing.assert_array_equal(M, M.T)
         assert np.linalg.eigvalsh(M)[0] >= DEFAULT_EPS * (1 - 1e-9)
@@ -189,7 +189,7 @@ def test_unit_invariance_and_metadata(tmp_path):
     episodes = _chain_episodes(noise=3e-2)
     est = LOpInf(r=8).fit(episodes[:2])
     # Heavy noise makes the constraints active, so the barrier path is what is tested here.
-    assert est.solver_info_['method'] == 'log-barrier-newton'
+    assert est.solver_info_['method'] == 'primal-dual-interior-point'
     test = episodes[2]
     Y = est.predict(test.U)
     # Pa -> kPa for the inputs, m -> mm for the states and outputs.
@@ -245,7 +245,7 @@ def test_fast_solver_on_ill_conditioned_pod_data_matches_clarabel():
     tight = dict(tol_gap_abs=1e-10, tol_gap_rel=1e-10, tol_feas=1e-10)
     ref = CvxpySolver('CLARABEL', **tight).solve(Q, Qd, Qdd, U)
     fast = FastSPDSolver().solve(Q, Qd, Qdd, U)
-    assert fast.info['method'] == 'log-barrier-newton' and fast.info['rank_u'] == 2
+    assert fast.info['method'] == 'primal-dual-interior-point' and fast.info['rank_u'] == 2
     o_ref = objective(*ref[:3], Q, Qd, Qdd, U)
     o_fast = objective(*fast[:3], Q, Qd, Qdd, U)
     assert abs(o_fast - o_ref) / o_ref < 1e-6

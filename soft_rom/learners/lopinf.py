@@ -38,6 +38,7 @@ from soft_rom.basis import BasisBuilder, POD, project
 from soft_rom.data import as_signal, check_finite, Episode
 from soft_rom.ddt import as_estimator, DerivativeEstimator, FiniteDifference
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
+from soft_rom.learners import lopinf_margins as margins
 from soft_rom.learners.lopinf_solvers import DEFAULT_EPS, FastSPDSolver, OperatorSolver
 from soft_rom.models import SecondOrderModel
 
@@ -75,6 +76,19 @@ class LOpInf:
         :data:`~soft_rom.learners.lopinf_solvers.DEFAULT_EPS`).
     scale : bool
         Scale states and inputs by their RMS before solving (unit invariance; keep True).
+    min_damping_ratio : float
+        Every mode of the ROM has at least this damping ratio (default
+        :data:`~soft_rom.learners.lopinf_margins.DEFAULT_MIN_DAMPING_RATIO`; 0: only the
+        absolute margin ``eps``, the paper's formulation). See
+        :mod:`soft_rom.learners.lopinf_margins`.
+    damping_frequency : float, optional
+        ``ω_*`` (rad/s) where the damping bound is tight; default from the data.
+    regularization : float or 'auto', optional
+        Dimensionless Tikhonov weight ``γ``; ``'auto'``: selected on held-out episode tails
+        from ``reg_grid`` (:func:`~soft_rom.learners.lopinf_margins.select_regularization`);
+        ``None`` (default): none.
+    reg_grid : sequence of float
+        Candidates for ``regularization='auto'``.
 
     Attributes
     ----------
@@ -101,7 +115,11 @@ class LOpInf:
     def __init__(self, r: int | None = None, energy: float = 0.95, *,
                  ddt: int | DerivativeEstimator = 8, solver: OperatorSolver | None = None,
                  basis: BasisBuilder | None = None, eps: float = DEFAULT_EPS,
-                 scale: bool = True) -> None:
+                 scale: bool = True,
+                 min_damping_ratio: float = margins.DEFAULT_MIN_DAMPING_RATIO,
+                 damping_frequency: float | None = None,
+                 regularization: float | str | None = None,
+                 reg_grid: Sequence[float] = margins.DEFAULT_REG_GRID) -> None:
         self.r = r
         self.energy = energy
         self.ddt = ddt
@@ -109,10 +127,16 @@ class LOpInf:
         self.basis = basis
         self.eps = eps
         self.scale = scale
+        self.min_damping_ratio = min_damping_ratio
+        self.damping_frequency = damping_frequency
+        self.regularization = regularization
+        self.reg_grid = reg_grid
 
     def __repr__(self) -> str:
         return (f'LOpInf(r={self.r!r}, energy={self.energy!r}, ddt={self.ddt!r}, '
-                f'solver={self.solver!r}, eps={self.eps!r})')
+                f'solver={self.solver!r}, eps={self.eps!r}, '
+                f'min_damping_ratio={self.min_damping_ratio!r}, '
+                f'regularization={self.regularization!r})')
 
     # ---------------------------------------------------------------------------------
     def fit(self, episodes: Episode | Sequence[Episode], q_ref: ArrayLike | None = None,
@@ -281,11 +305,11 @@ class LOpInf:
                                  f'estimator {estimator!r}; drop them or use a lower order.')
         Qs, Qd, Qdd, (Us,) = _episodes(estimator, [q / s_q for q in Qhat], dt,
                                        [[u / s_u[:, None] for u in U]])
-        sol = solver.solve(Qs, Qd, Qdd, Us, eps=self.eps)
-        K = 0.5 * (sol.K + sol.K.T)
-        C = 0.5 * (sol.C + sol.C.T)
-        B = sol.B * s_q / s_u[None, :]
-        residual = float(np.linalg.norm(Qdd + C @ Qd + K @ Qs - sol.B @ Us))
+        K, C, Bs, sol_info, reg = self._solve(solver, Qs, Qd, Qdd, Us, dt,
+                                              [q.shape[1] - 2 * _half_width(estimator)
+                                               for q in Qhat])
+        B = Bs * s_q / s_u[None, :]
+        residual = float(np.linalg.norm(Qdd + C @ Qd + K @ Qs - Bs @ Us))
         rel_residual = residual / max(float(np.linalg.norm(Qdd)), 1e-300)
 
         # Output operator: min ||(Y - y_ref) - E Qhat||_F over all samples.
@@ -301,7 +325,7 @@ class LOpInf:
         self.q_ref_ = None
         self.state_scale_ = s_q
         self.input_scale_ = s_u
-        self.solver_info_ = dict(sol.info)
+        self.solver_info_ = sol_info
         lam_k, lam_c = np.linalg.eigvalsh(K), np.linalg.eigvalsh(C)
         self.diagnostics_ = {
             'r': int(r),
@@ -312,6 +336,9 @@ class LOpInf:
             'eigenvalues_K': [float(x) for x in lam_k],
             'eigenvalues_C': [float(x) for x in lam_c],
             'eps': float(self.eps),
+            'margin': sol_info.get('margin'),
+            'regularization': reg,
+            'least_damped_mode': margins.least_damped_mode(K, C),
             'ddt': repr(estimator),
             'solver': repr(solver),
             'solver_info': self.solver_info_,
@@ -333,6 +360,37 @@ class LOpInf:
         self._extra_meta = dict(metadata or {})
         self._rebuild_model()
         return self
+
+    def _solve(self, solver: OperatorSolver, Qs: Array, Qd: Array, Qdd: Array, Us: Array,
+               dt: float, lengths: Sequence[int]
+               ) -> tuple[Array, Array, Array, dict[str, Any], dict[str, Any]]:
+        """Operators with the damping margin and the (selected) Tikhonov weight."""
+        kw = dict(eps=self.eps, min_damping_ratio=float(self.min_damping_ratio),
+                  frequency=self.damping_frequency)
+        reg: dict[str, Any] = {'mode': 'none', 'gamma': 0.0}
+        gamma = 0.0
+        if isinstance(self.regularization, str):
+            if self.regularization != 'auto':
+                raise ConfigError(f"regularization must be a number >= 0, 'auto' or None; got "
+                                  f'{self.regularization!r}.')
+            cuts = np.cumsum(lengths)[:-1]
+            parts = [np.split(x, cuts, axis=1) for x in (Qs, Qd, Qdd, Us)]
+
+            def fit(q: list[Array], qd: list[Array], qdd: list[Array], u: list[Array],
+                    g: float) -> tuple[Array, Array, Array]:
+                K_, C_, B_, _ = margins.constrained_solve(
+                    solver, np.hstack(q), np.hstack(qd), np.hstack(qdd), np.hstack(u),
+                    gamma=g, **kw)
+                return K_, C_, B_
+
+            gamma, table = margins.select_regularization(fit, *parts, dt, grid=self.reg_grid)
+            reg = {'mode': 'auto', 'gamma': gamma, 'candidates': table}
+        elif self.regularization is not None:
+            gamma = float(self.regularization)
+            reg = {'mode': 'fixed', 'gamma': gamma}
+        K, C, B, info = margins.constrained_solve(solver, Qs, Qd, Qdd, Us, gamma=gamma, **kw)
+        reg['lambda'] = info.get('regularization', {}).get('lambda')
+        return K, C, B, info, reg
 
     # ---------------------------------------------------------------------------------
     @property
