@@ -60,7 +60,8 @@ from soft_rom.data import as_signal, check_finite, Episode
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
 from soft_rom.models import DiscreteModel
 
-__all__ = ['DMDc', 'channel_scale', 'dmdc_from_gram', 'dmdc_reduced_operators']
+__all__ = ['DMDc', 'channel_scale', 'clip_spectral_radius', 'dmdc_from_gram',
+           'dmdc_reduced_operators']
 
 Array = NDArray[np.float64]
 
@@ -113,6 +114,85 @@ def dmdc_reduced_operators(G: ArrayLike, s_omega: ArrayLike, U1_Uhat: ArrayLike,
         raise DimensionError('singular values of Omega must be positive (drop the zero ones).')
     GS = G / s[None, :]
     return GS @ np.asarray(U1_Uhat, dtype=np.float64), GS @ np.asarray(U2, dtype=np.float64).T
+
+
+def clip_spectral_radius(A: ArrayLike, rho: float = 1.0) -> tuple[Array, int]:
+    """``A`` with every eigenvalue of modulus ``> rho`` moved radially onto ``|z| = rho``.
+
+    Works on the real Schur form ``A = Z T Zᵀ``: each 1×1 or 2×2 diagonal block of ``T``
+    whose eigenvalue modulus exceeds ``rho`` is scaled by ``rho / |λ|`` (a 2×2 block scaled by
+    ``s`` has eigenvalues ``s λ``); the coupling above the diagonal is kept, so the other
+    eigenvalues do not move.
+
+    Returns
+    -------
+    A_clipped : ndarray, shape (r, r)
+    n_clipped : int
+        Number of eigenvalues moved.
+    """
+    import scipy.linalg as sla
+    A = np.asarray(A, dtype=np.float64)
+    if A.size == 0 or float(np.max(np.abs(np.linalg.eigvals(A)))) <= rho:
+        return A, 0
+    T, Z = sla.schur(A, output='real')
+    n = T.shape[0]
+    i = moved = 0
+    target = rho * (1.0 - 1e-12)
+    while i < n:
+        size = 2 if i + 1 < n and abs(T[i + 1, i]) > 0 else 1
+        blk = T[i:i + size, i:i + size]
+        mod = float(np.max(np.abs(np.linalg.eigvals(blk))))
+        if mod > target:
+            T[i:i + size, i:i + size] = blk * (target / mod)
+            moved += size
+        i += size
+    return Z @ T @ Z.T, moved
+
+
+def _lag_model(data: Sequence[tuple[Array, Array]], r: int, s_q: float, s_u: Array, rho: float,
+               rcond: float) -> tuple[Array, Array, int]:
+    """The ``'stable'`` variant: one lag of states and inputs, spectral radius ``<= rho``.
+
+    Least squares ``x̃_{k+1} = A₁ x̃_k + A₂ x̃_{k-1} + B₀ u_k + B₁ u_{k-1}`` (the exact form of a
+    sampled linear second-order system with held inputs), in the model
+    ``z = [x̃_k; x̃_{k-1}; u_{k-1}]``; eigenvalues outside ``|z| ≤ rho`` are then clipped
+    (:func:`clip_spectral_radius`) and ``B₀, B₁`` refitted for the clipped ``A₁, A₂``.
+    """
+    tgt, reg_x, reg_u = [], [], []
+    for Xr, U in data:
+        if Xr.shape[1] < 3:
+            continue
+        x = Xr[:r] / s_q
+        u = U / s_u[:, None]
+        tgt.append(x[:, 2:])
+        reg_x.append(np.vstack([x[:, 1:-1], x[:, :-2]]))
+        reg_u.append(np.vstack([u[:, 1:-1], u[:, :-2]]))
+    if not tgt:
+        raise DimensionError("DMDc variant 'stable' needs episodes of at least 3 samples.")
+    T, Rx, Ru = (np.concatenate(a, axis=1) for a in (tgt, reg_x, reg_u))
+    m = Ru.shape[0] // 2
+    theta = np.linalg.lstsq(np.vstack([Rx, Ru]).T, T.T, rcond=rcond)[0].T
+    A12, B01 = theta[:, :2 * r], theta[:, 2 * r:]
+    n = 2 * r + m
+    Az = np.zeros((n, n))
+    Az[r:2 * r, :r] = np.eye(r)
+    Az[:r, :2 * r] = A12
+    Ax = Az[:2 * r, :2 * r]
+    Ax_c, clipped = clip_spectral_radius(Ax, rho)
+    if clipped:
+        A12 = Ax_c[:r]
+        B01 = np.linalg.lstsq(Ru.T, (T - A12 @ Rx).T, rcond=rcond)[0].T
+        Az[:r, :2 * r] = A12
+        Az[r:2 * r, :2 * r] = Ax_c[r:]
+    Az[:r, 2 * r:] = B01[:, m:]
+    Bz = np.zeros((n, m))
+    Bz[:r] = B01[:, :m]
+    Bz[2 * r:] = np.eye(m)
+    # Back to physical units: z_phys = D z_scaled with D = diag(s_q, s_q, s_u).
+    dz = np.concatenate([np.full(2 * r, s_q), s_u])
+    A = Az * dz[:, None] / dz[None, :]
+    B = Bz * dz[:, None] / s_u[None, :]
+    return A, B, clipped
 
 
 def _eig_desc(G: Array) -> tuple[Array, Array]:
@@ -212,6 +292,18 @@ class DMDc:
         How the output operator is fitted (module docstring).
     rcond : float
         Relative threshold below which singular values count as zero.
+    variant : {'paper', 'stable'}
+        ``'paper'`` (default): the formulation above, unchanged. ``'stable'``: the paper's
+        ``Ã`` with every eigenvalue of modulus above ``max_spectral_radius`` pulled radially
+        onto that circle (on the diagonal blocks of the real Schur form ``Ã = Z T Zᵀ``: the
+        1×1 and 2×2 blocks carry the eigenvalues, so scaling an offending block moves only
+        its eigenvalues and keeps ``Ã`` real and well conditioned), then ``B̃`` refitted by
+        least squares for that ``Ã`` on the training pairs. DMDc on positions of a
+        second-order system is marginally unstable whatever ``r`` (the discrete modes of a
+        lightly damped body lie just inside the unit circle and the position-only
+        regression misplaces them just outside); this variant never diverges.
+    max_spectral_radius : float
+        Bound of the ``'stable'`` variant (default 1).
 
     Attributes
     ----------
@@ -238,8 +330,11 @@ class DMDc:
     """
 
     def __init__(self, r: int | None = None, p: int | None = None, *, energy: float = 0.95,
-                 output_fit: str = 'reduced', rcond: float = 1e-10) -> None:
+                 output_fit: str = 'reduced', rcond: float = 1e-10, variant: str = 'paper',
+                 max_spectral_radius: float = 1.0) -> None:
         self.r = r
+        self.variant = variant
+        self.max_spectral_radius = max_spectral_radius
         self.p = p
         self.energy = energy
         self.output_fit = output_fit
@@ -273,6 +368,11 @@ class DMDc:
         t0 = time.perf_counter()
         if self.output_fit not in ('reduced', 'paper'):
             raise ConfigError(f"output_fit must be 'reduced' or 'paper'; got {self.output_fit!r}.")
+        if self.variant not in ('paper', 'stable'):
+            raise ConfigError(f"variant must be 'paper' or 'stable'; got {self.variant!r}.")
+        rho = float(self.max_spectral_radius)
+        if not (np.isfinite(rho) and rho > 0):
+            raise ConfigError(f'max_spectral_radius must be > 0; got {self.max_spectral_radius!r}.')
         eps = _as_episodes(episodes)
         n = int(eps[0].Q.shape[0])
         m = eps[0].U.shape[0]
@@ -333,6 +433,8 @@ class DMDc:
         self._G = sh[:rank_h, None] * (Vht[:rank_h] @ Vtt[:rank_t].T)    # ÛᵀQ'Ṽ  (ph, pt)
         self._Xr = Uh[:, :rank_h].T @ Q_all                             # ÛᵀQ    (ph, K)
         self._Yd = Y_all
+        if self.variant == 'stable':
+            self._lagdata = [(Uh[:, :rank_h].T @ q, ep.U) for q, ep in zip(Qc, eps)]
         self._Q_all = Q_all if self.output_fit == 'paper' else None
         self._model_kwargs = dict(input_names=input_names, output_names=output_names,
                                   input_units=input_units, output_units=output_units)
@@ -380,6 +482,10 @@ class DMDc:
         # A = A_s / s_q and B = B_s diag(1/s_u). The states stay in physical units.
         A = A / self.state_scale_
         B = Bs / self.input_scale_[None, :]
+        clipped = 0
+        if self.variant == 'stable':
+            A, B, clipped = _lag_model(self._lagdata, r, self.state_scale_, self.input_scale_,
+                                       float(self.max_spectral_radius), self.rcond)
         if self.output_fit == 'paper':
             # E_approx Û = Yd Q⁺ Û with Q⁺Û the minimum-norm solution of Q Z = Û.
             Z = np.linalg.lstsq(self._Q_all, self._Uh[:, :r], rcond=None)[0]
@@ -394,6 +500,10 @@ class DMDc:
             'learner': 'DMDc',
             'r': r, 'p': p_used, 'p_requested': p_req,
             'output_fit': self.output_fit,
+            'variant': self.variant,
+            'max_spectral_radius': (float(self.max_spectral_radius)
+                                    if self.variant == 'stable' else None),
+            'eigenvalues_clipped': int(clipped),
             'rcond': self.rcond,
             'episodes': self._episodes,
             'n_pairs': self.n_pairs_,
@@ -408,7 +518,9 @@ class DMDc:
             'stability_margin': float(1.0 - np.max(np.abs(ev))),
             'fit_time_s': float(self.fit_time_ + time.perf_counter() - t0),
         })
-        model = DiscreteModel(A, B, E, None, dt=self.dt_, method='dmdc', y_ref=self.y_ref_,
+        Cout = E if self.variant == 'paper' else np.hstack([E, np.zeros((E.shape[0],
+                                                                         A.shape[0] - r))])
+        model = DiscreteModel(A, B, Cout, None, dt=self.dt_, method='dmdc', y_ref=self.y_ref_,
                               metadata=meta, **self._model_kwargs)
         self.basis_ = self._Uh[:, :r]
         return model
