@@ -68,7 +68,8 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
                energy: float | None, episodes: list[Episode], provenance: dict[str, Any],
                solver: str = 'fast', ddt_order: int = 8, dmdc_p: int | None = None,
                era_options: dict[str, Any] | None = None,
-               progress: bool = True) -> list[tuple[LinearROM, float]]:
+               progress: bool = True, lopinf_options: dict[str, Any] | None = None,
+               dmdc_options: dict[str, Any] | None = None) -> list[tuple[LinearROM, float]]:
     """Fit ``method`` for each r; returns ``[(model, seconds), ...]``.
 
     The expensive step is shared between the r values (module docstring).
@@ -95,7 +96,7 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             for r in (r_values or (pod.r_,)):
                 t1 = time.perf_counter()
                 slv = FastSPDSolver() if solver == 'fast' else CvxpySolver()
-                learner = LOpInf(r=r, ddt=ddt_order, solver=slv)
+                learner = LOpInf(r=r, ddt=ddt_order, solver=slv, **(lopinf_options or {}))
                 learner.fit_reduced(
                     [q[:r] for q in Qhat], [ep.U for ep in episodes],
                     [ep.Y for ep in episodes], dt, y_ref, names=[ep.name for ep in episodes],
@@ -112,7 +113,8 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             _need_states(episodes, 'DMDc')
             t0 = time.perf_counter()
             r0 = r_values[0] if r_values else None
-            learner = DMDc(r=r0, p=dmdc_p, energy=0.95 if energy is None else energy).fit(
+            learner = DMDc(r=r0, p=dmdc_p, energy=0.95 if energy is None else energy,
+                           **(dmdc_options or {})).fit(
                 episodes, _q_ref(q_ref, episodes), y_ref, metadata={'training': provenance},
                 **names)
             t_svd = time.perf_counter() - t0

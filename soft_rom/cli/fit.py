@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from soft_rom.cli._common import parse_r_list
+from soft_rom.errors import ConfigError
 from soft_rom.fitting import fit_models, fit_models_streaming, open_training_set, select_episodes
 
 __all__ = ['add_parser', 'run']
@@ -66,11 +67,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     era.add_argument('--era-episode', default=None,
                      help='the one episode ERA/OKID is fitted on (default the first selected)')
     era.add_argument('--decimation', type=int, default=None,
-                     help='fit at DECIMATION x the data sample time (default 5)')
+                     help='fit at DECIMATION x the data sample time (default 1)')
     era.add_argument('--n-markov', type=int, default=None,
-                     help='number of Markov parameters in the Hankel matrices (default 100)')
+                     help='number of Markov parameters in the Hankel matrices (default: a '
+                          'third of the samples, at most 500)')
     era.add_argument('--observer-order', type=int, default=None,
-                     help='OKID observer order (default: automatic, at most 10)')
+                     help='OKID observer order (default: selected on a held-out tail)')
     era.add_argument('--output-rank', type=int, default=None,
                      help='identify on this many principal components of the outputs '
                           '(fewer OKID unknowns; e.g. 4 for a centerline)')
@@ -78,6 +80,23 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                      help='relative cut-off of the OKID least-squares solve')
     era.add_argument('--hsv-tol', type=float, default=None,
                      help='relative Hankel singular value threshold when r is automatic')
+    era.add_argument('--era-preset', default=None, choices=('auto', 'eel', 'legacy'),
+                     help='named ERA/OKID settings (auto: data-driven defaults; eel: the '
+                          "study's hand-tuned settings; legacy: the former defaults); the "
+                          'options above override it')
+    era.add_argument('--okid-ridge', type=float, default=None,
+                     help='relative ridge weight of OKID (default: selected on a held-out '
+                          'tail)')
+    variants = parser.add_argument_group('LOpInf / DMDc variants')
+    variants.add_argument('--regularization', default=None, metavar='GAMMA|auto',
+                          help="LOpInf Tikhonov weight (dimensionless), or 'auto' to select it "
+                               'on held-out episode tails (default none)')
+    variants.add_argument('--min-damping-ratio', type=float, default=None,
+                          help='LOpInf: every mode has at least this damping ratio (default '
+                               '0.01; 0 for the absolute margin only)')
+    variants.add_argument('--dmdc-variant', choices=('paper', 'stable'), default=None,
+                          help='DMDc formulation: paper (default) or stable (one lag, '
+                               'spectral radius <= 1)')
     parser.add_argument('--streaming', action='store_true',
                         help='stream the snapshots from disk with bounded memory (streamed '
                              'randomized POD; for training sets larger than RAM)')
@@ -115,7 +134,24 @@ def run(args: argparse.Namespace) -> int:
     era_options = {'episode': args.era_episode, 'decimation': args.decimation,
                    'n_markov': args.n_markov, 'observer_order': args.observer_order,
                    'hsv_tol': args.hsv_tol, 'output_rank': args.output_rank,
-                   'okid_rcond': args.okid_rcond}
+                   'okid_rcond': args.okid_rcond, 'okid_ridge': args.okid_ridge}
+    if args.era_preset:
+        from soft_rom.learners.era import ERA_PRESETS
+        era_options = {**ERA_PRESETS[args.era_preset],
+                       **{k: v for k, v in era_options.items() if v is not None}}
+    lopinf_options: dict[str, Any] = {}
+    if args.regularization is not None:
+        reg = args.regularization
+        if reg != 'auto':
+            try:
+                reg = float(reg)
+            except ValueError:
+                raise ConfigError(f"--regularization must be a number >= 0 or 'auto'; got "
+                                  f'{args.regularization!r}.') from None
+        lopinf_options['regularization'] = reg
+    if args.min_damping_ratio is not None:
+        lopinf_options['min_damping_ratio'] = args.min_damping_ratio
+    dmdc_options = {} if args.dmdc_variant is None else {'variant': args.dmdc_variant}
     rows: list[dict[str, Any]] = []
     for method in args.method:
         if streaming:
@@ -128,7 +164,8 @@ def run(args: argparse.Namespace) -> int:
             fitted = fit_models(ts, method, r_values=args.r, energy=args.energy,
                                 episodes=episodes, provenance=provenance, solver=args.solver,
                                 ddt_order=args.ddt_order, dmdc_p=args.dmdc_p,
-                                era_options=era_options, progress=not args.no_progress)
+                                era_options=era_options, progress=not args.no_progress,
+                                lopinf_options=lopinf_options, dmdc_options=dmdc_options)
         for model, seconds in fitted:
             path = model.save(outdir / f'{prefix}_{method}_r{model.r}.npz')
             train_eps = episodes

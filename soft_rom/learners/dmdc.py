@@ -372,7 +372,8 @@ class DMDc:
             raise ConfigError(f"variant must be 'paper' or 'stable'; got {self.variant!r}.")
         rho = float(self.max_spectral_radius)
         if not (np.isfinite(rho) and rho > 0):
-            raise ConfigError(f'max_spectral_radius must be > 0; got {self.max_spectral_radius!r}.')
+            raise ConfigError(f'max_spectral_radius must be > 0; got '
+                              f'{self.max_spectral_radius!r}.')
         eps = _as_episodes(episodes)
         n = int(eps[0].Q.shape[0])
         m = eps[0].U.shape[0]

@@ -40,7 +40,6 @@ from soft_rom.errors import SolverError
 __all__ = ['SymIndex', 'SPDFactor', 'lift', 'solve_two_cone_qp']
 
 Array = NDArray[np.float64]
-_DEBUG = False
 
 
 class SymIndex:
@@ -132,7 +131,7 @@ class SymIndex:
         return H
 
     def skron(self, Xi: Array) -> Array:
-        """svec matrix of ``ΔX ↦ Xi ΔX Xi`` (``Xi ⊗_s Xi``, Xi symmetric).
+        """Svec matrix of ``ΔX ↦ Xi ΔX Xi`` (``Xi ⊗_s Xi``, Xi symmetric).
 
         With ``E_a = c_a (e_p e_qᵀ + e_q e_pᵀ)`` the entry is
         ``2 c_a c_b (Xi[p,k] Xi[q,l] + Xi[p,l] Xi[q,k])`` for ``b = (k, l)``.
@@ -247,9 +246,9 @@ def solve_two_cone_qp(H: Array, c: Array, fval: Any, idx: SymIndex, x0: Array, *
     s = join(*Ss)
     best: tuple[float, Array, float] | None = None
     it = 0
-    for it in range(1, max_iter + 1):
-        grad = H @ x + c
-        rd = grad - s
+    while it < max_iter:
+        it += 1
+        rd = H @ x + c - s
         f = float(fval(x))
         # Certified lower bound from the dual point S (any S ⪰ 0 works).
         xh = h_factor.solve(s - c)
@@ -260,8 +259,6 @@ def solve_two_cone_qp(H: Array, c: Array, fval: Any, idx: SymIndex, x0: Array, *
         if gap <= rtol * max(abs(f), 1e-300):
             break
         mu = float(x @ s) / (nc * r)
-        if _DEBUG:
-            print(it, f, gap / f, mu, np.linalg.norm(rd) / np.linalg.norm(grad))
         scal = [_nt_scaling(X, S) for X, S in zip(Xs, Ss)]
         Hn = H.copy()
         for i in range(nc):
@@ -280,7 +277,8 @@ def solve_two_cone_qp(H: Array, c: Array, fval: Any, idx: SymIndex, x0: Array, *
             dS = [0.5 * (M + M.T) for M in dS]
             return dx, dX, dS
 
-        def step_len(dX: list[Array], dS: list[Array], scal: list[Any] = scal) -> float:
+        def step_len(dX: list[Array], dS: list[Array], scal: list[Any] = scal,
+                     Ss: list[Array] = Ss) -> float:
             a = 1e30
             for i in range(nc):
                 a = min(a, _max_step(scal[i][0], dX[i]),
@@ -308,10 +306,6 @@ def solve_two_cone_qp(H: Array, c: Array, fval: Any, idx: SymIndex, x0: Array, *
             sigma = max(sigma, 0.1)
             dx, dX, dS = direction([sigma * mu * scal[i][2] - Ss[i] for i in range(nc)])
             alpha = min(1.0, 0.98 * step_len(dX, dS))
-        if _DEBUG:
-            print('   a_aff', a_aff, 'sigma', sigma, 'alpha', alpha,
-                  [_max_step(scal[i][0], dX[i]) for i in range(nc)],
-                  [_max_step(np.linalg.cholesky(Ss[i]), dS[i]) for i in range(nc)])
         x = x + alpha * dx
         Xs = [Xs[i] + alpha * dX[i] for i in range(nc)]
         Ss = [Ss[i] + alpha * dS[i] for i in range(nc)]

@@ -45,9 +45,8 @@ from numpy.typing import ArrayLike, NDArray
 import scipy.linalg as sla
 
 from soft_rom.errors import ConfigError, DimensionError, SolverError
-from soft_rom.learners.lopinf_ipm import lift as _lift
 from soft_rom.learners.lopinf_ipm import BlockFactor, solve_two_cone_qp
-from soft_rom.learners.lopinf_ipm import SPDFactor as _Factor
+from soft_rom.learners.lopinf_ipm import lift as _lift
 from soft_rom.learners.lopinf_ipm import SymIndex as _SymIndex
 
 __all__ = [
