@@ -293,17 +293,20 @@ class DMDc:
     rcond : float
         Relative threshold below which singular values count as zero.
     variant : {'paper', 'stable'}
-        ``'paper'`` (default): the formulation above, unchanged. ``'stable'``: the paper's
-        ``Ã`` with every eigenvalue of modulus above ``max_spectral_radius`` pulled radially
-        onto that circle (on the diagonal blocks of the real Schur form ``Ã = Z T Zᵀ``: the
-        1×1 and 2×2 blocks carry the eigenvalues, so scaling an offending block moves only
-        its eigenvalues and keeps ``Ã`` real and well conditioned), then ``B̃`` refitted by
-        least squares for that ``Ã`` on the training pairs. DMDc on positions of a
-        second-order system is marginally unstable whatever ``r`` (the discrete modes of a
-        lightly damped body lie just inside the unit circle and the position-only
-        regression misplaces them just outside); this variant never diverges.
-    max_spectral_radius : float
-        Bound of the ``'stable'`` variant (default 1).
+        ``'paper'`` (default): the formulation above, unchanged. ``'stable'``: one lag of
+        states and inputs, ``x̃_{k+1} = A₁ x̃_k + A₂ x̃_{k-1} + B₀ u_k + B₁ u_{k-1}`` by least
+        squares on the same POD coordinates (the exact form of a sampled linear second-order
+        system with held inputs, which positions alone cannot represent: DMDc on positions
+        of a second-order body is marginally unstable at most ``r``), then every eigenvalue
+        of the companion matrix outside ``|z| ≤ max_spectral_radius`` pulled radially onto
+        that circle (:func:`clip_spectral_radius`) and ``B₀, B₁`` refitted. The model state
+        is ``[x̃_k; x̃_{k-1}; u_{k-1}]`` (``2 r + m`` states, ``C = [Ẽ, 0, 0]``);
+        ``metadata['r']`` is the basis size ``r``.
+    max_spectral_radius : float, optional
+        Bound of the ``'stable'`` variant; default ``exp(-dt / T)`` with ``T`` the longest
+        training episode: no mode of the ROM decays more slowly than over the time the data
+        cover (such a mode is not identified by the data, and on a nonlinear body the lagged
+        regression otherwise puts modes on or outside the unit circle).
 
     Attributes
     ----------
@@ -331,7 +334,7 @@ class DMDc:
 
     def __init__(self, r: int | None = None, p: int | None = None, *, energy: float = 0.95,
                  output_fit: str = 'reduced', rcond: float = 1e-10, variant: str = 'paper',
-                 max_spectral_radius: float = 1.0) -> None:
+                 max_spectral_radius: float | None = None) -> None:
         self.r = r
         self.variant = variant
         self.max_spectral_radius = max_spectral_radius
@@ -370,10 +373,11 @@ class DMDc:
             raise ConfigError(f"output_fit must be 'reduced' or 'paper'; got {self.output_fit!r}.")
         if self.variant not in ('paper', 'stable'):
             raise ConfigError(f"variant must be 'paper' or 'stable'; got {self.variant!r}.")
-        rho = float(self.max_spectral_radius)
-        if not (np.isfinite(rho) and rho > 0):
-            raise ConfigError(f'max_spectral_radius must be > 0; got '
-                              f'{self.max_spectral_radius!r}.')
+        if self.max_spectral_radius is not None:
+            rho = float(self.max_spectral_radius)
+            if not (np.isfinite(rho) and rho > 0):
+                raise ConfigError(f'max_spectral_radius must be > 0; got '
+                                  f'{self.max_spectral_radius!r}.')
         eps = _as_episodes(episodes)
         n = int(eps[0].Q.shape[0])
         m = eps[0].U.shape[0]
@@ -436,6 +440,9 @@ class DMDc:
         self._Yd = Y_all
         if self.variant == 'stable':
             self._lagdata = [(Uh[:, :rank_h].T @ q, ep.U) for q, ep in zip(Qc, eps)]
+            t_long = max(q.shape[1] for q in Qc) * dt
+            self.rho_max_ = (float(np.exp(-dt / t_long)) if self.max_spectral_radius is None
+                             else float(self.max_spectral_radius))
         self._Q_all = Q_all if self.output_fit == 'paper' else None
         self._model_kwargs = dict(input_names=input_names, output_names=output_names,
                                   input_units=input_units, output_units=output_units)
@@ -486,9 +493,10 @@ class DMDc:
         clipped = 0
         if self.variant == 'stable':
             A, B, clipped = _lag_model(self._lagdata, r, self.state_scale_, self.input_scale_,
-                                       float(self.max_spectral_radius), self.rcond)
+                                       self.rho_max_, self.rcond)
         if self.output_fit == 'paper':
             # E_approx Û = Yd Q⁺ Û with Q⁺Û the minimum-norm solution of Q Z = Û.
+            assert self._Q_all is not None
             Z = np.linalg.lstsq(self._Q_all, self._Uh[:, :r], rcond=None)[0]
             E = self._Yd @ Z
         else:
@@ -502,8 +510,7 @@ class DMDc:
             'r': r, 'p': p_used, 'p_requested': p_req,
             'output_fit': self.output_fit,
             'variant': self.variant,
-            'max_spectral_radius': (float(self.max_spectral_radius)
-                                    if self.variant == 'stable' else None),
+            'max_spectral_radius': self.rho_max_ if self.variant == 'stable' else None,
             'eigenvalues_clipped': int(clipped),
             'rcond': self.rcond,
             'episodes': self._episodes,

@@ -252,10 +252,11 @@ def era(markov: ArrayLike, r: int | None = None, *, n_block_rows: int | None = N
         # largest attainable rank).
         n_block_rows = min(max(int(round(N * m / (m + p))), 1), N - 1)
         n_block_cols = N - n_block_rows
-    elif n_block_rows is None:
+    elif n_block_rows is None and n_block_cols is not None:
         n_block_rows = N - int(n_block_cols)
-    elif n_block_cols is None:
+    elif n_block_cols is None and n_block_rows is not None:
         n_block_cols = N - int(n_block_rows)
+    assert n_block_rows is not None and n_block_cols is not None
     a, b = int(n_block_rows), int(n_block_cols)
     if a < 1 or b < 1 or a + b > N:
         raise ConfigError(f'Hankel blocks ({a} rows, {b} columns) need 1 <= rows, cols and '
@@ -296,11 +297,14 @@ class ERAOKID:
     observer_order : int, optional
         OKID observer order ``l``; ``None``: selected, or (``selection='none'``) the largest
         order with two equations per unknown, capped at ``max_observer_order``.
-    decimation : int
-        Fit at ``decimation`` times the data sample time (default 1). The model's ``dt`` is
-        ``decimation · dt_data`` (in the fit summary and the model file: ``dt``,
-        ``metadata['dt_data']`` and ``metadata['decimation']``); predictions on the data
-        grid need ``decimation = 1`` to be exact.
+    decimation : int or 'auto'
+        Fit at ``decimation`` times the data sample time; ``'auto'`` (default): the factor of
+        :data:`~soft_rom.learners.era_select.DECIMATION_GRID` with the lowest held-out tail
+        error. A model fitted at ``d > 1`` is resampled to the data step
+        (:func:`~soft_rom.learners.era_select.to_data_rate`: exact ``d``-th root), so it
+        predicts on the data grid without interpolation; the metadata state ``decimation``,
+        ``dt_fit``, ``dt_model`` and ``resampled_to_data_rate``. If no real root exists the
+        model keeps ``dt = d · dt_data`` (printed by ``soft-rom fit``).
     n_block_rows, n_block_cols : int, optional
         Hankel block sizes (default: ``H_0`` about square).
     hsv_tol : float
@@ -346,7 +350,7 @@ class ERAOKID:
     """
 
     def __init__(self, r: int | None = None, *, n_markov: int | None = None,
-                 observer_order: int | None = None, decimation: int = 1,
+                 observer_order: int | None = None, decimation: int | str = 'auto',
                  n_block_rows: int | None = None, n_block_cols: int | None = None,
                  hsv_tol: float = 1e-3, max_observer_order: int = 10,
                  output_rank: int | str | None = 'auto', okid_rcond: float | None = None,
@@ -395,6 +399,11 @@ class ERAOKID:
         self
         """
         t0 = time.perf_counter()
+        if self.decimation == 'auto':
+            return self._fit_auto_decimation(episode, y_ref, input_names=input_names,
+                                             output_names=output_names,
+                                             input_units=input_units,
+                                             output_units=output_units, metadata=metadata)
         if not isinstance(episode, Episode):
             eps = list(episode)
             if len(eps) != 1:
@@ -482,9 +491,15 @@ class ERAOKID:
         B = Bs / s_u[None, :]
         C = s_y[:, None] * Cs
         D = s_y[:, None] * Ds / s_u[None, :]
-        ev = np.linalg.eigvals(A)
         r = A.shape[0]
         dt = d * ep.dt
+        self.dt_fit_ = dt
+        resampled = era_select.to_data_rate(A, B, d) if d > 1 else None
+        if resampled is not None:
+            A, B = resampled
+            dt = ep.dt
+        self.resampled_ = resampled is not None
+        ev = np.linalg.eigvals(A)
         self.markov_ = markov
         self.hankel_singular_values_ = hsv
         self.observer_order_ = lo
@@ -498,7 +513,8 @@ class ERAOKID:
         meta = dict(metadata or {})
         meta.update({
             'learner': 'ERAOKID', 'r': r, 'episode': ep.name,
-            'decimation': d, 'dt_data': ep.dt, 'dt_model': dt, 'n_markov': nm,
+            'decimation': d, 'dt_data': ep.dt, 'dt_fit': d * ep.dt, 'dt_model': dt,
+            'resampled_to_data_rate': self.resampled_, 'n_markov': nm,
             'okid_ridge': ridge, 'selection': self.selection,
             'selection_table': None if sel is None else _finite_rows(sel['table']),
             'selection_tail_error': None if sel is None else sel['tail_error'],
@@ -520,6 +536,37 @@ class ERAOKID:
                                     metadata=meta)
         return self
 
+    def _fit_auto_decimation(self, episode: Episode | Sequence[Episode],
+                             y_ref: ArrayLike | None, **kw: Any) -> ERAOKID:
+        """Fit at every decimation of the grid; keep the best held-out tail error."""
+        import copy
+        ep = episode if isinstance(episode, Episode) else list(episode)[0]
+        best: ERAOKID | None = None
+        tried: list[dict[str, Any]] = []
+        for d in era_select.DECIMATION_GRID:
+            if ep.n_samples // d < 200 and d > 1:
+                continue
+            trial = copy.copy(self)
+            trial.decimation = d
+            if trial.selection == 'none':
+                trial.selection = 'holdout'
+            try:
+                trial.fit(episode, y_ref, **kw)
+            except (ConfigError, DimensionError) as err:
+                tried.append({'decimation': d, 'tail_error': None, 'error': str(err)})
+                continue
+            err_d = float((trial.selection_ or {}).get('tail_error', np.inf))
+            tried.append({'decimation': d, 'tail_error': err_d})
+            if best is None or err_d < float((best.selection_ or {}).get('tail_error', np.inf)):
+                best = trial
+        if best is None:
+            raise ConfigError(f'ERA/OKID found no usable decimation for episode {ep.name!r}: '
+                              f'{tried}')
+        self.__dict__.update({k: v for k, v in best.__dict__.items() if k.endswith('_')})
+        self.decimation_ = best.decimation
+        self.model_.metadata['decimation_search'] = tried
+        return self
+
     def model_for(self, r: int) -> DiscreteModel:
         """The ROM of order ``r`` from the stored Markov parameters (no new OKID solve)."""
         if not hasattr(self, 'markov_'):
@@ -530,12 +577,20 @@ class ERAOKID:
             Cs, Ds = self.output_basis_ @ Cs, self.output_basis_ @ Ds
         s_u, s_y = self.input_scale_, self.output_scale_
         old = self.model_
+        Bp = Bs / s_u[None, :]
+        if getattr(self, 'resampled_', False):
+            d = int(round(self.dt_fit_ / old.dt))
+            res = era_select.to_data_rate(A, Bp, d)
+            if res is None:
+                raise ConfigError(f'the order-{r} realization has no real {d}-th root; fit '
+                                  'with decimation=1.')
+            A, Bp = res
         ev = np.linalg.eigvals(A)
         meta = dict(old.metadata)
         meta.update({'r': int(r), 'eigenvalues_real': ev.real.tolist(),
                      'eigenvalues_imag': ev.imag.tolist(),
                      'stability_margin': float(1.0 - np.max(np.abs(ev)))})
-        return DiscreteModel(A, Bs / s_u[None, :], s_y[:, None] * Cs,
+        return DiscreteModel(A, Bp, s_y[:, None] * Cs,
                              s_y[:, None] * Ds / s_u[None, :], dt=old.dt, method='era',
                              y_ref=self.y_ref_, input_names=old.input_names,
                              output_names=old.output_names, input_units=old.input_units,

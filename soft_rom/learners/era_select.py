@@ -262,3 +262,35 @@ def select_order(A_full: Array, B_full: Array, C_full: Array, D: Array, Us: Arra
     if not ok:
         raise ConfigError('every ERA order gave an unstable realization on these data.')
     return int(min(ok, key=lambda row: row['tail_error'])['r']), rows
+
+
+#: Decimation factors tried by ``ERAOKID(decimation='auto')``.
+DECIMATION_GRID = (1, 2, 5, 10)
+
+
+def to_data_rate(A: Array, B: Array, d: int) -> tuple[Array, Array] | None:
+    """A model identified at ``d`` times the data step, resampled to the data step.
+
+    ``A_h`` is the real principal ``d``-th root of ``A`` and ``B_h = (Σ_{i<d} A_h^i)⁻¹ B``, so
+    that ``d`` steps of ``(A_h, B_h)`` with a constant input reproduce one step of
+    ``(A, B)`` exactly (the decimated fit averaged the inputs over each block). The outputs
+    are then computed on the data grid, without interpolating states. ``None`` when ``A`` has
+    no real principal root (an eigenvalue on the closed negative real axis).
+    """
+    import scipy.linalg as sla
+    if d == 1:
+        return A, B
+    ev = np.linalg.eigvals(A)
+    if np.any((np.abs(ev.imag) <= 1e-12 * np.maximum(np.abs(ev), 1e-300)) & (ev.real <= 0)):
+        return None
+    Ah = sla.fractional_matrix_power(A, 1.0 / d)
+    if np.iscomplexobj(Ah):
+        if np.max(np.abs(Ah.imag)) > 1e-9 * max(float(np.max(np.abs(Ah.real))), 1e-300):
+            return None
+        Ah = Ah.real
+    S = np.zeros_like(A)
+    P = np.eye(A.shape[0])
+    for _ in range(d):
+        S += P
+        P = P @ Ah
+    return np.asarray(Ah, dtype=np.float64), np.asarray(np.linalg.solve(S, B))

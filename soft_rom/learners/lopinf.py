@@ -179,9 +179,9 @@ class LOpInf:
                                      f'first episode has {n}.')
         if q_ref is None:
             q_ref = np.asarray(eps_list[0].Q[:, 0:1], dtype=np.float64)[:, 0]
-        q_ref = as_signal('q_ref', np.reshape(np.asarray(q_ref, dtype=np.float64), (-1, 1)),
-                          rows=n)[:, 0].copy()
-        check_finite('q_ref', q_ref)
+        q_ref_a = as_signal('q_ref', np.reshape(np.asarray(q_ref, dtype=np.float64), (-1, 1)),
+                            rows=n)[:, 0].copy()
+        check_finite('q_ref', q_ref_a)
         builder = POD(r=self.r, energy=self.energy) if self.basis is None else copy.deepcopy(
             self.basis)
         if not callable(getattr(builder, 'fit', None)):
@@ -189,7 +189,7 @@ class LOpInf:
                               f'singular_values_); got {type(builder).__name__}.')
         dt = self._common_dt(eps_list)          # validate before the expensive POD
         t0 = time.perf_counter()
-        builder.fit([ep.Q for ep in eps_list], q_ref)
+        builder.fit([ep.Q for ep in eps_list], q_ref_a)
         if not isinstance(builder, BasisBuilder):
             raise ConfigError(f'the basis builder {type(builder).__name__} has no basis_ or '
                               'singular_values_ after fit().')
@@ -197,7 +197,7 @@ class LOpInf:
         if V.ndim != 2 or V.shape[0] != n:
             raise DimensionError(f'the basis builder returned basis_ of shape {V.shape}; '
                                  f'expected ({n}, r).')
-        Qhat = [project(ep.Q, V, q_ref) for ep in eps_list]
+        Qhat = [project(ep.Q, V, q_ref_a) for ep in eps_list]
         t_basis = time.perf_counter() - t0
         s = np.asarray(builder.singular_values_, dtype=np.float64)
         r = V.shape[1]
@@ -213,8 +213,8 @@ class LOpInf:
                          names=[ep.name for ep in eps_list], energy_captured=captured,
                          time_ranges=[[float(ep.t[0]), float(ep.t[-1])] for ep in eps_list],
                          metadata=metadata, **meta)
-        self.basis_ = builder
-        self.q_ref_ = q_ref
+        self.basis_ = builder  # type: BasisBuilder | None
+        self.q_ref_ = q_ref_a
         diag = self.diagnostics_
         diag['n_full'] = n
         diag['basis_seconds'] = t_basis
@@ -222,8 +222,8 @@ class LOpInf:
         self._rebuild_model()
         return self
 
-    def fit_reduced(self, Qhat: Sequence[ArrayLike], U: Sequence[ArrayLike],
-                    Y: Sequence[ArrayLike], dt: float, y_ref: ArrayLike | None = None, *,
+    def fit_reduced(self, Qhat: Sequence[Array], U: Sequence[Array],
+                    Y: Sequence[Array], dt: float, y_ref: ArrayLike | None = None, *,
                     input_names: Sequence[str] | None = None,
                     output_names: Sequence[str] | None = None,
                     input_units: Sequence[str] | None = None,
@@ -283,8 +283,8 @@ class LOpInf:
             raise DimensionError(f'dt must be a positive number of seconds; got {dt!r}.')
         if y_ref is None:
             y_ref = Y[0][:, 0]
-        y_ref = as_signal('y_ref', np.reshape(np.asarray(y_ref, dtype=np.float64), (-1, 1)),
-                          rows=p)[:, 0].copy()
+        y_ref_a = as_signal('y_ref', np.reshape(np.asarray(y_ref, dtype=np.float64), (-1, 1)),
+                            rows=p)[:, 0].copy()
         estimator = as_estimator(self.ddt)
         solver = FastSPDSolver() if self.solver is None else self.solver
         if not isinstance(solver, OperatorSolver):
@@ -313,13 +313,13 @@ class LOpInf:
         rel_residual = residual / max(float(np.linalg.norm(Qdd)), 1e-300)
 
         # Output operator: min ||(Y - y_ref) - E Qhat||_F over all samples.
-        dY = np.concatenate(Y, axis=1) - y_ref[:, None]
+        dY = np.concatenate(Y, axis=1) - y_ref_a[:, None]
         Et, *_ = np.linalg.lstsq((all_q / s_q).T, dY.T, rcond=None)
         E = Et.T / s_q
         out_res = float(np.linalg.norm(dY - E @ all_q)) / max(float(np.linalg.norm(dY)), 1e-300)
 
         self.K_, self.C_, self.B_, self.E_ = K, C, B, E
-        self.y_ref_ = y_ref
+        self.y_ref_ = y_ref_a
         self.dt_ = dt
         self.basis_ = None
         self.q_ref_ = None
@@ -365,8 +365,8 @@ class LOpInf:
                dt: float, lengths: Sequence[int]
                ) -> tuple[Array, Array, Array, dict[str, Any], dict[str, Any]]:
         """Operators with the damping margin and the (selected) Tikhonov weight."""
-        kw = dict(eps=self.eps, min_damping_ratio=float(self.min_damping_ratio),
-                  frequency=self.damping_frequency)
+        kw: dict[str, Any] = dict(eps=self.eps, min_damping_ratio=float(self.min_damping_ratio),
+                                  frequency=self.damping_frequency)
         reg: dict[str, Any] = {'mode': 'none', 'gamma': 0.0}
         gamma = 0.0
         if isinstance(self.regularization, str):
@@ -383,7 +383,8 @@ class LOpInf:
                     gamma=g, **kw)
                 return K_, C_, B_
 
-            gamma, table = margins.select_regularization(fit, *parts, dt, grid=self.reg_grid)
+            gamma, table = margins.select_regularization(fit, parts[0], parts[1], parts[2],
+                                                         parts[3], dt, grid=self.reg_grid)
             reg = {'mode': 'auto', 'gamma': gamma, 'candidates': table}
         elif self.regularization is not None:
             gamma = float(self.regularization)
@@ -401,7 +402,9 @@ class LOpInf:
 
     def predict(self, U: ArrayLike, x0: ArrayLike | None = None) -> Array:
         """Absolute outputs (p, k) for inputs ``U`` (m, k) from ``x0`` (default at rest)."""
-        return self.model.simulate(U, x0)
+        Y = self.model.simulate(U, x0)
+        assert not isinstance(Y, tuple)
+        return Y
 
     def _check(self) -> None:
         if not hasattr(self, 'model_'):

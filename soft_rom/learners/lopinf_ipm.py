@@ -196,7 +196,8 @@ def _nt_scaling(X: Array, S: Array) -> tuple[Array, Array, Array]:
     T = Li.T @ U                                      # L⁻ᵀ U
     Wi = (T * np.sqrt(lam)) @ T.T                     # W⁻¹ = L⁻ᵀ U Λ^½ Uᵀ L⁻¹
     Xi = Li.T @ Li
-    return L, 0.5 * (Wi + Wi.T), 0.5 * (Xi + Xi.T)
+    return (np.asarray(L, dtype=np.float64), np.asarray(0.5 * (Wi + Wi.T), dtype=np.float64),
+            np.asarray(0.5 * (Xi + Xi.T), dtype=np.float64))
 
 
 def solve_two_cone_qp(H: Array, c: Array, fval: Any, idx: SymIndex, x0: Array, *,
@@ -242,7 +243,7 @@ def solve_two_cone_qp(H: Array, c: Array, fval: Any, idx: SymIndex, x0: Array, *
     d0 = x - h_factor.solve(-c)                      # x0 minus the unconstrained minimizer
     mu0 = max(float(d0 @ (H @ d0)) / (nc * r), 1e-300)
     Xs = list(split(x))
-    Ss = [mu0 * np.linalg.inv(X) for X in Xs]
+    Ss: list[Array] = [np.asarray(mu0 * np.linalg.inv(X), dtype=np.float64) for X in Xs]
     s = join(*Ss)
     best: tuple[float, Array, float] | None = None
     it = 0
@@ -282,7 +283,7 @@ def solve_two_cone_qp(H: Array, c: Array, fval: Any, idx: SymIndex, x0: Array, *
             a = 1e30
             for i in range(nc):
                 a = min(a, _max_step(scal[i][0], dX[i]),
-                        _max_step(np.linalg.cholesky(Ss[i]), dS[i]))
+                        _max_step(np.asarray(np.linalg.cholesky(Ss[i])), dS[i]))
             return a
 
         # Predictor (affine scaling).
@@ -309,8 +310,8 @@ def solve_two_cone_qp(H: Array, c: Array, fval: Any, idx: SymIndex, x0: Array, *
         x = x + alpha * dx
         Xs = [Xs[i] + alpha * dX[i] for i in range(nc)]
         Ss = [Ss[i] + alpha * dS[i] for i in range(nc)]
-        Xs = [0.5 * (M + M.T) for M in Xs]
-        Ss = [0.5 * (M + M.T) for M in Ss]
+        Xs = [np.asarray(0.5 * (M + M.T), dtype=np.float64) for M in Xs]
+        Ss = [np.asarray(0.5 * (M + M.T), dtype=np.float64) for M in Ss]
         x = join(*Xs)
         s = join(*Ss)
         if not all(np.all(np.isfinite(M)) for M in Xs + Ss):

@@ -24,11 +24,12 @@ the condition number is not squared; it costs one pass over the data.
 Solvers (objects behind :class:`OperatorSolver`):
 
 * :class:`FastSPDSolver` (default): the symmetric least-squares solution in closed form; if it
-  is already ``≥ eps`` it *is* the optimum and is returned; otherwise a primal log-barrier
-  interior-point method (damped Newton on the reduced problem; Newton steps are affine
-  invariant, i.e. perfectly preconditioned, which is what ill-conditioned POD data need),
-  started from the least-squares solution with its eigenvalues lifted into the cone, stopped
-  when the duality-gap bound ``2r / t`` falls below ``rtol`` times the objective.
+  is already feasible it *is* the optimum and is returned; otherwise a primal-dual interior
+  point (:mod:`soft_rom.learners.lopinf_ipm`: Nesterov-Todd scaling, Mehrotra
+  predictor-corrector, Newton systems assembled in symmetric-Kronecker form, ``K`` eliminated
+  by a Schur complement when its constraint is inactive), started from the least-squares
+  solution lifted into the cones, stopped on a certified duality gap. ``eps`` may be one
+  margin or a pair ``(eps_C, eps_K)``.
 * :class:`CvxpySolver`: the reference conic formulation with cvxpy (Clarabel or SCS), either
   on the reduced data (``formulation='reduced'``) or straightforwardly over the raw ``r × k``
   residual (``formulation='raw'``, the benchmark baseline).
@@ -73,10 +74,13 @@ Margin = float | tuple[float, float]
 
 def split_margin(eps: Margin) -> tuple[float, float]:
     """``(eps_C, eps_K)`` from one number or a pair; both must be finite and ``>= 0``."""
-    pair = (eps, eps) if np.isscalar(eps) else tuple(eps)  # type: ignore[arg-type]
+    pair: tuple[Any, ...] = (eps, eps) if isinstance(eps, (int, float, np.number)) else tuple(eps)
     if len(pair) != 2:
         raise ConfigError(f'eps must be a number or a pair (eps_C, eps_K); got {eps!r}.')
-    out = (float(pair[0]), float(pair[1]))
+    try:
+        out = (float(pair[0]), float(pair[1]))
+    except (TypeError, ValueError):
+        raise ConfigError(f'eps must be a number or a pair (eps_C, eps_K); got {eps!r}.') from None
     if not all(np.isfinite(v) and v >= 0 for v in out):
         raise ConfigError(f'eps must be >= 0 and finite; got {eps!r}.')
     return out
@@ -209,7 +213,7 @@ def reduce_data(Q: ArrayLike, Qd: ArrayLike, Qdd: ArrayLike, U: ArrayLike, *,
         Zv, Dv = np.zeros((2 * r, 0)), np.zeros((r, 0))
         Zp, Dp = Z, Qdd
         pinv_left = np.zeros((0, m))
-    R = np.linalg.qr(np.vstack([Zp, Dp]).T, mode='r')
+    R: Array = np.asarray(np.linalg.qr(np.vstack([Zp, Dp]).T, mode='r'))
     return ReducedProblem(A=np.ascontiguousarray(R[:, :2 * r].T),
                           G=np.ascontiguousarray(R[:, 2 * r:].T), Zv=Zv, Dv=Dv,
                           pinv_left=pinv_left, rank_u=rho,
@@ -220,35 +224,33 @@ def reduce_data(Q: ArrayLike, Qd: ArrayLike, Qdd: ArrayLike, U: ArrayLike, *,
 
 
 class FastSPDSolver:
-    """Closed-form symmetric least squares, then a log-barrier interior point if needed.
+    """Closed-form symmetric least squares, then a primal-dual interior point if needed.
 
-    The constrained problem on :class:`ReducedProblem` data is
-
-    .. math:: \\min_{\\theta}\\ \\phi_t(\\theta) = t\\,\\|W(\\theta) A + G\\|_F^2
-        - \\log\\det(C - \\epsilon I) - \\log\\det(K - \\epsilon I)
-
-    for increasing ``t``; ``θ`` are the ``r(r+1)`` free entries of ``C`` and ``K``. Each
-    centring is a damped Newton method with backtracking that keeps iterates strictly
-    feasible. After a centring, ``f(θ) - f* ≤ 2r / t`` (squared objective), which is the
-    stopping test.
+    On :class:`ReducedProblem` data the squared objective ``φ(θ) = ||W(θ) A + G||_F²`` is a
+    quadratic in the ``r(r+1)`` free entries ``θ`` of ``C`` and ``K``. The unconstrained
+    symmetric least-squares solution is computed first (one factorization); if it satisfies
+    the margins it *is* the optimum. Otherwise :func:`~soft_rom.learners.lopinf_ipm.
+    solve_two_cone_qp` (Mehrotra predictor-corrector, Nesterov-Todd scaling) solves the
+    problem; when ``K``'s constraint is inactive at the least-squares point, ``K`` is
+    eliminated exactly (a Schur complement) and only the cone of ``C`` remains (half the
+    unknowns); the result is kept only if its ``K`` is feasible (then the full KKT conditions
+    hold), otherwise both cones are solved together. Iterations stop on a certified gap.
 
     Parameters
     ----------
     rtol : float
-        Stop when the gap bound ``2r/t`` is below ``rtol`` times the squared objective
-        (so the Frobenius objective is within about ``rtol/2`` of the optimum).
-    mu : float
-        Factor by which ``t`` grows between centrings.
-    centring_tol : float
-        Newton-decrement tolerance of the intermediate centrings (the last one is solved
-        to ``1e-10``).
+        Stop when the certified gap ``φ(θ) - ψ(S)`` (``ψ`` the Lagrange dual function) is
+        below ``rtol · φ(θ)``; the Frobenius objective is then within ``rtol / 2`` of the
+        optimum.
+    mu, centring_tol : float
+        Kept for compatibility (the former barrier method's parameters; unused).
     max_newton : int
-        Total Newton steps allowed; :class:`~soft_rom.errors.SolverError` beyond.
+        Interior-point iterations allowed; :class:`~soft_rom.errors.SolverError` beyond.
     rank_rtol : float
         Relative singular-value threshold for the numerical rank of ``U``.
     """
 
-    def __init__(self, *, rtol: float = 1e-10, mu: float = 30.0, max_newton: int = 500,
+    def __init__(self, *, rtol: float = 1e-9, mu: float = 30.0, max_newton: int = 100,
                  centring_tol: float = 0.1, rank_rtol: float = DEFAULT_RANK_RTOL) -> None:
         self.rtol = rtol
         self.mu = mu
@@ -438,10 +440,12 @@ class CvxpySolver:
             problem.solve(solver=self.solver, **self.solver_options)
         except cp.error.SolverError as err:
             raise SolverError(f'cvxpy solver {self.solver} failed: {err}') from err
-        if problem.status not in ('optimal', 'optimal_inaccurate') or Cv.value is None:
+        cval, kval = Cv.value, Kv.value
+        if (problem.status not in ('optimal', 'optimal_inaccurate') or cval is None
+                or kval is None):
             raise SolverError(f'cvxpy solver {self.solver} returned status {problem.status!r}.')
-        C = 0.5 * (Cv.value + Cv.value.T)
-        K = 0.5 * (Kv.value + Kv.value.T)
+        C = 0.5 * (cval + cval.T)
+        K = 0.5 * (kval + kval.T)
         B = prob.best_B(C, K)
         info = {'solver': 'CvxpySolver', 'backend': self.solver,
                 'formulation': self.formulation, 'status': problem.status, 'eps_C': eps_c,
