@@ -303,10 +303,10 @@ class DMDc:
         is ``[x̃_k; x̃_{k-1}; u_{k-1}]`` (``2 r + m`` states, ``C = [Ẽ, 0, 0]``);
         ``metadata['r']`` is the basis size ``r``.
     max_spectral_radius : float, optional
-        Bound of the ``'stable'`` variant; default ``exp(-dt / T)`` with ``T`` the longest
-        training episode: no mode of the ROM decays more slowly than over the time the data
-        cover (such a mode is not identified by the data, and on a nonlinear body the lagged
-        regression otherwise puts modes on or outside the unit circle).
+        Bound of the ``'stable'`` variant; default ``exp(-dt / (10 T))`` with ``T`` the
+        longest training episode: no mode of the ROM has a decay time longer than ten times
+        the time the data cover (such a mode is not identified by the data; on a nonlinear
+        body the lagged regression otherwise puts modes on or outside the unit circle).
 
     Attributes
     ----------
@@ -441,7 +441,8 @@ class DMDc:
         if self.variant == 'stable':
             self._lagdata = [(Uh[:, :rank_h].T @ q, ep.U) for q, ep in zip(Qc, eps)]
             t_long = max(q.shape[1] for q in Qc) * dt
-            self.rho_max_ = (float(np.exp(-dt / t_long)) if self.max_spectral_radius is None
+            self.rho_max_ = (float(np.exp(-dt / (10.0 * t_long)))
+                             if self.max_spectral_radius is None
                              else float(self.max_spectral_radius))
         self._Q_all = Q_all if self.output_fit == 'paper' else None
         self._model_kwargs = dict(input_names=input_names, output_names=output_names,

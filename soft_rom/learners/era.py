@@ -30,17 +30,18 @@ The model is :math:`x_{k+1} = A x_k + B u_k`, :math:`y_k = C x_k + D u_k + y_{re
 The horizon problem and its knobs. With ``p = 40`` outputs the observer regression has
 ``m + l (m + p)`` unknowns per output row, so ``K`` samples allow an observer of order
 ``l < K / (m + p + 1)`` (a few dozen samples at 1 kHz), while the slow modes of a soft body
-last seconds. Three knobs, with defaults chosen by trying them on a lightly damped
-second-order system with 40 outputs at 1 kHz (see :class:`ERAOKID`):
+last seconds. The knobs:
 
-* ``observer_order`` (``l``): with many outputs a low order already makes the observer
-  dead-beat (``l p >= n``), and the recursion above then extends the Markov sequence as far
-  as wanted;
+* ``observer_order`` (``l``) and the ridge weight of the (well-posed) OKID solve;
 * ``n_markov``: how many system Markov parameters feed the Hankel matrices (their time span
   ``n_markov · dt_model`` should cover the slow modes);
-* ``decimation``: fit at ``dt_model = decimation · dt_data``: outputs are sampled every
+* ``decimation``: fit at ``dt_fit = decimation · dt_data``: outputs are sampled every
   ``decimation`` samples and inputs averaged over each block (the input held over one model
-  step); :func:`soft_rom.evaluation.predict` uses the same rule.
+  step); the model is then resampled to the data step when possible.
+
+:class:`ERAOKID` chooses them from the data by the error on a held-out tail of the episode
+(:mod:`soft_rom.learners.era_select`, which also explains why the ridge solve is needed);
+named presets (:data:`ERA_PRESETS`) give the hand-tuned settings.
 
 Unit invariance: inputs and outputs are divided by their per-channel RMS before OKID/ERA
 and the realization is scaled back (``B = B_s diag(1/s_u)``, ``C = diag(s_y) C_s``,

@@ -265,7 +265,7 @@ def select_order(A_full: Array, B_full: Array, C_full: Array, D: Array, Us: Arra
 
 
 #: Decimation factors tried by ``ERAOKID(decimation='auto')``.
-DECIMATION_GRID = (1, 2, 5, 10)
+DECIMATION_GRID = (1, 5)
 
 
 def to_data_rate(A: Array, B: Array, d: int) -> tuple[Array, Array] | None:
