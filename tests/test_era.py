@@ -185,12 +185,13 @@ def test_defaults_on_realistic_lightly_damped_data():
     ep = Episode(t=np.arange(k) * h, U=U, Y=Y)
     est = ERAOKID().fit(ep.time_slice(0, 1.5))
     ev = evaluate(est.model_, ep, t_split=1.5)
-    print(ev.get('*', 'train')['relative_deviation_error'],
-          ev.get('*', 'test')['relative_deviation_error'], est.model_.r, est.observer_order_,
-          est.okid_ridge_)
+    # Selected from the data (decimation, observer order, ridge, r); the model runs at the
+    # data step (resampled if identified at a coarser one). Former defaults (decimation 5,
+    # 100 Markov parameters, observer 3): 3-3.7 % test error on deviations.
     assert est.model_.dt == pytest.approx(h)
-    assert ev.get('*', 'train')['relative_deviation_error'] < 0.05
-    assert ev.get('*', 'test')['relative_deviation_error'] < 0.15
+    assert est.selection_ is not None and est.okid_ridge_ >= 1e-5
+    assert ev.get('*', 'train')['relative_deviation_error'] < 0.08
+    assert ev.get('*', 'test')['relative_deviation_error'] < 0.08
     assert est.model_.stability_margin() > 0
 
 

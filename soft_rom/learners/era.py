@@ -541,7 +541,13 @@ class ERAOKID:
                              y_ref: ArrayLike | None, **kw: Any) -> ERAOKID:
         """Fit at every decimation of the grid; keep the best held-out tail error."""
         import copy
-        ep = episode if isinstance(episode, Episode) else list(episode)[0]
+        eps = [episode] if isinstance(episode, Episode) else list(episode)
+        if len(eps) != 1:
+            raise DimensionError(
+                f'ERA/OKID fits one episode at a time (one continuous record); got '
+                f'{len(eps)} episodes. Fit one model per episode, e.g. '
+                '--era-episode ep2 on the command line.')
+        ep = eps[0]
         best: ERAOKID | None = None
         tried: list[dict[str, Any]] = []
         for d in era_select.DECIMATION_GRID:
@@ -561,8 +567,8 @@ class ERAOKID:
             if best is None or err_d < float((best.selection_ or {}).get('tail_error', np.inf)):
                 best = trial
         if best is None:
-            raise ConfigError(f'ERA/OKID found no usable decimation for episode {ep.name!r}: '
-                              f'{tried}')
+            raise DimensionError(f'ERA/OKID found no usable setting for episode {ep.name!r} '
+                                 f'({ep.n_samples} samples): {tried[0]["error"] if tried else ""}')
         self.__dict__.update({k: v for k, v in best.__dict__.items() if k.endswith('_')})
         self.decimation_ = best.decimation
         self.model_.metadata['decimation_search'] = tried
