@@ -89,7 +89,9 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
                era_options: dict[str, Any] | None = None,
                progress: bool = True, coordinates: str | None = None,
                ddt: str | None = None, forces: str = 'linear',
-               cubic_options: dict[str, Any] | None = None) -> list[tuple[LinearROM, float]]:
+               cubic_options: dict[str, Any] | None = None,
+               lopinf_options: dict[str, Any] | None = None,
+               dmdc_options: dict[str, Any] | None = None) -> list[tuple[LinearROM, float]]:
     """Fit ``method`` for each r; returns ``[(model, seconds), ...]``.
 
     ``forces`` and ``cubic_options`` are passed to :class:`~soft_rom.learners.lopinf.LOpInf`.
@@ -146,7 +148,7 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
                 t1 = time.perf_counter()
                 slv = FastSPDSolver() if solver == 'fast' else CvxpySolver()
                 learner = LOpInf(r=r, ddt=estimator, solver=slv, forces=forces,
-                                 cubic_options=cubic_options)
+                                 cubic_options=cubic_options, **(lopinf_options or {}))
                 learner.fit_reduced(
                     [q[:r] for q in Qhat], [ep.U for ep in episodes],
                     [ep.Y for ep in episodes], dt, y_ref, names=[ep.name for ep in episodes],
@@ -163,7 +165,8 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             _need_states(episodes, 'DMDc')
             t0 = time.perf_counter()
             r0 = r_values[0] if r_values else None
-            dmdc = DMDc(r=r0, p=dmdc_p, energy=0.95 if energy is None else energy).fit(
+            dmdc = DMDc(r=r0, p=dmdc_p, energy=0.95 if energy is None else energy,
+                        **(dmdc_options or {})).fit(
                 episodes, _q_ref(q_ref, episodes), y_ref,
                 metadata={'training': provenance, **extra}, **names)
             t_svd = time.perf_counter() - t0

@@ -30,6 +30,7 @@ import numpy as np
 
 from soft_rom.data import Episode
 from soft_rom.errors import ConfigError, DatasetError
+from soft_rom.learners.era import ERA_PRESETS
 from soft_rom.metrics import relative_deviation_error, relative_error
 from soft_rom.models import LinearROM
 from soft_rom.study import figures, paper
@@ -40,12 +41,9 @@ __all__ = ['StudyConfig', 'run_study', 'simulate_bags']
 LOG = logging.getLogger(__name__)
 METHODS = ('lopinf', 'dmdc', 'era', 'lopinf_cubic')
 
-#: ERA/OKID settings that work on the eel data (1 kHz, 40 outputs, slow lightly damped modes):
-#: identify on the 4 leading output principal components at the full rate with a 36-step
-#: observer and 500 Markov parameters (0.5 s). The learner's own defaults, tuned on a linear
-#: system, give unstable realizations on these noise-free nonlinear simulations.
-ERA_EEL_OPTIONS: dict[str, Any] = {'decimation': 1, 'output_rank': 4, 'observer_order': 36,
-                                   'n_markov': 500}
+#: ERA/OKID settings of the study: the learner's named preset ``'eel'`` (hand-tuned on the
+#: eel data; see :data:`soft_rom.learners.era.ERA_PRESETS`).
+ERA_EEL_OPTIONS: dict[str, Any] = dict(ERA_PRESETS['eel'])
 
 
 #: Cubic LOpInf settings for the eel: a stronger quartic floor than the learner's default keeps
