@@ -1,0 +1,345 @@
+"""The installed ``predictor`` in its own process, driven by a plain rclpy client.
+
+What a user does: publish pressures (per chamber, or one array), hostile messages, call
+``~/reset``, set ``model_path`` at run time, start it wrong, press Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+import signal
+import threading
+import time
+
+from _ros import Client, no_noise, NodeProcess, require_rclpy
+import numpy as np
+import pytest
+
+require_rclpy()
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from geometry_msgs.msg import Pose, PoseArray  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+from sensor_msgs.msg import FluidPressure, JointState  # noqa: E402
+from std_msgs.msg import Float64MultiArray, String  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from soft_rom.data import Episode  # noqa: E402
+from soft_rom.models import SecondOrderModel  # noqa: E402
+from soft_rom.predictor import Predictor, PredictorConfig, replay_episode  # noqa: E402
+from soft_rom.ros.conversions import sec_to_stamp, stamp_to_sec  # noqa: E402
+
+TOPICS = ['/t/chamber_1', '/t/chamber_2', '/t/chamber_3']
+RELIABLE = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                     durability=DurabilityPolicy.TRANSIENT_LOCAL)
+T0 = 1.7e9 + 0.123          # epoch-like stamps
+
+
+def model(seed: int = 11, scale: float = 1.0) -> SecondOrderModel:
+    """A stable 3-input, 10-output second-order ROM at dt = 1 ms."""
+    rng = np.random.default_rng(seed)
+    r, m, p = 4, 3, 10
+    M = rng.standard_normal((r, r))
+    K = (M @ M.T / r + 4.0 * np.eye(r)) * 100.0 * scale
+    return SecondOrderModel(K, 0.5 * np.eye(r) + 0.01 * K, rng.standard_normal((r, m)),
+                            0.01 * rng.standard_normal((p, r)), dt=1e-3,
+                            y_ref=np.linspace(0.0, 1.0, p))
+
+
+def episode(m: SecondOrderModel, k: int = 200, t0: float = T0) -> Episode:
+    """Piecewise-constant random pressures at the model's rate."""
+    rng = np.random.default_rng(12)
+    U = np.repeat(rng.standard_normal((3, k // 5 + 1)), 5, axis=1)[:, :k]
+    return Episode(t=t0 + np.arange(k) * m.dt, U=U, Y=m.simulate(U))
+
+
+def key(t: float) -> int:
+    """A model time as whole microseconds (a dictionary key)."""
+    return int(round(t * 1e6))
+
+
+def pressure(value: float, t: float) -> FluidPressure:
+    """A stamped FluidPressure (``t`` = 0: a zero stamp)."""
+    msg = FluidPressure()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = sec_to_stamp(t)
+    msg.fluid_pressure = float(value)
+    return msg
+
+
+def params(path: Path | str, **extra) -> dict:
+    """Node parameters for these tests (reliable QoS, every step published)."""
+    values = {'model_path': str(path), 'input_topics': TOPICS, 'input_qos': 'reliable',
+              'qos_depth': 1000, 'stepping': 'input', 'publish_rate_hz': 0.0,
+              'measured_topic': '/t/centerline', 'array_topic': '/t/pressures',
+              'diagnostics_rate_hz': 5.0}
+    values.update(extra)
+    return values
+
+
+class Outputs:
+    """Collects ``~/output_stamped`` (model time -> outputs) and ``~/output`` of a node."""
+
+    def __init__(self, client: Client, fqn: str) -> None:
+        self.stamped: dict[int, np.ndarray] = {}
+        self.times: list[float] = []
+        self.plain: list[np.ndarray] = []
+        self.infos: list[dict] = []
+        self.diagnostics: list[DiagnosticArray] = []
+        n = client.node
+        n.create_subscription(JointState, f'{fqn}/output_stamped', self._on_stamped, RELIABLE)
+        n.create_subscription(Float64MultiArray, f'{fqn}/output',
+                              lambda m: self.plain.append(np.array(m.data)), RELIABLE)
+        n.create_subscription(String, f'{fqn}/model_info',
+                              lambda m: self.infos.append(json.loads(m.data)), LATCHED)
+        n.create_subscription(DiagnosticArray, '/diagnostics', self.diagnostics.append, 10)
+
+    def _on_stamped(self, msg: JointState) -> None:
+        self.stamped[key(stamp_to_sec(msg.header.stamp))] = np.array(msg.position)
+        self.times.append(stamp_to_sec(msg.header.stamp))
+
+    def status(self, suffix: str) -> dict:
+        """The newest diagnostic status whose name ends with ``suffix``: level, message, values."""
+        for arr in reversed(self.diagnostics):
+            for st in arr.status:
+                if st.name.endswith(suffix):
+                    return {'level': st.level[0] if isinstance(st.level, bytes) else st.level,
+                            'message': st.message, 'name': st.name,
+                            'hardware_id': st.hardware_id,
+                            **{kv.key: kv.value for kv in st.values}}
+        return {}
+
+
+@pytest.fixture
+def client():
+    c = Client()
+    yield c
+    c.close()
+
+
+def _publishers(client: Client, topics=TOPICS, kind=FluidPressure) -> list:
+    return [client.node.create_publisher(kind, tp, RELIABLE) for tp in topics]
+
+
+def _connected(client: Client, pubs: list, out: Outputs | None = None) -> None:
+    assert client.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs),
+                             timeout=20.0), 'the node did not subscribe'
+    if out is not None:
+        assert client.spin_until(lambda: bool(out.infos), timeout=10.0), 'no model_info'
+
+
+def test_per_chamber_input_at_full_rate_equals_replay(client, tmp_path) -> None:
+    m = model()
+    ep = episode(m)
+    ref = replay_episode(Predictor(m, PredictorConfig(stepping='input')), ep, measured=False)
+    node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz')))
+    try:
+        out = Outputs(client, node.fqn)
+        pubs = _publishers(client)
+        _connected(client, pubs, out)
+        for j in range(ep.n_samples):      # as fast as rclpy publishes, no waiting
+            for i, pub in enumerate(pubs):
+                pub.publish(pressure(ep.U[i, j], ep.t[j]))
+        last = key(ep.t[-1])
+        assert client.spin_until(lambda: last in out.stamped, timeout=20.0), len(out.stamped)
+        want = {key(t): ref.Y[:, j] for j, t in enumerate(ep.t)}
+        assert set(out.stamped) <= set(want)
+        assert len(out.stamped) >= ep.n_samples - 1
+        worst = max(np.max(np.abs(y - want[t])) for t, y in out.stamped.items())
+        assert worst <= 1e-12 * max(1.0, np.max(np.abs(ref.Y)))
+        assert len(out.plain) == len(out.stamped)      # ~/output with every step
+        assert out.infos[-1]['r'] == 4 and len(out.infos[-1]['sha256']) == 64
+    finally:
+        node.kill()
+
+
+def test_array_input_equals_replay_of_what_arrived(client, tmp_path) -> None:
+    m = model()
+    ep = episode(m, k=100)
+    node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz'), input_mode='array'))
+    try:
+        out = Outputs(client, node.fqn)
+        pub = client.node.create_publisher(Float64MultiArray, '/t/pressures', RELIABLE)
+        _connected(client, [pub], out)
+        for j in range(ep.n_samples):
+            pub.publish(Float64MultiArray(data=ep.U[:, j].tolist()))
+            client.spin_for(0.002)
+        assert client.spin_until(lambda: len(out.stamped) >= ep.n_samples, timeout=20.0)
+        # un-stamped arrays are stamped on arrival: replay the same inputs at those times
+        times = out.times[:ep.n_samples]
+        assert times == sorted(times)
+        pred = Predictor(m, PredictorConfig(stepping='input'))
+        for j, t in enumerate(times):
+            pred.set_input(ep.U[:, j], t)
+            np.testing.assert_allclose(out.stamped[key(t)], pred.output(), rtol=0,
+                                       atol=1e-12)
+    finally:
+        node.kill()
+
+
+def test_hostile_messages_reset_and_diagnostics(client, tmp_path) -> None:
+    m = model()
+    node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz'), hardware_id='eel_1'))
+    try:
+        out = Outputs(client, node.fqn)
+        pubs = _publishers(client)
+        arr = client.node.create_publisher(Float64MultiArray, '/t/pressures', RELIABLE)
+        meas = client.node.create_publisher(PoseArray, '/t/centerline', RELIABLE)
+        _connected(client, pubs + [meas], out)
+        t = T0
+        for j in range(20):
+            for pub in pubs:
+                pub.publish(pressure(1.0, t + j * 1e-3))
+        hostile = [math.nan, math.inf, -math.inf, 1e308, -1e308]
+        for value in hostile:
+            pubs[0].publish(pressure(value, t + 0.0195))
+        pubs[1].publish(pressure(1.0, t - 0.5))             # stamp going backwards
+        arr.publish(Float64MultiArray(data=[1.0] * 7))      # wrong topic for this mode
+        bad_pose = PoseArray(poses=[Pose()] * 3)            # wrong number of points
+        meas.publish(bad_pose)
+        nan_pose = PoseArray(poses=[Pose()] * 5)
+        nan_pose.poses[0].position.x = math.nan
+        meas.publish(nan_pose)
+        for j in range(20, 40):                              # and it keeps working
+            for pub in pubs:
+                pub.publish(pressure(0.5, t + j * 1e-3))
+        last = key(t + 39e-3)
+        assert client.spin_until(lambda: last in out.stamped, timeout=20.0)
+        assert np.all(np.isfinite(out.stamped[last]))
+        assert np.max(np.abs(out.stamped[last] - m.y_ref)) < 10.0
+        assert node.proc.poll() is None
+        # per-input diagnostics: stable names, rate and stamp age, the hardware id
+        assert client.spin_until(lambda: 'dropped' in str(out.status('prediction')),
+                                 timeout=10.0), out.status('prediction')
+        pred = out.status(': prediction')
+        assert pred['hardware_id'] == 'eel_1'
+        assert int(pred['nonfinite']) >= 3
+        for topic in TOPICS:
+            st = out.status(f': input {topic}')
+            assert st['hardware_id'] == 'eel_1', st
+            assert int(st['messages']) >= 40
+            assert 'rate_hz' in st and 'stamp_age_s' in st
+        assert out.status(': measured /t/centerline')['messages'] == '2'
+        pubs[2].publish(pressure(1.0, 0.0))     # a zero stamp: taken at node time
+        assert client.spin_until(lambda: len(out.stamped) > 40, timeout=10.0)
+        # ~/reset
+        res = client.call(Trigger, f'{node.fqn}/reset', Trigger.Request())
+        assert res.success, res.message
+        assert node.proc.poll() is None
+        assert node.stop(signal.SIGINT) == 0
+        assert not no_noise(node.log()), node.log()
+    finally:
+        node.kill()
+
+
+def test_reload_missing_corrupt_valid_and_runtime_parameters(client, tmp_path) -> None:
+    m = model()
+    path = m.save(tmp_path / 'm.npz')
+    corrupt = tmp_path / 'corrupt.npz'
+    corrupt.write_bytes(path.read_bytes()[:200])
+    other = model(seed=5).save(tmp_path / 'other.npz')
+    node = NodeProcess(tmp_path, params(path))
+    try:
+        out = Outputs(client, node.fqn)
+        pubs = _publishers(client)
+        _connected(client, pubs, out)
+        sha = out.infos[-1]['sha256']
+        for bad in (tmp_path / 'missing.npz', corrupt):
+            res = client.set_parameters(node.fqn, model_path=str(bad))[0]
+            assert not res.successful and 'unchanged' in res.reason, res.reason
+            assert bad.name in res.reason
+        res = client.set_parameters(node.fqn, model_path=str(other))[0]
+        assert res.successful, res.reason
+        assert client.spin_until(lambda: out.infos[-1]['sha256'] != sha, timeout=10.0)
+        # an integer for a double, at run time; read-only and out-of-range refused (WARN)
+        assert client.set_parameters(node.fqn, input_timeout_s=2)[0].successful
+        ro = client.set_parameters(node.fqn, input_mode='array')[0]
+        assert not ro.successful
+        rng = client.set_parameters(node.fqn, warn_threshold=500.0)[0]
+        assert not rng.successful
+        bad_order = client.set_parameters(node.fqn, warn_threshold=0.9)[0]   # > error 0.3
+        assert not bad_order.successful and 'unchanged' in bad_order.reason
+        # still running the reloaded model
+        for pub in pubs:
+            pub.publish(pressure(1.0, T0))
+        assert client.spin_until(lambda: key(T0) in out.stamped, timeout=10.0)
+        assert node.stop(signal.SIGTERM) == 0
+        log = node.log()
+        warns = [line for line in log.splitlines() if '[WARN]' in line and 'refused' in line]
+        assert len(warns) >= 5, log          # missing, corrupt, read-only, range, order
+        assert any('input_mode is read-only' in w for w in warns)
+        assert any('warn_threshold' in w and 'outside' in w for w in warns)
+        assert not no_noise(log), log
+    finally:
+        node.kill()
+
+
+@pytest.mark.parametrize('case', ['missing', 'corrupt', 'empty', 'bad_mode', 'topics'])
+def test_startup_failure_exits_1_with_one_line(tmp_path, case) -> None:
+    path = model().save(tmp_path / 'm.npz')
+    corrupt = tmp_path / 'c.npz'
+    corrupt.write_bytes(b'PK\x03\x04 not a zip')
+    values = {'missing': params(tmp_path / 'nope.npz'), 'corrupt': params(corrupt),
+              'empty': params(''), 'bad_mode': params(path, input_mode='both'),
+              'topics': params(path, input_topics=TOPICS[:2])}[case]
+    node = NodeProcess(tmp_path, values)
+    try:
+        assert node.wait(30) == 1
+        log = node.log()
+        errors = [line for line in log.splitlines() if '[ERROR]' in line]
+        assert len(errors) == 1 and 'exiting with status 1' in errors[0], log
+        assert 'Traceback' not in log
+    finally:
+        node.kill()
+
+
+def test_wait_for_model_then_load_and_integer_overrides(client, tmp_path) -> None:
+    path = model().save(tmp_path / 'm.npz')
+    # an integer written for a double parameter is accepted at start-up
+    node = NodeProcess(tmp_path, params(tmp_path / 'later.npz', wait_for_model=True,
+                                        rate_hz=1000, marker_rate_hz=10))
+    try:
+        out = Outputs(client, node.fqn)
+        assert client.spin_until(lambda: 'no model' in out.status(': prediction').get(
+            'message', ''), timeout=20.0)
+        assert out.status(': prediction')['level'] == 2
+        assert client.set_parameters(node.fqn, model_path=str(path))[0].successful
+        assert client.spin_until(lambda: bool(out.infos), timeout=10.0)
+        assert node.stop(signal.SIGINT) == 0
+    finally:
+        node.kill()
+
+
+def _flood(pubs, stop: threading.Event) -> None:
+    t = T0
+    while not stop.is_set():
+        t += 1e-3
+        for pub in pubs:
+            pub.publish(pressure(0.1, t))
+        time.sleep(0.0005)
+
+
+@pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize('stepping', ['input', 'fixed'])
+def test_signal_under_load_exits_0_quietly(client, tmp_path, sig, stepping) -> None:
+    m = model()
+    node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz'), stepping=stepping,
+                                        marker_rate_hz=0.0))
+    stop = threading.Event()
+    try:
+        out = Outputs(client, node.fqn)
+        pubs = _publishers(client)
+        _connected(client, pubs, out)
+        flood = threading.Thread(target=_flood, args=(pubs, stop), daemon=True)
+        flood.start()
+        assert client.spin_until(lambda: len(out.plain) > 50, timeout=10.0)
+        assert node.stop(sig) == 0
+        stop.set()
+        flood.join(5)
+        log = node.log()
+        assert not no_noise(log), log
+    finally:
+        stop.set()
+        node.kill()
