@@ -27,7 +27,7 @@ import numpy as np
 from soft_rom.data import Episode
 from soft_rom.models import SecondOrderModel
 from soft_rom.predictor import Predictor, PredictorConfig, replay_episode
-from soft_rom.ros.conversions import (
+from soft_rom.predictor.conversions import (
     array_to_data,
     data_to_array,
     outputs_to_points,

@@ -109,7 +109,8 @@ def test_fixed_rate_decimated_and_bad_rates() -> None:
 
 def test_bad_inputs_have_defined_behaviour() -> None:
     model = _second_order()
-    pred = Predictor(model, PredictorConfig(input_timeout_s=0.5))
+    pred = Predictor(model, PredictorConfig(stepping='fixed', input_timeout_s=0.5,
+                                           alarm_hold_s=0.5))
     h = pred.health(0.0)
     assert h.level == Level.STALE and 'no value yet' in h.message
     good = np.array([1.0, 2.0, 3.0])
@@ -178,7 +179,8 @@ def test_diverged_state_resets_and_reports_error() -> None:
 
 def test_monitor_thresholds_and_window() -> None:
     model = _second_order()
-    cfg = PredictorConfig(error_window=10, warn_threshold=0.05, error_threshold=0.2)
+    cfg = PredictorConfig(stepping='fixed', error_window=10, warn_threshold=0.05,
+                          error_threshold=0.2)
     pred = Predictor(model, cfg)
     pred.set_input(np.zeros(3), 0.0)
     y0 = model.y_ref

@@ -13,7 +13,7 @@ from soft_rom.data import Episode
 from soft_rom.errors import BagError
 from soft_rom.models import file_sha256, SecondOrderModel
 from soft_rom.predictor import Predictor, PredictorConfig
-from soft_rom.ros.conversions import data_to_array, outputs_to_points, poses_to_points
+from soft_rom.predictor.conversions import data_to_array, outputs_to_points, poses_to_points
 
 N_POINTS = 5
 NODE = '/soft_rom_predictor'
@@ -193,7 +193,7 @@ def test_cdr_templates_equal_direct_serialization() -> None:
                 direct)
 
 
-@pytest.mark.parametrize('stepping', ['fixed', 'input'])
+@pytest.mark.parametrize('stepping', ['event', 'fixed', 'input'])
 def test_stream_replay_feeds_messages_like_the_node(tmp_path, stepping: str) -> None:
     from soft_rom.bags.replay_io import replay_stream_to_bag
 
@@ -205,19 +205,18 @@ def test_stream_replay_feeds_messages_like_the_node(tmp_path, stepping: str) -> 
     summary = replay_stream_to_bag(Predictor(model, PredictorConfig(stepping=stepping)), bag,
                                    out, input_topics=topics, publish_rate_hz=250.0,
                                    diagnostics_period=0.05)
-    # input stepping has nothing to publish before the first input (like the node)
-    n_pub = 25 if stepping == 'fixed' else 24
-    assert summary['messages'] == {'inputs': 300, 'measured': 100, 'published': n_pub}
+    assert summary['messages'] == {'inputs': 300, 'measured': 100, 'published': 25}
     assert summary['relative_error'] <= 1e-12
     assert summary['counters']['late'] == 0 and summary['counters']['backwards'] == 0
     got = [(t, data_to_array(m.data)) for _, t, m in read_messages(out, [f'{NODE}/output'])]
-    assert len(got) == n_pub
-    # every 4th step, stamped with the model time (input stepping: the last input's)
-    offset = 0 if stepping == 'fixed' else 3
-    for t, y in got:
+    assert len(got) == 25
+    for t, y in got:                    # every 4th step, stamped with its model time
         j = int(round((t - ep.t[0]) / model.dt))
-        assert j % 4 == offset
+        assert j % 4 == 0
         np.testing.assert_allclose(y, ep.Y[:, j], atol=1e-12)
+    # centerline and markers at their own rate (30 Hz default: every 33 steps of 1 ms)
+    count = Counter(tp for tp, _, _ in read_messages(out))
+    assert count[f'{NODE}/centerline'] == 4
 
 
 def test_cli_replay_stream(tmp_path, capsys) -> None:

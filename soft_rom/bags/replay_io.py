@@ -31,6 +31,7 @@ default). Bag time stamps are nanoseconds here and seconds everywhere else.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 import math
 import os
 from pathlib import Path
@@ -44,16 +45,17 @@ from rosbags.typesys import get_typestore, Stores
 
 from soft_rom.data import Episode
 from soft_rom.errors import BagError
-from soft_rom.predictor import Health, Predictor, replay_episode, ReplayResult
-from soft_rom.ros.conversions import (
+from soft_rom.predictor import Predictor, replay_episode, ReplayResult
+from soft_rom.predictor.conversions import (
     check_components,
-    health_key_values,
     model_info_json,
     outputs_to_points,
     points_to_outputs,
     poses_to_points,
-    sec_to_stamp,
+    ns_to_stamp,
+    stamp_to_ns,
 )
+from soft_rom.predictor.loop import Diagnostics, LoopSettings, MARKER_STYLES, Publish, RuntimeLoop
 
 try:  # rosbags >= 0.10
     from rosbags.interfaces import (
@@ -113,8 +115,15 @@ def _latched_qos() -> list[Any]:
                 zero, zero, QosLiveliness.AUTOMATIC, zero, False)]
 
 
-def _header(t: float, frame_id: str) -> Any:
-    sec, nsec = sec_to_stamp(t)
+def _ns(t: float | int) -> int:
+    """A time as int ns: ints are ns already, floats are seconds."""
+    if isinstance(t, (int, np.integer)):
+        return int(t)
+    return int(round(float(t) * 1e9))
+
+
+def _header(t: float | int, frame_id: str) -> Any:
+    sec, nsec = ns_to_stamp(_ns(t))
     return _T['std_msgs/msg/Header'](stamp=_T['builtin_interfaces/msg/Time'](sec, nsec),
                                      frame_id=frame_id)
 
@@ -123,14 +132,14 @@ def _point(x: float, y: float, z: float) -> Any:
     return _T['geometry_msgs/msg/Point'](x=x, y=y, z=z)
 
 
-def _pose_array(t: float, frame_id: str, points: Array) -> Any:
+def _pose_array(t: float | int, frame_id: str, points: Array) -> Any:
     Pose, Quat = _T['geometry_msgs/msg/Pose'], _T['geometry_msgs/msg/Quaternion']
     poses = [Pose(position=_point(x, y, z), orientation=Quat(0.0, 0.0, 0.0, 1.0))
              for x, y, z in points.tolist()]
     return _T['geometry_msgs/msg/PoseArray'](header=_header(t, frame_id), poses=poses)
 
 
-def _marker(t: float, frame_id: str, points: Array, ns: str, marker_id: int,
+def _marker(t: float | int, frame_id: str, points: Array, ns: str, marker_id: int,
             rgba: tuple[float, float, float, float], width: float) -> Any:
     M = _T['visualization_msgs/msg/Marker']
     empty = np.zeros(0, dtype=np.uint8)
@@ -159,17 +168,15 @@ def _float64_array(values: Array, label: str) -> Any:
                                                 data=np.array(values, dtype=np.float64))
 
 
-def _diagnostics(t: float, health: Health, name: str, hardware_id: str,
-                 extra: list[tuple[str, str]] | None = None) -> Any:
+def _diagnostics(t: int, diag: Diagnostics, name: str, hardware_id: str) -> Any:
     KV = _T['diagnostic_msgs/msg/KeyValue']
     status = _T['diagnostic_msgs/msg/DiagnosticStatus'](
-        level=int(health.level), name=name, message=health.message, hardware_id=hardware_id,
-        values=[KV(key=k, value=v) for k, v in health_key_values(health) + (extra or [])])
+        level=int(diag.level), name=name, message=diag.message, hardware_id=hardware_id,
+        values=[KV(key=k, value=v) for k, v in diag.values])
     return _T['diagnostic_msgs/msg/DiagnosticArray'](header=_header(t, ''), status=[status])
 
 
-_MARKERS = {'predicted': ('predicted', 0, (0.1, 0.4, 1.0, 1.0), 0.004),
-            'measured': ('measured', 1, (1.0, 0.3, 0.1, 1.0), 0.003)}
+_MARKERS = MARKER_STYLES
 
 
 def _sentinel(n: int) -> Array:
@@ -205,10 +212,10 @@ class _CdrTemplate:
         self.header = header
         self.stamp = np.frombuffer(self.buf, dtype='<u4', count=2, offset=4) if header else None
 
-    def render(self, t: float, values: Array) -> bytes:
-        """Serialized message with stamp ``t`` and ``values`` (shape (n, cols))."""
+    def render(self, t: float | int, values: Array) -> bytes:
+        """Serialized message with stamp ``t`` (int ns, or float s) and ``values`` (n, cols)."""
         if self.stamp is not None:
-            self.stamp[:] = sec_to_stamp(t)
+            self.stamp[:] = ns_to_stamp(_ns(t))
         self.block[:, :self.cols] = values
         return bytes(self.buf)
 
@@ -254,11 +261,11 @@ class PredictionBagWriter:
             self._conn[key] = self._writer.add_connection(topic, msgtype, typestore=_TS,
                                                           offered_qos_profiles=qos)
 
-    def _write(self, key: str, t: float, msg: Any) -> None:
+    def _write(self, key: str, t: float | int, msg: Any) -> None:
         data = _TS.serialize_cdr(msg, self.topics[key][1])
-        self._writer.write(self._conn[key], int(round(t * 1e9)), data)
+        self._writer.write(self._conn[key], _ns(t), data)
 
-    def write_model_info(self, t: float, info: dict[str, Any]) -> None:
+    def write_model_info(self, t: float | int, info: dict[str, Any]) -> None:
         """The latched JSON description of the model."""
         self._write('model_info', t, _T['std_msgs/msg/String'](data=model_info_json(info)))
 
@@ -282,11 +289,28 @@ class PredictionBagWriter:
             self._templates[key] = tpl
         return tpl
 
-    def _write_raw(self, key: str, t: float, data: bytes) -> None:
-        self._writer.write(self._conn[key], int(round(t * 1e9)), data)
+    def _write_raw(self, key: str, t: float | int, data: bytes) -> None:
+        self._writer.write(self._conn[key], _ns(t), data)
 
-    def write_prediction(self, t: float, y: Array, measured: Array | None = None) -> None:
-        """Centerline, marker(s) and raw output for one published step at ``t`` seconds.
+    def write_output(self, t: float | int, y: Array) -> None:
+        """``~/output`` at model time ``t`` (int ns or float s)."""
+        y = np.asarray(y, dtype=np.float64)
+        self._write_raw('output', t, self._template('output', y.size).render(
+            t, y.reshape(-1, 1)))
+
+    def write_centerline(self, t: float | int, points: Array,
+                         measured: Array | None = None) -> None:
+        """``~/centerline`` and the marker(s) from points ``(N, 3)`` at ``t``."""
+        n = points.shape[0]
+        self._write_raw('centerline', t, self._template('centerline', n).render(t, points))
+        self._write_raw('marker', t, self._template('predicted', n).render(t, points))
+        if measured is not None:
+            self._write_raw('marker', t, self._template('measured', measured.shape[0]).render(
+                t, measured))
+
+    def write_prediction(self, t: float | int, y: Array,
+                         measured: Array | None = None) -> None:
+        """Centerline, marker(s) and raw output for one published step at ``t``.
 
         Messages are rendered from pre-serialized CDR templates (stamp and coordinates
         patched in place), which is several times faster than serializing each message.
@@ -303,15 +327,14 @@ class PredictionBagWriter:
         self._write_raw('output', t, self._template('output', y.size).render(
             t, y.reshape(-1, 1)))
 
-    def write_error(self, t: float, error: float) -> None:
+    def write_error(self, t: float | int, error: float) -> None:
         """Windowed relative error (``std_msgs/Float64``)."""
         self._write('error', t, _T['std_msgs/msg/Float64'](data=float(error)))
 
-    def write_diagnostics(self, t: float, health: Health,
-                          extra: list[tuple[str, str]] | None = None) -> None:
-        """One ``DiagnosticArray`` with the predictor's status (plus ``extra`` key-values)."""
+    def write_diagnostics(self, t: float | int, diag: Diagnostics) -> None:
+        """One ``DiagnosticArray`` with a loop's :class:`Diagnostics` report."""
         self._write('diagnostics', t, _diagnostics(
-            t, health, f'{self.node_name}: prediction', f'/{self.node_name}', extra))
+            _ns(t), diag, f'{self.node_name}: prediction', f'/{self.node_name}'))
 
     def close(self) -> None:
         """Finish the bag (writes its metadata)."""
@@ -324,48 +347,72 @@ class PredictionBagWriter:
         self.close()
 
 
-def replay_to_bag(predictor: Predictor, episode: Episode, out: str | os.PathLike[str], *,
-                  storage: str = 'mcap', publish_every: int = 1,
-                  diagnostics_period: float = 1.0, measured: bool = True,
-                  node_name: str = DEFAULT_NODE_NAME, frame_id: str = 'world',
-                  components: str = 'xz', overwrite: bool = False,
-                  progress: Callable[[int], Any] | None = None) -> ReplayResult:
-    """Run ``predictor`` over ``episode`` and write the node's topics to ``out``.
-
-    Every ``publish_every``-th sample publishes centerline, markers, output and (with
-    measurements) the error; diagnostics every ``diagnostics_period`` seconds of episode
-    time; the model info once at the start. Returns the :class:`ReplayResult`.
-    """
+def _legacy_rates(predictor: Predictor, publish_every: int) -> float:
     if publish_every < 1:
         raise BagError(f'publish_every must be >= 1; got {publish_every}.')
-    check_components(components, predictor.model.n_outputs)
-    Y = episode.Y
+    return 0.0 if publish_every == 1 else 1.0 / (publish_every * predictor.h)
+
+
+def _writer_for(loop: RuntimeLoop, writer: PredictionBagWriter
+                ) -> Callable[[Publish, int], None]:
+    """A ``publish(pub, now_ns)`` that writes what the loop says is due."""
+
+    def publish(pub: Publish, now_ns: int) -> None:
+        for t_ns, y in pub.outputs:
+            writer.write_output(t_ns, y)
+        if pub.centerline is not None:
+            t_ns, pts = pub.centerline
+            writer.write_centerline(t_ns, pts, pub.measured_points)
+            if pub.error is not None:
+                writer.write_error(t_ns, pub.error)
+        if pub.diagnostics_due:
+            writer.write_diagnostics(now_ns, loop.diagnostics(now_ns))
+
+    return publish
+
+
+def replay_to_bag(predictor: Predictor, episode: Episode, out: str | os.PathLike[str], *,
+                  storage: str = 'mcap', publish_every: int | None = None,
+                  settings: LoopSettings | None = None,
+                  diagnostics_period: float = 1.0, measured: bool = True,
+                  node_name: str = DEFAULT_NODE_NAME, frame_id: str = 'world',
+                  components: str = 'xz', overwrite: bool = False, t0_ns: int = 0,
+                  progress: Callable[[int], Any] | None = None) -> ReplayResult:
+    """Run ``predictor`` over ``episode`` through the node's runtime loop; write its topics.
+
+    The loop (:class:`~soft_rom.predictor.loop.RuntimeLoop`) decides what is published:
+    ``~/output`` every step (or at ``settings.output_rate_hz``), centerline and markers at
+    ``settings.centerline_rate_hz``, diagnostics every ``diagnostics_period`` seconds, the
+    model info once. ``publish_every=j`` (legacy) publishes output and centerline every
+    j-th step. Inputs are taken as they are (the episode is in model units). Stamps are
+    ``t0_ns + t`` (``t`` in ns). Returns the :class:`ReplayResult`.
+    """
+    if settings is None:
+        rate = 0.0 if publish_every is None else _legacy_rates(predictor, publish_every)
+        settings = LoopSettings(output_rate_hz=rate,
+                                centerline_rate_hz=30.0 if publish_every is None else rate,
+                                diagnostics_rate_hz=1.0 / diagnostics_period,
+                                components=components)
+    settings = replace(settings, input_scale=1.0, input_offset=0.0)
+    loop = RuntimeLoop(predictor, settings)
     with PredictionBagWriter(out, storage=storage, node_name=node_name, frame_id=frame_id,
-                             components=components, overwrite=overwrite) as writer:
-        t0 = float(episode.t[0]) if episode.t.size else 0.0
+                             components=settings.components, fill=settings.fill_value,
+                             overwrite=overwrite) as writer:
+        t0 = int(t0_ns) + (int(round(float(episode.t[0]) * 1e9)) if episode.t.size else 0)
         writer.write_model_info(t0, predictor.info)
-        next_diag = [t0]
-        last = [math.nan, 0, 0]          # time, inputs, measurements at the last diagnostics
+        write = _writer_for(loop, writer)
+        if progress is None:
+            publish = write
+        else:
+            count = [0]
 
-        def emit(j: int, t: float, yhat: Array, pred: Predictor) -> None:
-            if j % publish_every == 0:
-                writer.write_prediction(t, yhat, Y[:, j] if measured else None)
-                err = pred.windowed_error()
-                if measured and math.isfinite(err):
-                    writer.write_error(t, err)
-            if t >= next_diag[0]:
-                n_in, n_meas = pred.counters['inputs'], pred.counters['measurements']
-                extra = []
-                if t > last[0]:      # same figures as the node
-                    extra = [('input_rate_hz', f'{(n_in - last[1]) / (t - last[0]):.4g}'),
-                             ('measured_rate_hz', f'{(n_meas - last[2]) / (t - last[0]):.4g}')]
-                writer.write_diagnostics(t, pred.health(t), extra)
-                last[:] = [t, n_in, n_meas]
-                next_diag[0] = t + diagnostics_period
-            if progress is not None:
-                progress(j)
+            def publish(pub: Publish, now_ns: int) -> None:
+                write(pub, now_ns)
+                progress(count[0])
+                count[0] += 1
 
-        result = replay_episode(predictor, episode, measured=measured, callback=emit)
+        result = replay_episode(predictor, episode, measured=measured, t0_ns=t0_ns, loop=loop,
+                                publish=publish)
     return result
 
 
@@ -375,12 +422,13 @@ def write_input_bag(path: str | os.PathLike[str], episode: Episode, *, storage: 
                     array_topic: str = '/soft_robot/pressures',
                     centerline_topic: str | None = '/soft_robot/centerline',
                     components: str = 'xz', frame_id: str = 'world',
-                    overwrite: bool = False) -> Path:
+                    overwrite: bool = False, t0_ns: int = 0) -> Path:
     """Write an episode as the inputs of the bag contract (pressures, measured centerline).
 
     Pressures go one ``sensor_msgs/FluidPressure`` per chamber (stamped) or one
     ``std_msgs/Float64MultiArray`` per sample (bag time only); the outputs as a stamped
-    ``geometry_msgs/PoseArray`` (component-major layout ``components``).
+    ``geometry_msgs/PoseArray`` (component-major layout ``components``). Stamps are
+    ``t0_ns + round(t * 1e9)`` (int ns; epoch stamps are exact).
     """
     m = episode.U.shape[0]
     topics = chamber_topics or [f'/soft_robot/pressure/chamber_{i + 1}' for i in range(m)]
@@ -400,10 +448,10 @@ def write_input_bag(path: str | os.PathLike[str], episode: Episode, *, storage: 
             c_conn = writer.add_connection(centerline_topic, 'geometry_msgs/msg/PoseArray',
                                            typestore=_TS)
         for j, t in enumerate(episode.t.tolist()):
-            ns = int(round(t * 1e9))
+            ns = int(t0_ns) + int(round(t * 1e9))
             if per_chamber:
                 for i, conn in enumerate(conns):
-                    msg = FP(header=_header(t, ''), fluid_pressure=float(episode.U[i, j]),
+                    msg = FP(header=_header(ns, ''), fluid_pressure=float(episode.U[i, j]),
                              variance=0.0)
                     writer.write(conn, ns, _TS.serialize_cdr(msg, FP.__msgtype__))
             else:
@@ -411,7 +459,7 @@ def write_input_bag(path: str | os.PathLike[str], episode: Episode, *, storage: 
                 writer.write(arr_conn, ns, _TS.serialize_cdr(msg, msg.__msgtype__))
             if c_conn is not None:
                 pts = outputs_to_points(episode.Y[:, j], components)
-                writer.write(c_conn, ns, _TS.serialize_cdr(_pose_array(t, frame_id, pts),
+                writer.write(c_conn, ns, _TS.serialize_cdr(_pose_array(ns, frame_id, pts),
                                                            'geometry_msgs/msg/PoseArray'))
     finally:
         writer.close()
@@ -421,6 +469,13 @@ def write_input_bag(path: str | os.PathLike[str], episode: Episode, *, storage: 
 def read_messages(path: str | os.PathLike[str],
                   topics: list[str] | None = None) -> Iterator[tuple[str, float, Any]]:
     """Yield ``(topic, bag_time_seconds, message)`` from any rosbag2 bag, in time order."""
+    for topic, ns, msg in read_messages_ns(path, topics):
+        yield topic, ns * 1e-9, msg
+
+
+def read_messages_ns(path: str | os.PathLike[str],
+                     topics: list[str] | None = None) -> Iterator[tuple[str, int, Any]]:
+    """Yield ``(topic, bag_time_ns, message)`` from any rosbag2 bag, in time order."""
     try:
         reader = Reader(Path(path))
         reader.open()
@@ -429,7 +484,7 @@ def read_messages(path: str | os.PathLike[str],
     try:
         conns = [c for c in reader.connections if topics is None or c.topic in topics]
         for conn, ns, raw in reader.messages(connections=conns):
-            yield conn.topic, ns * 1e-9, _TS.deserialize_cdr(raw, conn.msgtype)
+            yield conn.topic, int(ns), _TS.deserialize_cdr(raw, conn.msgtype)
     finally:
         reader.close()
 
@@ -441,22 +496,24 @@ def replay_stream_to_bag(predictor: Predictor, bag: str | os.PathLike[str],
                          input_offset: float = 0.0,
                          measured_topic: str = '/soft_robot/centerline',
                          components: str = 'xz', publish_rate_hz: float = 0.0,
+                         centerline_rate_hz: float = 30.0, fill_value: float = 0.0,
                          diagnostics_period: float = 1.0, storage: str = 'mcap',
                          node_name: str = DEFAULT_NODE_NAME, frame_id: str = 'world',
                          overwrite: bool = False) -> dict[str, Any]:
-    """Replay a bag message by message, exactly as the node would see it played back.
+    """Replay a bag message by message through the node's runtime loop.
 
     Unlike :func:`replay_to_bag` (which runs over an :class:`Episode`, inputs already
-    aligned on the output stamps), this feeds every input and measured message to the
-    predictor in bag order with its own stamp, and emulates the node's publish timer on the
-    bag clock (``use_sim_time`` playback): ticks every ``round(1 / (rate h)) h`` seconds
-    advance the model (``'fixed'`` stepping) and publish. Parameters mirror the node's.
+    aligned on the output stamps), this feeds every input and measured message in bag order
+    with its own header stamp (bag time for un-stamped arrays and zero stamps) and the bag
+    time as the reception clock, as the node sees ``ros2 bag play --clock`` with
+    ``use_sim_time``; the loop's timer (``'fixed'`` stepping: the publish period, else the
+    diagnostics period) is emulated on the bag clock. Parameters mirror the node's.
 
     Returns
     -------
     dict
         ``relative_error`` / ``relative_deviation_error`` of the predictions at the
-        measurement stamps (before any correction), message counts and predictor counters.
+        measurement steps (before any correction), message counts and predictor counters.
     """
     model = predictor.model
     check_components(components, model.n_outputs)
@@ -474,70 +531,46 @@ def replay_stream_to_bag(predictor: Predictor, bag: str | os.PathLike[str],
         raise BagError(f"input_mode must be 'per_chamber' or 'array'; got {input_mode!r}.")
     if measured_topic:
         wanted.append(measured_topic)
-    h = predictor.h
-    period = h if publish_rate_hz <= 0 else max(1, round(1.0 / (publish_rate_hz * h))) * h
-    fixed = predictor.config.stepping == 'fixed'
-    sums = np.zeros(3)
+    loop = RuntimeLoop(predictor, LoopSettings(
+        output_rate_hz=publish_rate_hz, centerline_rate_hz=centerline_rate_hz,
+        diagnostics_rate_hz=1.0 / diagnostics_period, components=components,
+        fill_value=fill_value, input_scale=input_scale, input_offset=input_offset))
     counts = {'inputs': 0, 'measured': 0, 'published': 0}
+    totals_before = list(predictor.totals)
     with PredictionBagWriter(out, storage=storage, node_name=node_name, frame_id=frame_id,
-                             components=components, overwrite=overwrite) as writer:
-        state: dict[str, Any] = {'tick': None, 'diag': None, 'measured': None}
-
-        def tick(now: float) -> None:
-            if fixed:
-                predictor.advance_to(now)
-            if predictor.t is None:
-                return
-            y = predictor.output()
-            writer.write_prediction(predictor.t, y, state['measured'])
-            err = predictor.windowed_error()
-            if math.isfinite(err):
-                writer.write_error(predictor.t, err)
-            counts['published'] += 1
-
-        def catch_up(now: float) -> None:
-            if state['tick'] is None:
-                state['tick'], state['diag'] = now, now
-                writer.write_model_info(now, predictor.info)
-            while state['tick'] <= now:
-                tick(state['tick'])
-                state['tick'] += period
-            while state['diag'] <= now:
-                writer.write_diagnostics(state['diag'], predictor.health(state['diag']))
-                state['diag'] += diagnostics_period
-
-        def stamp_of(msg: Any, log_time: float) -> float:
-            st = msg.header.stamp
-            return log_time if st.sec == 0 and st.nanosec == 0 else st.sec + st.nanosec * 1e-9
-
-        for topic, log_time, msg in read_messages(bag, wanted):
-            catch_up(log_time)
+                             components=components, fill=fill_value,
+                             overwrite=overwrite) as writer:
+        write = _writer_for(loop, writer)
+        next_tick: int | None = None
+        period = loop.timer_period_ns()
+        for topic, log_ns, msg in read_messages_ns(bag, wanted):
+            if next_tick is None:
+                next_tick = log_ns
+                writer.write_model_info(log_ns, predictor.info)
+            while next_tick <= log_ns:
+                write(loop.tick(next_tick), next_tick)
+                next_tick += period
             if topic == measured_topic:
-                y = points_to_outputs(poses_to_points(msg.poses), components)
-                t = stamp_of(msg, log_time)
-                predictor.advance_to(t)
-                yhat = predictor.output()
-                if predictor.measure(y, t) is not None:
-                    e = y - yhat
-                    d = y - model.y_ref
-                    sums += (e @ e, y @ y, d @ d)
-                    state['measured'] = y
-                    counts['measured'] += 1
+                pub = loop.on_measured(poses_to_points(msg.poses), stamp_to_ns(msg.header.stamp),
+                                       log_ns)
+                counts['measured'] += 1
             elif topic in index:
-                value = input_scale * float(msg.fluid_pressure) + input_offset
-                predictor.set_channel(index[topic], value, stamp_of(msg, log_time))
+                pub = loop.on_channel(index[topic], float(msg.fluid_pressure),
+                                      stamp_to_ns(msg.header.stamp), log_ns)
                 counts['inputs'] += 1
             else:
-                u = input_scale * np.asarray(msg.data, dtype=np.float64) + input_offset
-                predictor.set_input(u, log_time)
+                pub = loop.on_array(msg.data, 0, log_ns)
                 counts['inputs'] += 1
+            write(pub, log_ns)
+    counts['published'] = loop.counts['outputs']
+    e2, y2, d2 = (a - b for a, b in zip(predictor.totals, totals_before))
+    n_meas = predictor.counters['measurements']
     tiny = np.finfo(float).tiny
     return {
-        'relative_error': math.sqrt(sums[0] / max(sums[1], tiny)) if counts['measured']
-        else math.nan,
-        'relative_deviation_error': math.sqrt(sums[0] / max(sums[2], tiny))
-        if counts['measured'] else math.nan,
+        'relative_error': math.sqrt(e2 / max(y2, tiny)) if n_meas else math.nan,
+        'relative_deviation_error': math.sqrt(e2 / max(d2, tiny)) if n_meas else math.nan,
         'messages': counts,
         'counters': dict(predictor.counters),
+        'loop': dict(loop.counts),
         'model': predictor.info,
     }

@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
 
     from soft_rom.bags.replay_io import replay_to_bag
     from soft_rom.predictor import kalman_vs_open_loop, Predictor
-    from soft_rom.ros.params import load_params_file, predictor_config
+    from soft_rom.predictor.params import load_params_file, predictor_config
 
     values: dict[str, Any] = load_params_file(args.config) if args.config else {}
     overrides = {'kalman': args.kalman, 'process_noise': args.process_noise,
@@ -145,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
 def _run_stream(args: argparse.Namespace, values: dict[str, Any], predictor: Any) -> int:
     """``replay --stream``: message by message, with the node's parameters."""
     from soft_rom.bags.replay_io import replay_stream_to_bag
-    from soft_rom.ros.params import PARAMS
+    from soft_rom.predictor.params import PARAMS
 
     v = {p.name: p.default for p in PARAMS}
     v.update(values)

@@ -3,15 +3,20 @@
 Status names are stable (``<node name>: <task>``, the convention of diagnostic_updater):
 
 * ``<node>: prediction`` - the core's health (OK / WARN / ERROR / STALE with the reason)
-  and its figures (windowed errors, counters, model time);
+  and its figures (windowed errors, counters, model time, ``callback_errors``);
 * ``<node>: input <topic>`` - one per chamber topic (or the array topic): ``rate_hz``
   (messages per second since the previous report), ``stamp_age_s`` (now minus the newest
-  header stamp), ``messages``; STALE when nothing arrived within ``input_timeout_s``;
-* ``<node>: measured <topic>`` - the same for the measured centerline; STALE (not an error:
-  it is optional) when none arrives.
+  stamp), ``received``, ``late``, ``dropped``, ``clipped``, ``timed_out``; STALE when nothing
+  arrived yet or the input timed out (``input_timeout_s``), WARN when some were dropped or
+  clipped since the previous report;
+* ``<node>: measured <topic>`` - ``rate_hz``, ``stamp_age_s``, ``received`` of the measured
+  centerline; STALE (it is optional: not an error) when none arrives within
+  ``input_timeout_s``.
 
 Every status carries the same ``hardware_id`` (parameter ``hardware_id``, default the
 node's fully qualified name), as diagnostic_updater's FrequencyStatus / TimeStampStatus do.
+The figures come from the ROS-free :meth:`soft_rom.predictor.loop.RuntimeLoop.diagnostics`;
+this module only arranges them into statuses.
 """
 
 from __future__ import annotations
@@ -21,36 +26,36 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-from soft_rom.ros.conversions import health_key_values
-
 __all__ = ['Diagnostics', 'TopicMonitor']
+
+_NO_STAMP = -(2 ** 63)
 
 
 class TopicMonitor:
-    """Counts the messages of one topic and keeps the newest header stamp (seconds)."""
+    """Counts the messages of one topic and keeps the newest stamp (int ns)."""
 
-    __slots__ = ('topic', 'kind', 'count', 'last_stamp', '_t0', '_n0')
+    __slots__ = ('topic', 'kind', 'count', 'last_stamp_ns', '_t0', '_n0')
 
     def __init__(self, topic: str, kind: str) -> None:
         self.topic = topic
         self.kind = kind
         self.count = 0
-        self.last_stamp = math.nan
-        self._t0 = math.nan
+        self.last_stamp_ns = _NO_STAMP
+        self._t0 = _NO_STAMP
         self._n0 = 0
 
-    def seen(self, stamp: float) -> None:
-        """One message stamped ``stamp`` arrived (the hot path: two assignments)."""
+    def seen(self, stamp_ns: int) -> None:
+        """One message stamped ``stamp_ns`` arrived (the hot path: two assignments)."""
         self.count += 1
-        self.last_stamp = stamp
+        self.last_stamp_ns = stamp_ns
 
-    def rate(self, now: float) -> float:
+    def rate(self, now_ns: int) -> float:
         """Messages per second since the previous call (NaN on the first)."""
         t0, n0 = self._t0, self._n0
-        self._t0, self._n0 = now, self.count
-        if not (math.isfinite(t0) and now > t0):
+        self._t0, self._n0 = now_ns, self.count
+        if t0 == _NO_STAMP or now_ns <= t0:
             return math.nan
-        return (self.count - n0) / (now - t0)
+        return (self.count - n0) / ((now_ns - t0) * 1e-9)
 
 
 def _level(level: int) -> bytes:
@@ -58,54 +63,100 @@ def _level(level: int) -> bytes:
 
 
 class Diagnostics:
-    """Builds the node's ``DiagnosticArray`` (one status for the core, one per topic)."""
+    """Builds the node's ``DiagnosticArray`` (one status for the core, one per topic).
 
-    msg_type = DiagnosticArray
+    Parameters
+    ----------
+    node_name : str
+    hardware_id : str
+    input_topics : list of str
+        The topics of the model's inputs, in input order (one array topic: one entry).
+    """
 
-    def __init__(self, node_name: str, hardware_id: str) -> None:
+    def __init__(self, node_name: str, hardware_id: str, input_topics: list[str]) -> None:
         self.node_name = node_name
         self.hardware_id = hardware_id
+        self.input_topics = input_topics
+        self._dropped: dict[str, int] = {}
 
-    def topic_status(self, monitor: TopicMonitor, now: float, timeout: float
-                     ) -> DiagnosticStatus:
-        """The status of one input or measured topic."""
-        rate = monitor.rate(now)
-        age = now - monitor.last_stamp
-        status = DiagnosticStatus(name=f'{self.node_name}: {monitor.kind} {monitor.topic}',
-                                  hardware_id=self.hardware_id)
-        if monitor.count == 0:
-            status.level = DiagnosticStatus.STALE
-            status.message = 'no messages yet'
+    def _status(self, task: str) -> DiagnosticStatus:
+        return DiagnosticStatus(name=f'{self.node_name}: {task}', hardware_id=self.hardware_id)
+
+    def _input_statuses(self, values: dict[str, str], names: list[str]
+                        ) -> list[DiagnosticStatus]:
+        out = []
+        per_topic = len(names) == len(self.input_topics)
+        for i, topic in enumerate(self.input_topics):
+            mine = names if not per_topic else [names[i]]
+            st = self._status(f'input {topic}')
+            fig = {k: values.get(f'input.{n}.{k}', 'nan') for n in mine[:1]
+                   for k in ('rate_hz', 'age_s', 'received', 'late', 'dropped', 'clipped',
+                             'timed_out')}
+            received = int(fig['received']) if fig['received'].isdigit() else 0
+            bad = sum(int(values.get(f'input.{n}.{k}', '0') or 0) for n in mine
+                      for k in ('dropped', 'clipped'))
+            new_bad = bad - self._dropped.get(topic, 0)
+            self._dropped[topic] = bad
+            if received == 0:
+                st.level, st.message = DiagnosticStatus.STALE, 'no messages yet'
+            elif fig['timed_out'] == 'true':
+                st.level = DiagnosticStatus.STALE
+                st.message = f'timed out: newest stamp {fig["age_s"]} s old'
+            elif new_bad > 0:
+                st.level = DiagnosticStatus.WARN
+                st.message = f'{new_bad} dropped or clipped since the last report'
+            else:
+                st.level, st.message = DiagnosticStatus.OK, f'{fig["rate_hz"]} Hz'
+            st.values = [KeyValue(key='rate_hz', value=fig['rate_hz']),
+                         KeyValue(key='stamp_age_s', value=fig['age_s'])] + [
+                KeyValue(key=k, value=fig[k])
+                for k in ('received', 'late', 'dropped', 'clipped', 'timed_out')]
+            out.append(st)
+        return out
+
+    def _measured_status(self, monitor: TopicMonitor, now_ns: int, timeout: float
+                         ) -> DiagnosticStatus:
+        rate = monitor.rate(now_ns)
+        never = monitor.last_stamp_ns == _NO_STAMP
+        age = math.inf if never else (now_ns - monitor.last_stamp_ns) * 1e-9
+        st = self._status(f'{monitor.kind} {monitor.topic}')
+        if never:
+            st.level, st.message = DiagnosticStatus.STALE, 'no messages yet (optional)'
         elif not age <= timeout:
-            status.level = DiagnosticStatus.STALE
-            status.message = f'newest stamp {age:.3g} s old (timeout {timeout:g} s)'
+            st.level = DiagnosticStatus.STALE
+            st.message = f'newest stamp {age:.3g} s old (timeout {timeout:g} s)'
         else:
-            status.level = DiagnosticStatus.OK
-            status.message = f'{rate:.4g} Hz' if math.isfinite(rate) else 'receiving'
-        status.values = [KeyValue(key='rate_hz', value=f'{rate:.6g}'),
-                         KeyValue(key='stamp_age_s', value=f'{age:.6g}'),
-                         KeyValue(key='messages', value=str(monitor.count))]
-        return status
+            st.level = DiagnosticStatus.OK
+            st.message = f'{rate:.4g} Hz' if math.isfinite(rate) else 'receiving'
+        st.values = [KeyValue(key='rate_hz', value=f'{rate:.6g}'),
+                     KeyValue(key='stamp_age_s', value=f'{age:.6g}'),
+                     KeyValue(key='received', value=str(monitor.count))]
+        return st
 
-    def message(self, now: float, stamp: Any, predictor: Any, startup_error: str | None,
-                monitors: list[TopicMonitor], measured: TopicMonitor | None, timeout: float,
-                callback_errors: int) -> DiagnosticArray:
-        """The whole array at node time ``now`` (seconds), header stamped ``stamp``."""
+    def message(self, now_ns: int, stamp: Any, report: Any, startup_error: str | None,
+                measured: TopicMonitor | None, timeout: float) -> DiagnosticArray:
+        """The whole array at node time ``now_ns``, header stamped ``stamp``.
+
+        ``report`` is the loop's :class:`~soft_rom.predictor.loop.Diagnostics` (``None``
+        without a model).
+        """
         msg = DiagnosticArray()
         msg.header.stamp = stamp
-        status = DiagnosticStatus(name=f'{self.node_name}: prediction',
-                                  hardware_id=self.hardware_id)
-        if predictor is None:
+        status = self._status('prediction')
+        if report is None:
             status.level = DiagnosticStatus.ERROR
             status.message = f'no model: {startup_error}'
+            msg.status = [status]
         else:
-            health = predictor.health(now)
-            status.level = _level(health.level)
-            status.message = health.message
-            values = health_key_values(health)
-            values.append(('callback_errors', str(callback_errors)))
-            status.values = [KeyValue(key=k, value=v) for k, v in values]
-        msg.status = [status] + [self.topic_status(m, now, timeout) for m in monitors]
+            status.level = _level(report.level)
+            status.message = report.message
+            values = dict(report.values)
+            status.values = [KeyValue(key=k, value=v) for k, v in report.values
+                             if not k.startswith('input.')]
+            names = list(report.health.values.get('input_names', ())) or [
+                k[len('input.'):-len('.received')] for k in values
+                if k.startswith('input.') and k.endswith('.received')]
+            msg.status = [status] + self._input_statuses(values, names)
         if measured is not None:
-            msg.status.append(self.topic_status(measured, now, timeout))
+            msg.status.append(self._measured_status(measured, now_ns, timeout))
         return msg

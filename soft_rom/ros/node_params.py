@@ -1,7 +1,7 @@
 """Declaring the predictor node's parameters, and refusing or applying run-time changes.
 
 The core's parameters (names, defaults, ranges, which change at run time) are stated once
-in :mod:`soft_rom.ros.params`; three more exist only on the node (``NODE_PARAMS``).
+in :mod:`soft_rom.predictor.params`; two more exist only on the node (``NODE_PARAMS``).
 
 * A double parameter accepts an integer (``-p rate_hz:=100``, ``ros2 param set ... 100``):
   it is converted before rclpy checks the type.
@@ -23,15 +23,15 @@ from rcl_interfaces.msg import (
 from rclpy.parameter import Parameter
 
 from soft_rom.predictor import PredictorConfig
-from soft_rom.ros.params import Param, PARAMS, predictor_config
+from soft_rom.predictor.loop import LoopSettings
+from soft_rom.predictor.params import loop_settings as _loop_settings
+from soft_rom.predictor.params import Param, PARAMS, predictor_config
 
 __all__ = ['NODE_PARAMS', 'NodeSettings', 'ParameterMixin']
 
 NODE_PARAMS: tuple[Param, ...] = (
     Param('lifecycle', False, 'true: a managed (lifecycle) node, started by configure and '
           'activate transitions; false: a plain node that starts at once.'),
-    Param('marker_rate_hz', 30.0, 'Rate of ~/centerline, ~/centerline_marker and ~/error '
-          '(model time); 0 = every published step.', range=(0.0, 100000.0)),
     Param('hardware_id', '', 'hardware_id of the /diagnostics statuses; empty = the node '
           'name.'),
 )
@@ -52,8 +52,6 @@ class NodeSettings:
     input_offset: float
     input_qos: str
     qos_depth: int
-    publish_rate_hz: float
-    marker_rate_hz: float
     diagnostics_rate_hz: float
     frame_id: str
     output_components: str
@@ -111,8 +109,7 @@ class ParameterMixin:
             input_mode=str(v['input_mode']), input_topics=tuple(v['input_topics']),
             array_topic=str(v['array_topic']), input_scale=float(v['input_scale']),
             input_offset=float(v['input_offset']), input_qos=str(v['input_qos']),
-            qos_depth=int(v['qos_depth']), publish_rate_hz=float(v['publish_rate_hz']),
-            marker_rate_hz=float(v['marker_rate_hz']),
+            qos_depth=int(v['qos_depth']),
             diagnostics_rate_hz=float(v['diagnostics_rate_hz']), frame_id=str(v['frame_id']),
             output_components=str(v['output_components']), fill_value=float(v['fill_value']),
             measured_topic=str(v['measured_topic']), wait_for_model=bool(v['wait_for_model']),
@@ -133,6 +130,10 @@ class ParameterMixin:
     def predictor_config(self, values: dict[str, Any] | None = None) -> PredictorConfig:
         """The core's settings from the parameters (or from ``values``)."""
         return predictor_config(self.parameter_values() if values is None else values)
+
+    def loop_settings(self) -> LoopSettings:
+        """The runtime loop's settings (publish rates, layout, input scaling)."""
+        return _loop_settings(self.parameter_values())
 
     def check_settings(self) -> None:
         """Refuse read-only settings outside their choices (a start-up error)."""

@@ -1,23 +1,25 @@
 """``ros2 run soft_rom predictor``: the ROM predictor node (Jazzy rclpy), a thin shell.
 
-All behaviour lives in the ROS-free core (:class:`soft_rom.predictor.Predictor`); this node
-declares the parameters, converts messages, calls the core and publishes:
+All behaviour lives in the ROS-free core: a :class:`soft_rom.predictor.loop.RuntimeLoop`
+around a :class:`soft_rom.predictor.Predictor` decides what is due (the same loop runs in
+``soft-rom replay``); this node declares the parameters, converts messages, feeds the loop
+and publishes what it returns:
 
-* ``~/output`` (``std_msgs/Float64MultiArray``) at every published step, and with it
-  ``~/output_stamped`` (``sensor_msgs/JointState``: ``header.stamp`` = the model time of the
-  prediction, ``name`` = the model's output names, ``position`` = the outputs), so that
-  each prediction is paired with its model time;
+* ``~/output`` (``std_msgs/Float64MultiArray``) at every step (``publish_rate_hz`` 0) or
+  decimated, and with each one ``~/output_stamped`` (``sensor_msgs/JointState``:
+  ``header.stamp`` = the model time of that prediction, ``name`` = the model's output names,
+  ``position`` = the outputs), so that each prediction is paired with its model time;
 * ``~/centerline`` (``geometry_msgs/PoseArray``) and ``~/centerline_marker``
   (``visualization_msgs/Marker`` LINE_STRIP, ns ``predicted``; ns ``measured`` when a
-  measured centerline is known) at their own rate ``marker_rate_hz`` (default 30 Hz);
+  measured centerline is known) at their own rate ``centerline_rate_hz`` (default 30 Hz);
 * ``~/error`` (``std_msgs/Float64``, windowed relative error), ``/diagnostics``
   (``diagnostic_msgs/DiagnosticArray``, see :mod:`soft_rom.ros.diagnostics`) and, latched
   (transient local), ``~/model_info`` (``std_msgs/String``, JSON);
 * service ``~/reset`` (``std_srvs/Trigger``).
 
-Stepping: with ``stepping: input`` the inputs drive the model (no Python timer at the
-integration rate; outputs are published from the input callbacks); with ``stepping: fixed``
-one timer at the publish period integrates every whole step due.
+Stepping: with ``stepping: event`` (default) the inputs drive the model: outputs are
+published from the input callbacks, and the only timer runs at the diagnostics rate; with
+``stepping: fixed`` one timer at the publish period integrates every whole step due.
 
 ``lifecycle: true`` makes it a managed node (configure loads and validates the model,
 activate creates the subscriptions, publishers, timers and the reset service, deactivate
@@ -31,13 +33,13 @@ checks at least every 0.1 s, so no callback runs after the context shuts down (n
 
 from __future__ import annotations
 
-import math
 import signal
 import sys
 import threading
 from typing import Any
 
 from builtin_interfaces.msg import Time as TimeMsg
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Point, Pose, PoseArray
 import numpy as np
 import rclpy
@@ -52,18 +54,16 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
 
 from soft_rom.predictor import Predictor
-from soft_rom.ros.conversions import (
+from soft_rom.predictor.conversions import (
     array_to_data,
-    check_components,
     data_to_array,
     model_info_json,
-    outputs_to_points,
-    points_to_outputs,
+    ns_to_stamp,
     poses_to_points,
-    sec_to_stamp,
     set_points,
-    stamp_to_sec,
+    stamp_to_ns,
 )
+from soft_rom.predictor.loop import MARKER_STYLES, Publish, RuntimeLoop
 from soft_rom.ros.diagnostics import Diagnostics, TopicMonitor
 from soft_rom.ros.node_params import NodeSettings, ParameterMixin
 
@@ -83,7 +83,7 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
 
     Attributes
     ----------
-    predictor : Predictor or None
+    loop : RuntimeLoop or None
         The core (``None`` while no valid model is loaded).
     startup_error : str or None
         Why the model could not be loaded (plain mode: at start-up; lifecycle: at configure).
@@ -95,26 +95,21 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
         Node.__init__(self, node_name, **kwargs)
         self.settings: NodeSettings = self.declare_predictor_parameters()
         self.managed = self.settings.lifecycle
-        self.predictor: Predictor | None = None
+        self.loop: RuntimeLoop | None = None
         self.startup_error: str | None = None
         self.callback_errors = 0
         self._entities: list[Any] = []
         self._timer: Any = None
         self._active = False
-        self._measured_pts: np.ndarray | None = None
-        self._last_output_t: float | None = None
-        self._next_marker_t = -math.inf
-        latched = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
-                             reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self._latched = latched
+        self._latched = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
+                                   reliability=ReliabilityPolicy.RELIABLE,
+                                   durability=DurabilityPolicy.TRANSIENT_LOCAL)
         s = self.settings
-        inputs = s.input_topics if s.input_mode == 'per_chamber' else (s.array_topic,)
-        self.monitors = [TopicMonitor(topic, 'input') for topic in inputs]
         self.measured_monitor = (TopicMonitor(s.measured_topic, 'measured')
                                  if s.measured_topic else None)
+        inputs = s.input_topics if s.input_mode == 'per_chamber' else (s.array_topic,)
         self.diagnostics = Diagnostics(self.get_name(), s.hardware_id
-                                       or self.get_fully_qualified_name())
+                                       or self.get_fully_qualified_name(), list(inputs))
         if self.managed:
             LifecycleNodeMixin.__init__(self)
             self.get_logger().info('lifecycle node: unconfigured (ros2 lifecycle set '
@@ -124,6 +119,11 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
             self._activate()
         elif s.wait_for_model:
             self._activate()        # idle, diagnostics ERROR, until a valid model_path is set
+
+    @property
+    def predictor(self) -> Predictor | None:
+        """The running core's predictor (``None`` without a model)."""
+        return None if self.loop is None else self.loop.predictor
 
     # -- lifecycle transitions (managed mode) -----------------------------------------------
     def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -144,7 +144,7 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
     def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
         """Unload the model."""
         self._deactivate()
-        self.predictor = None
+        self.loop = None
         return TransitionCallbackReturn.SUCCESS
 
     def on_shutdown(self, state: LifecycleState) -> TransitionCallbackReturn:
@@ -164,6 +164,7 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
                 raise FileNotFoundError('model_path is empty')
             predictor = Predictor(path, self.predictor_config())
             self._check_model(predictor.model)
+            loop = RuntimeLoop(predictor, self.loop_settings())
         except Exception as err:  # noqa: BLE001 - reported once, clearly
             self.startup_error = f'cannot load model_path {path!r}: {err}'
             if self.managed:
@@ -175,19 +176,33 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
                 then = 'exiting with status 1 (wait_for_model:=true to wait instead)'
             self.get_logger().error(f'{self.startup_error}; {then}.')
             return False
-        self.startup_error = None
-        self.predictor = predictor
-        self._prepare_messages()
-        self._log_running()
+        self._use(loop)
         return True
 
     def _check_model(self, model: Any) -> None:
-        check_components(self.settings.output_components, model.n_outputs)
         if self.settings.input_mode == 'per_chamber' and len(
                 self.settings.input_topics) != model.n_inputs:
             raise ValueError(f'the model has {model.n_inputs} inputs '
                              f'({", ".join(model.input_names)}) but input_topics lists '
                              f'{len(self.settings.input_topics)} topics')
+
+    def _use(self, loop: RuntimeLoop) -> None:
+        """Make ``loop`` the running core: messages sized for its model, timer, model info."""
+        self.startup_error = None
+        self.loop = loop
+        self._prepare_messages()
+        pred = loop.predictor
+        model = pred.model
+        how = ('inputs drive the steps' if pred.config.stepping == 'event'
+               else f'{pred.config.stepping} stepping')
+        self.get_logger().info(
+            f'running {model.method} model r={model.r} ({model.n_inputs} inputs, '
+            f'{model.n_outputs} outputs, dt={model.dt:g} s) from {pred.info["path"]}; '
+            f'step {pred.h:g} s, {how}'
+            + (', Kalman correction on' if pred.config.kalman else ''))
+        self._start_timer()
+        if self._active:
+            self._pub_info.publish(String(data=model_info_json(pred.info)))
 
     def _input_qos(self) -> QoSProfile:
         best = self.settings.input_qos == 'sensor_data'
@@ -206,7 +221,7 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
         self._pub_centerline = pub(PoseArray, '~/centerline', 10)
         self._pub_marker = pub(Marker, '~/centerline_marker', 10)
         self._pub_error = pub(Float64, '~/error', 10)
-        self._pub_diag = pub(self.diagnostics.msg_type, '/diagnostics', 10)
+        self._pub_diag = pub(DiagnosticArray, '/diagnostics', 10)
         self._pub_info = pub(String, '~/model_info', self._latched)
         ents: list[Any] = [self._pub_output, self._pub_output_stamped, self._pub_centerline,
                            self._pub_marker, self._pub_error, self._pub_diag, self._pub_info]
@@ -222,80 +237,62 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
         if s.measured_topic:
             ents.append(self.create_subscription(PoseArray, s.measured_topic,
                                                  self._on_measured, qos))
-        ents.append(self.create_timer(1.0 / s.diagnostics_rate_hz, self._on_diagnostics))
         self._entities = ents
         self._active = True
-        self._start_stepping_timer()
-        if self.predictor is not None:
-            self._pub_info.publish(String(data=model_info_json(self.predictor.info)))
+        self._start_timer()
+        if self.loop is not None:
+            self._pub_info.publish(String(data=model_info_json(self.loop.predictor.info)))
 
     def _deactivate(self) -> None:
         if not self._active:
             return
         self._active = False
-        if self._timer is not None:
-            self.destroy_timer(self._timer)
-            self._timer = None
+        self._start_timer()
         for ent in self._entities:
             for destroy in (self.destroy_subscription, self.destroy_publisher,
-                            self.destroy_service, self.destroy_timer):
+                            self.destroy_service):
                 if destroy(ent):
                     break
         self._entities = []
 
-    def _start_stepping_timer(self) -> None:
-        """In fixed stepping, one timer at the publish period integrates what is due."""
+    def _start_timer(self) -> None:
+        """(Re)start the one timer at the loop's period, or the diagnostics rate.
+
+        Fixed stepping: the publish period; event stepping: the diagnostics period.
+        """
         if self._timer is not None:
             self.destroy_timer(self._timer)
             self._timer = None
-        pred = self.predictor
-        if not self._active or pred is None or pred.config.stepping != 'fixed':
+        if not self._active:
             return
-        h = pred.h
-        rate = self.settings.publish_rate_hz
-        period = h if rate <= 0 else max(1, round(1.0 / (rate * h))) * h
-        self._timer = self.create_timer(period, self._on_tick)
+        if self.loop is None:
+            self._timer = self.create_timer(1.0 / self.settings.diagnostics_rate_hz,
+                                            self._on_tick)
+        else:
+            self._timer = self.create_timer(self.loop.timer_period_ns() * 1e-9,
+                                            self._on_tick)
 
     def _prepare_messages(self) -> None:
         """Message objects reused at every publish (sized for the loaded model)."""
-        pred = self.predictor
-        assert pred is not None
-        model = pred.model
+        assert self.loop is not None
+        model = self.loop.predictor.model
         n = model.n_outputs // len(self.settings.output_components)
-        self._pts = np.empty((n, 3))
-        self._y = np.empty(model.n_outputs)
         frame = self.settings.frame_id
         self._pose_msg = PoseArray()
         self._pose_msg.header.frame_id = frame
         self._pose_msg.poses = [Pose() for _ in range(n)]
         self._positions = [p.position for p in self._pose_msg.poses]
-        self._marker = self._make_marker('predicted', 0, (0.1, 0.4, 1.0, 1.0), 0.004, n)
-        self._marker_measured = self._make_marker('measured', 1, (1.0, 0.3, 0.1, 1.0), 0.003,
-                                                  0)
+        self._marker = self._make_marker('predicted', n)
+        self._marker_measured = self._make_marker('measured', 0)
         self._output_msg = Float64MultiArray()
         self._output_msg.layout.dim = [MultiArrayDimension(
             label='outputs', size=model.n_outputs, stride=model.n_outputs)]
         self._stamped_msg = JointState()
         self._stamped_msg.header.frame_id = frame
         self._stamped_msg.name = list(model.output_names)
-        self._measured_pts = None
-        self._last_output_t = None
-        self._next_marker_t = -math.inf
 
-    def _log_running(self) -> None:
-        pred = self.predictor
-        assert pred is not None
-        model = pred.model
-        how = ('inputs drive the steps' if pred.config.stepping == 'input'
-               else f'fixed steps, publish rate {self.settings.publish_rate_hz:g} Hz')
-        self.get_logger().info(
-            f'running {model.method} model r={model.r} ({model.n_inputs} inputs, '
-            f'{model.n_outputs} outputs, dt={model.dt:g} s) from {pred.info["path"]}; '
-            f'step {pred.h:g} s, {how}, markers at {self.settings.marker_rate_hz:g} Hz'
-            + (', Kalman correction on' if pred.config.kalman else ''))
-
-    def _make_marker(self, ns: str, marker_id: int, rgba: tuple[float, ...], width: float,
-                     n: int) -> Marker:
+    def _make_marker(self, kind: str, n: int) -> Marker:
+        ns, marker_id, rgba, width = MARKER_STYLES[kind]
         m = Marker()
         m.header.frame_id = self.settings.frame_id
         m.ns, m.id, m.type, m.action = ns, marker_id, Marker.LINE_STRIP, Marker.ADD
@@ -304,170 +301,138 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
         m.points = [Point() for _ in range(n)]
         return m
 
-    # -- time ----------------------------------------------------------------------------------
-    def _now(self) -> float:
-        return self.get_clock().now().nanoseconds * 1e-9
-
-    def _stamp(self, header_stamp: Any) -> float:
-        if header_stamp.sec == 0 and header_stamp.nanosec == 0:
-            return self._now()
-        return stamp_to_sec(header_stamp)
-
-    @staticmethod
-    def _time_msg(t: float) -> TimeMsg:
-        sec, nsec = sec_to_stamp(t)
-        return TimeMsg(sec=sec, nanosec=nsec)
+    # -- callbacks -----------------------------------------------------------------------------
+    def _now_ns(self) -> int:
+        return self.get_clock().now().nanoseconds
 
     def _guard(self, what: str, err: Exception) -> None:
         self.callback_errors += 1
         self.get_logger().warning(f'{what}: {type(err).__name__}: {err} (message dropped)',
                                   throttle_duration_sec=5.0)
 
-    # -- callbacks -----------------------------------------------------------------------------
     def _on_pressure(self, index: int, msg: FluidPressure) -> None:
-        pred = self.predictor
-        if pred is None:
+        loop = self.loop
+        if loop is None:
             return
         try:
-            stamp = self._stamp(msg.header.stamp)
-            self.monitors[index].seen(stamp)
-            value = self.settings.input_scale * msg.fluid_pressure + self.settings.input_offset
-            pred.set_channel(index, value, stamp)
-            if pred.config.stepping == 'input':
-                self._publish_new()
+            self._publish(loop.on_channel(index, msg.fluid_pressure,
+                                          stamp_to_ns(msg.header.stamp), self._now_ns()))
         except Exception as err:  # noqa: BLE001 - the node never dies on a message
             self._guard('pressure', err)
 
     def _on_array(self, msg: Float64MultiArray) -> None:
-        pred = self.predictor
-        if pred is None:
+        loop = self.loop
+        if loop is None:
             return
         try:
-            now = self._now()
-            self.monitors[0].seen(now)
-            u = self.settings.input_scale * data_to_array(msg.data) + self.settings.input_offset
-            pred.set_input(u, now)
-            if pred.config.stepping == 'input':
-                self._publish_new()
+            self._publish(loop.on_array(data_to_array(msg.data), 0, self._now_ns()))
         except Exception as err:  # noqa: BLE001
             self._guard('pressures', err)
 
     def _on_measured(self, msg: PoseArray) -> None:
-        pred = self.predictor
-        if pred is None or self.measured_monitor is None:
+        loop = self.loop
+        if loop is None or self.measured_monitor is None:
             return
         try:
-            stamp = self._stamp(msg.header.stamp)
+            stamp = stamp_to_ns(msg.header.stamp)
             self.measured_monitor.seen(stamp)
-            pts = poses_to_points(msg.poses)
-            y = points_to_outputs(pts, self.settings.output_components)
-            if pred.measure(y, stamp) is not None:
-                self._measured_pts = pts
+            self._publish(loop.on_measured(poses_to_points(msg.poses), stamp,
+                                           self._now_ns()))
         except Exception as err:  # noqa: BLE001
             self._guard('measured centerline', err)
 
     def _on_tick(self) -> None:
-        pred = self.predictor
-        if pred is None:
-            return
         try:
-            pred.advance_to(self._now())
-            self._publish_new()
+            if self.loop is None:
+                self._publish_diagnostics(self._now_ns())
+            else:
+                self._publish(self.loop.tick(self._now_ns()))
         except Exception as err:  # noqa: BLE001
-            self._guard('publish', err)
+            self._guard('timer', err)
 
-    def _publish_new(self) -> None:
-        """Publish the prediction if the model time moved since the last one."""
-        pred = self.predictor
-        t = None if pred is None else pred.t
-        if t is None or t == self._last_output_t or not self._active:
+    def _publish(self, pub: Publish) -> None:
+        """Publish what the loop says is due."""
+        if not self._active:
             return
-        self._last_output_t = t
-        y = pred.output(self._y)
-        stamp = self._time_msg(t)
-        self._output_msg.data = array_to_data(y)
-        self._pub_output.publish(self._output_msg)
-        sm = self._stamped_msg
-        sm.header.stamp = stamp
-        sm.position = self._output_msg.data
-        self._pub_output_stamped.publish(sm)
-        if t >= self._next_marker_t:
-            rate = self.settings.marker_rate_hz
-            self._next_marker_t = t + (1.0 / rate if rate > 0 else 0.0)
-            self._publish_markers(y, stamp)
+        out, sm = self._output_msg, self._stamped_msg
+        for t_ns, y in pub.outputs:
+            out.data = array_to_data(y)
+            self._pub_output.publish(out)
+            sec, nsec = ns_to_stamp(t_ns)
+            sm.header.stamp.sec, sm.header.stamp.nanosec = sec, nsec
+            sm.position = out.data
+            self._pub_output_stamped.publish(sm)
+        if pub.centerline is not None:
+            self._publish_centerline(*pub.centerline, pub.measured_points, pub.error)
+        if pub.diagnostics_due:
+            self._publish_diagnostics(self._now_ns())
 
-    def _publish_markers(self, y: np.ndarray, stamp: TimeMsg) -> None:
-        outputs_to_points(y, self.settings.output_components, self.settings.fill_value,
-                          out=self._pts)
+    def _publish_centerline(self, t_ns: int, pts: np.ndarray, measured: np.ndarray | None,
+                            error: float | None) -> None:
+        sec, nsec = ns_to_stamp(t_ns)
+        stamp = TimeMsg(sec=sec, nanosec=nsec)
         self._pose_msg.header.stamp = stamp
-        set_points(self._positions, self._pts)
+        set_points(self._positions, pts)
         self._pub_centerline.publish(self._pose_msg)
         self._marker.header.stamp = stamp
-        set_points(self._marker.points, self._pts)
+        set_points(self._marker.points, pts)
         self._pub_marker.publish(self._marker)
-        if self._measured_pts is not None:
+        if measured is not None:
             mk = self._marker_measured
-            if len(mk.points) != len(self._measured_pts):
-                mk.points = [Point() for _ in range(len(self._measured_pts))]
+            if len(mk.points) != len(measured):
+                mk.points = [Point() for _ in range(len(measured))]
             mk.header.stamp = stamp
-            set_points(mk.points, self._measured_pts)
+            set_points(mk.points, measured)
             self._pub_marker.publish(mk)
-        assert self.predictor is not None
-        err = self.predictor.windowed_error()
-        if math.isfinite(err):
-            self._pub_error.publish(Float64(data=err))
+        if error is not None:
+            self._pub_error.publish(Float64(data=error))
 
-    def _on_diagnostics(self) -> None:
-        now = self._now()
+    def _publish_diagnostics(self, now_ns: int) -> None:
+        loop = self.loop
+        report = None if loop is None else loop.diagnostics(
+            now_ns, extra=[('callback_errors', str(self.callback_errors))])
+        sec, nsec = ns_to_stamp(now_ns)
         timeout = float(self.settings_value('input_timeout_s'))
-        msg = self.diagnostics.message(
-            now, self._time_msg(now), self.predictor, self.startup_error, self.monitors,
-            self.measured_monitor, timeout, self.callback_errors)
-        self._pub_diag.publish(msg)
+        self._pub_diag.publish(self.diagnostics.message(
+            now_ns, TimeMsg(sec=sec, nanosec=nsec), report, self.startup_error,
+            self.measured_monitor, timeout))
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
-        if self.predictor is None:
+        if self.loop is None:
             response.success = False
             response.message = f'no model loaded: {self.startup_error}'
             return response
-        self.predictor.reset()
-        self._measured_pts = None
-        self._last_output_t = None
-        self._next_marker_t = -math.inf
+        self.loop.reset()
         response.success = True
-        response.message = f'reset to the {self.predictor.config.initial_state} state'
+        response.message = f'reset to the {self.loop.predictor.config.initial_state} state'
         return response
 
     # -- run-time parameter changes (called by ParameterMixin) ---------------------------------
     def apply_parameters(self, names: set[str], values: dict[str, Any]) -> None:
         """Apply accepted run-time changes; raises (with the reason) to refuse them."""
         config = self.predictor_config(values)
+        loop = self.loop
         if 'model_path' in names:
             path = str(values['model_path'])
             if not path:
-                if self.predictor is None:
+                if loop is None:
                     return
                 raise ValueError('model_path is empty')
-            if self.managed and self.predictor is None:
+            if self.managed and loop is None:
                 return      # used at the next configure
-            if self.predictor is None:
+            if loop is None:
                 candidate = Predictor(path, config)
                 self._check_model(candidate.model)
-                self.predictor = candidate
+                loop = RuntimeLoop(candidate, self.loop_settings())
             else:   # atomic: the running model is kept on any failure
-                self.predictor.reload(path, config, validate=self._check_model)
-            self.startup_error = None
-            self._prepare_messages()
-            self._log_running()
-            self._start_stepping_timer()
-            if self._active:
-                self._pub_info.publish(String(data=model_info_json(self.predictor.info)))
-        elif self.predictor is not None:
-            stepping = self.predictor.config.stepping
-            self.predictor.set_config(config)
+                loop.reload(path, config, validate=self._check_model)
+            self._use(loop)
+        elif loop is not None:
+            stepping = loop.predictor.config.stepping
+            loop.set_config(config)
             if config.stepping != stepping:
-                self._start_stepping_timer()
+                self._start_timer()
 
 
 class _StopFlag:

@@ -12,7 +12,7 @@ import pytest
 
 from soft_rom.errors import ConfigError, DimensionError
 from soft_rom.predictor import Health, Level, PredictorConfig
-from soft_rom.ros.conversions import (
+from soft_rom.predictor.conversions import (
     array_to_data,
     check_components,
     data_to_array,
@@ -24,7 +24,7 @@ from soft_rom.ros.conversions import (
     set_points,
     stamp_to_sec,
 )
-from soft_rom.ros.params import load_params_file, PARAMS, predictor_config
+from soft_rom.predictor.params import load_params_file, PARAMS, predictor_config
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -82,7 +82,11 @@ def test_health_key_values_are_strings() -> None:
 
 
 def test_params_file_matches_declarations_and_core_defaults() -> None:
-    values = load_params_file(ROOT / 'config' / 'predictor.yaml')
+    from soft_rom.predictor.params import render_params_file
+
+    path = ROOT / 'config' / 'predictor.yaml'
+    assert path.read_text(encoding='utf-8') == render_params_file()
+    values = load_params_file(path)
     names = {p.name for p in PARAMS}
     assert set(values) == names
     for p in PARAMS:

@@ -1,6 +1,8 @@
 """The predictor node's parameters, stated once (no ROS import).
 
-The node declares each :class:`Param` with a ``ParameterDescriptor`` (description, range,
+:func:`predictor_config` makes the core's :class:`~soft_rom.predictor.PredictorConfig`
+and :func:`loop_settings` the :class:`~soft_rom.predictor.loop.LoopSettings` from the same
+values. The node declares each :class:`Param` with a ``ParameterDescriptor`` (description, range,
 ``read_only``); ``soft-rom replay --config`` reads the same names from the same YAML file
 (``config/predictor.yaml``, ROS 2 params-file layout) so both run the core identically.
 """
@@ -13,9 +15,11 @@ from pathlib import Path
 from typing import Any
 
 from soft_rom.errors import ConfigError
-from soft_rom.predictor import PredictorConfig
+from soft_rom.predictor.config import PredictorConfig
+from soft_rom.predictor.loop import LoopSettings
 
-__all__ = ['NODE_NAME', 'PARAMS', 'Param', 'load_params_file', 'predictor_config']
+__all__ = ['NODE_NAME', 'PARAMS', 'Param', 'load_params_file', 'loop_settings',
+           'predictor_config', 'render_params_file']
 
 NODE_NAME = 'soft_rom_predictor'
 
@@ -50,12 +54,16 @@ PARAMS: tuple[Param, ...] = (
     Param('input_qos', 'sensor_data', 'QoS of input and measured subscriptions: sensor_data '
           '(best effort) or reliable.', choices=('sensor_data', 'reliable')),
     Param('qos_depth', 10, 'History depth of the subscriptions.', range=(1, 1000)),
-    Param('stepping', 'fixed', 'fixed: integrate at rate_hz on a timer; input: step exactly '
-          'to each input stamp.', choices=('fixed', 'input')),
-    Param('rate_hz', 0.0, 'Integration rate (fixed stepping); 0 = the model rate 1/dt.',
+    Param('stepping', 'event', 'event: the inputs drive the model up to the newest time at '
+          'which every input is known (exact at the stamps); fixed: integrate at rate_hz on '
+          'a timer; input: step exactly to each input stamp on arrival.',
+          choices=('event', 'fixed', 'input')),
+    Param('rate_hz', 0.0, 'Step rate (event and fixed stepping); 0 = the model rate 1/dt.',
           range=(0.0, 100000.0)),
-    Param('publish_rate_hz', 50.0, 'Publish rate, decimated from the integration rate; '
-          '0 = every step.', range=(0.0, 100000.0)),
+    Param('publish_rate_hz', 0.0, 'Rate of ~/output on the model clock; 0 = every step.',
+          range=(0.0, 100000.0)),
+    Param('centerline_rate_hz', 30.0, 'Rate of ~/centerline and the markers (RViz); '
+          '0 = with every output.', range=(0.0, 100000.0)),
     Param('diagnostics_rate_hz', 1.0, 'Rate of /diagnostics.', range=(0.01, 100.0)),
     Param('frame_id', 'world', 'Frame of the published centerline.'),
     Param('output_components', 'xz', 'Which coordinates the output vector holds, '
@@ -66,6 +74,26 @@ PARAMS: tuple[Param, ...] = (
     # Predictor core settings (PredictorConfig); changeable at run time.
     Param('input_timeout_s', 0.5, 'An input silent longer than this: value held, STALE.',
           range=(0.0, 3600.0), read_only=False),
+    Param('max_lag_s', 0.1, 'Most the model may trail the newest input stamp (event '
+          'stepping); beyond it missing inputs are held.', range=(0.0, 3600.0),
+          read_only=False),
+    Param('error_window_s', 2.0, 'Measurements older than this leave the error window; '
+          'an empty window after measurements is STALE.', range=(0.0, 1e6), read_only=False),
+    Param('alarm_hold_s', 2.0, 'How long a dropped/clipped input, clock jump or divergence '
+          'keeps the status WARN/ERROR.', range=(0.0, 3600.0), read_only=False),
+    Param('input_min', [0.0], 'Input envelope, lower bounds per input (after scale/offset); '
+          '[0.0] with input_max [0.0] or empty = from the model file (training range).',
+          read_only=False),
+    Param('input_max', [0.0], 'Input envelope, upper bounds per input; see input_min.',
+          read_only=False),
+    Param('input_envelope_margin', 1.0, 'The default input envelope is the training range '
+          'widened by this times its width on each side.', range=(0.0, 1e6), read_only=False),
+    Param('input_envelope_action', 'clip', 'clip or drop an input outside its envelope.',
+          read_only=False, choices=('clip', 'drop')),
+    Param('output_envelope_factor', 100.0, 'Divergence: max |y - y_ref| beyond this times '
+          'the training max deviation (or max |y_ref|).', range=(1e-6, 1e12), read_only=False),
+    Param('auto_reset', True, 'Reset the state to the reference when the prediction '
+          'diverges.', read_only=False),
     Param('error_window', 100, 'Measurements in the windowed relative error.',
           range=(1, 1000000), read_only=False),
     Param('error_metric', 'deviation', 'Error held against the thresholds: deviation (from '
@@ -100,10 +128,30 @@ def predictor_config(values: Mapping[str, Any]) -> PredictorConfig:
         if name in kwargs:
             kwargs[name] = int(kwargs[name])
     for name in ('rate_hz', 'input_timeout_s', 'warn_threshold', 'error_threshold',
-                 'process_noise', 'measurement_noise', 'clock_reset_s'):
+                 'process_noise', 'measurement_noise', 'clock_reset_s', 'max_lag_s',
+                 'error_window_s', 'alarm_hold_s', 'input_envelope_margin',
+                 'output_envelope_factor'):
         if name in kwargs:
             kwargs[name] = float(kwargs[name])
+    for name in ('input_min', 'input_max'):
+        if name in kwargs:
+            kwargs[name] = tuple(float(v) for v in (kwargs[name] or ()))
+    if kwargs.get('input_min') in ((), (0.0,)) and kwargs.get('input_max') in ((), (0.0,)):
+        kwargs['input_min'] = kwargs['input_max'] = ()       # the node's "unset" value
     return PredictorConfig(**kwargs)
+
+
+def loop_settings(values: Mapping[str, Any]) -> LoopSettings:
+    """The :class:`LoopSettings` from node parameter values (defaults for missing ones)."""
+    d = {p.name: p.default for p in PARAMS}
+    d.update(values)
+    return LoopSettings(output_rate_hz=float(d['publish_rate_hz']),
+                        centerline_rate_hz=float(d['centerline_rate_hz']),
+                        diagnostics_rate_hz=float(d['diagnostics_rate_hz']),
+                        components=str(d['output_components']),
+                        fill_value=float(d['fill_value']),
+                        input_scale=float(d['input_scale']),
+                        input_offset=float(d['input_offset']))
 
 
 def load_params_file(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any]:
@@ -128,3 +176,50 @@ def load_params_file(path: str | Path, node_name: str = NODE_NAME) -> dict[str, 
         raise ConfigError(f'{path}: unknown predictor parameters {unknown}; known: '
                           f'{sorted(_BY_NAME)}.')
     return values
+
+
+_HEADER = """\
+# Parameters of the soft_rom predictor node (`ros2 run soft_rom predictor`).
+# Also read by `soft-rom replay --config` so that replay runs the core exactly like the node.
+# Start: ros2 launch soft_rom predictor.launch.py model_path:=/path/to/model.npz
+# Keyed '/**' (any node name) so that it still applies when the launch file's node_name
+# argument renames the node; a section keyed by node name would then be ignored by rcl.
+# Generated from soft_rom/predictor/params.py (render_params_file); edit there.
+/**:
+  ros__parameters:
+"""
+
+
+def _yaml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return 'true' if value else 'false'
+    if isinstance(value, str):
+        return "'" + value.replace("'", "''") + "'"
+    if isinstance(value, float):
+        text = repr(value)
+        if 'e' in text and '.' not in text.split('e')[0]:
+            mant, exp = text.split('e')
+            text = f'{mant}.0e{exp}'
+        return text
+    return str(value)
+
+
+def render_params_file() -> str:
+    """``config/predictor.yaml``: every parameter with its default and description."""
+    import textwrap
+
+    lines = [_HEADER.rstrip('\n')]
+    for p in PARAMS:
+        text = p.description
+        if p.range is not None and not isinstance(p.default, bool):
+            lo, hi = p.range
+            text += f' Range {lo:g}..{hi:g}.'
+        if not p.read_only:
+            text += ' (Changeable at run time.)'
+        lines += textwrap.wrap(text, 99, initial_indent='    # ', subsequent_indent='    # ')
+        if isinstance(p.default, list):
+            lines.append(f'    {p.name}:')
+            lines += [f'      - {_yaml_value(v)}' for v in p.default]
+        else:
+            lines.append(f'    {p.name}: {_yaml_value(p.default)}')
+    return '\n'.join(lines) + '\n'

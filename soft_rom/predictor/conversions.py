@@ -1,5 +1,8 @@
 """Array <-> message-field conversions shared by the node and ``soft-rom replay``.
 
+Stamps: ``builtin_interfaces/Time`` is ``(sec, nanosec)``; the predictor takes int
+nanoseconds (:func:`stamp_to_ns`, :func:`ns_to_stamp`), exact at any epoch.
+
 Nothing here imports rclpy or a message package: the functions read and write attributes
 of whatever message objects they are given (rclpy messages in the node, rosbags
 dataclasses in :mod:`soft_rom.bags.replay_io`, plain ``SimpleNamespace`` in tests), so they
@@ -29,11 +32,13 @@ __all__ = [
     'data_to_array',
     'health_key_values',
     'model_info_json',
+    'ns_to_stamp',
     'outputs_to_points',
     'points_to_outputs',
     'poses_to_points',
     'sec_to_stamp',
     'set_points',
+    'stamp_to_ns',
     'stamp_to_sec',
 ]
 
@@ -44,6 +49,17 @@ _AXES = {'x': 0, 'y': 1, 'z': 2}
 def stamp_to_sec(stamp: Any) -> float:
     """``builtin_interfaces/Time`` (``sec``, ``nanosec``) to float seconds."""
     return stamp.sec + stamp.nanosec * 1e-9
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    """``builtin_interfaces/Time`` (``sec``, ``nanosec``) to int nanoseconds (exact)."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_stamp(t_ns: int) -> tuple[int, int]:
+    """Int nanoseconds to ``(sec, nanosec)`` with ``0 <= nanosec < 1e9``."""
+    sec, nsec = divmod(int(t_ns), 1_000_000_000)
+    return int(sec), int(nsec)
 
 
 def sec_to_stamp(t: float) -> tuple[int, int]:

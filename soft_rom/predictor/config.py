@@ -1,0 +1,207 @@
+"""Settings and health of the predictor: :class:`PredictorConfig`, :class:`Level`, :class:`Health`."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field, replace
+import enum
+import math
+from typing import Any
+
+from soft_rom.errors import ConfigError
+
+__all__ = ['Health', 'Level', 'PredictorConfig', 'REBUILD_FIELDS', 'SEVERITY']
+
+
+class Level(enum.IntEnum):
+    """Health level; values equal ``diagnostic_msgs/msg/DiagnosticStatus`` levels."""
+
+    OK = 0
+    WARN = 1
+    ERROR = 2
+    STALE = 3
+
+
+#: Order of severity (``STALE`` is worse than ``WARN``, better than ``ERROR``).
+SEVERITY = {Level.OK: 0, Level.WARN: 1, Level.STALE: 2, Level.ERROR: 3}
+
+#: Settings whose change rebuilds the discretization (the others apply at once).
+REBUILD_FIELDS = ('stepping', 'rate_hz', 'kalman', 'process_noise', 'measurement_noise',
+                  'input_min', 'input_max', 'input_envelope_margin', 'output_envelope_factor')
+
+
+@dataclass(frozen=True)
+class PredictorConfig:
+    """Run-time settings of a :class:`~soft_rom.predictor.Predictor` (node parameters, minus ROS).
+
+    Parameters
+    ----------
+    stepping : {'event', 'fixed', 'input'}
+        ``'event'``: the inputs drive the model on the step grid ``h``, up to the
+        watermark (newest time at which every input is known); ``'fixed'``: a clock drives
+        it (:meth:`~soft_rom.predictor.Predictor.advance_to_ns`), inputs latched on
+        arrival; ``'input'``: an exact step to each input stamp, latched on arrival.
+    rate_hz : float
+        Step rate; ``0`` means the model's native ``1/dt``. A discrete-time model (DMDc,
+        ERA) accepts only integer divisors of its rate.
+    input_timeout_s : float
+        An input whose newest stamp trails the newest stamp of all inputs by more than
+        this stops holding the model back (value held, ``STALE``, counted ``timeouts``).
+    max_lag_s : float
+        Most the model may trail the newest input stamp (``'event'``); beyond it the model
+        advances with the missing inputs held (counted ``lag_forced``).
+    error_window : int
+        Most measurements in the windowed relative error.
+    error_window_s : float
+        Measurements older than this (stamp time) leave the window; an empty window after
+        measurements were seen is ``STALE``.
+    error_metric : {'deviation', 'absolute'}
+        Which windowed error is compared with the thresholds.
+    warn_threshold, error_threshold : float
+        Windowed relative error above which the health is ``WARN`` / ``ERROR``.
+    initial_state : {'reference', 'measured'}
+        Start (and restart after a reset) at the reference, or at the least-squares state
+        of the first measured output.
+    kalman : bool
+        Correct the state with a steady-state Kalman filter at each measurement.
+    process_noise, measurement_noise : float
+        Kalman design covariances ``Q = process_noise * I``, ``R = measurement_noise * I``.
+    max_catchup_steps : int
+        Most steps in one update; beyond that the model time jumps with the state held
+        (counted ``catchup_skipped``, reported as a clock jump/stall).
+    clock_reset_s : float
+        An input stamp older than the newest by more than this is a restarted clock: the
+        predictor resets (counted ``clock_reset``). ``0`` disables it.
+    alarm_hold_s : float
+        How long a dropped message, clipped input, clock jump or divergence keeps the
+        health at ``WARN`` / ``ERROR`` after it happened.
+    input_min, input_max : tuple of float
+        Input envelope per channel (absolute input units). Empty: the training range
+        recorded in the model file, widened by ``input_envelope_margin`` times its width
+        on each side; no recorded range: no input envelope.
+    input_envelope_margin : float
+        Widening of the recorded training range (default ``1.0``: the envelope is three
+        times as wide as the training range, centred on it).
+    input_envelope_action : {'clip', 'drop'}
+        What happens to a value outside the envelope (counted ``input_clipped`` /
+        ``input_out_of_envelope``, ``WARN``).
+    output_envelope_factor : float
+        Divergence bound: ``max |y_hat - y_ref| > factor * S`` with ``S`` the largest
+        training deviation ``max |Y - y_ref|`` recorded in the model file (files without
+        it: ``max |y_ref|``, or ``1`` if that is 0). Measurements beyond it are dropped
+        by the error monitor.
+    auto_reset : bool
+        On divergence reset the state to the reference (else it is kept; ``ERROR`` either
+        way, counted ``diverged``).
+    """
+
+    stepping: str = 'event'
+    rate_hz: float = 0.0
+    input_timeout_s: float = 0.5
+    max_lag_s: float = 0.1
+    error_window: int = 100
+    error_window_s: float = 2.0
+    error_metric: str = 'deviation'
+    warn_threshold: float = 0.1
+    error_threshold: float = 0.3
+    initial_state: str = 'reference'
+    kalman: bool = False
+    process_noise: float = 1e-6
+    measurement_noise: float = 1e-4
+    max_catchup_steps: int = 10000
+    clock_reset_s: float = 1.0
+    alarm_hold_s: float = 2.0
+    input_min: tuple[float, ...] = ()
+    input_max: tuple[float, ...] = ()
+    input_envelope_margin: float = 1.0
+    input_envelope_action: str = 'clip'
+    output_envelope_factor: float = 100.0
+    auto_reset: bool = True
+
+    def __post_init__(self) -> None:
+        def bad(name: str, expected: str) -> ConfigError:
+            return ConfigError(f'predictor {name} must be {expected}; got '
+                               f'{getattr(self, name)!r}.')
+
+        choices = {'stepping': ('event', 'fixed', 'input'),
+                   'error_metric': ('deviation', 'absolute'),
+                   'initial_state': ('reference', 'measured'),
+                   'input_envelope_action': ('clip', 'drop')}
+        for name, allowed in choices.items():
+            if getattr(self, name) not in allowed:
+                raise bad(name, ' or '.join(repr(a) for a in allowed))
+        for name in ('rate_hz', 'input_timeout_s', 'max_lag_s', 'error_window_s',
+                     'warn_threshold', 'error_threshold', 'clock_reset_s', 'alarm_hold_s',
+                     'input_envelope_margin'):
+            value = getattr(self, name)
+            if not (_number(value) and math.isfinite(value) and value >= 0):
+                raise bad(name, 'a finite number >= 0')
+        for name in ('process_noise', 'measurement_noise', 'output_envelope_factor'):
+            value = getattr(self, name)
+            if not (_number(value) and math.isfinite(value) and value > 0):
+                raise bad(name, 'a finite number > 0')
+        if self.warn_threshold > self.error_threshold:
+            raise ConfigError(f'warn_threshold ({self.warn_threshold}) must not exceed '
+                              f'error_threshold ({self.error_threshold}).')
+        for name in ('error_window', 'max_catchup_steps'):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise bad(name, 'an integer >= 1')
+        for name in ('kalman', 'auto_reset'):
+            if not isinstance(getattr(self, name), bool):
+                raise bad(name, 'true or false')
+        lo, hi = self._bounds('input_min'), self._bounds('input_max')
+        if len(lo) != len(hi):
+            raise ConfigError(f'input_min and input_max must list the same number of '
+                              f'values; got {len(lo)} and {len(hi)}.')
+        if any(a > b for a, b in zip(lo, hi)):
+            raise ConfigError(f'input_min {list(lo)} must not exceed input_max {list(hi)}.')
+
+    def _bounds(self, name: str) -> tuple[float, ...]:
+        raw = getattr(self, name)
+        try:
+            values = tuple(float(v) for v in raw)
+        except (TypeError, ValueError):
+            raise ConfigError(f'predictor {name} must be a list of numbers; got '
+                              f'{raw!r}.') from None
+        if not all(math.isfinite(v) for v in values):
+            raise ConfigError(f'predictor {name} must hold finite numbers; got {raw!r}.')
+        object.__setattr__(self, name, values)
+        return values
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any]) -> PredictorConfig:
+        """Build from a dict (e.g. a YAML section), refusing unknown keys."""
+        known = set(cls.__dataclass_fields__)
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ConfigError(f'unknown predictor settings {unknown}; known: {sorted(known)}.')
+        return cls(**dict(values))
+
+    def replace(self, **changes: Any) -> PredictorConfig:
+        """A copy with some settings changed (validated)."""
+        return replace(self, **changes)
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+@dataclass(frozen=True)
+class Health:
+    """What the monitor says now.
+
+    Attributes
+    ----------
+    level : Level
+    message : str
+        One line: the reasons joined, or ``'ok'``.
+    reasons : tuple of str
+    values : dict
+        Figures for diagnostics (errors, counters, input ages, model time).
+    """
+
+    level: Level
+    message: str
+    reasons: tuple[str, ...] = ()
+    values: dict[str, float | int | str] = field(default_factory=dict)

@@ -1,0 +1,714 @@
+"""The ROS-free real-time predictor: a model, its state, held inputs, envelopes and a monitor.
+
+Time
+----
+Every time is an ``int`` of nanoseconds inside (``*_ns`` methods); the float-second methods
+convert with ``round(t * 1e9)``. Model time is anchored, ``t_k = origin + k h`` in integer
+nanoseconds (``h`` a whole number of ns; else rounded per step from the anchor), so no
+epoch (stamps near 1.7e18 ns) loses or gains a step. Non-finite times, and times outside
+``±2**62`` ns, are refused (counted ``bad_time``): nothing freezes, nothing raises.
+
+Stepping (:attr:`PredictorConfig.stepping`)
+-------------------------------------------
+``'event'`` (default): steps of ``h`` on a grid aligned to whole multiples of ``h`` (epoch
+aligned); a stamp belongs to the nearest grid step. Inputs are queued and the model
+advances to the *watermark* -- the smallest over inputs of their newest step -- and never
+past it, so inputs arriving in any order whose step is not yet taken are applied at their
+stamp: the outputs equal ``model.simulate(U)``. An input whose newest stamp trails the
+newest stamp of all inputs by more than ``input_timeout_s`` stops holding the model back
+(value held, ``STALE``, counted ``timeouts``); ``max_lag_s`` caps how far the model trails
+the newest stamp (counted ``lag_forced``). Measurements are compared with the prediction
+at their own step (kept in a short history) once the model has reached it.
+Inputs for a step already taken are applied from the current step on (``late``).
+
+``'fixed'``: a clock drives the model (:meth:`Predictor.advance_to_ns` takes every whole
+step due); inputs are latched on arrival. ``'input'``: each input first advances the model
+exactly to its stamp (a discrete-time model: whole native steps, remainder carried).
+
+Bad values (each counted in :attr:`Predictor.counters`)
+-------------------------------------------------------
+* wrong length / channel: ``wrong_length``; NaN/Inf value: ``nonfinite``; bad time:
+  ``bad_time`` -- dropped, held value stays;
+* outside the input envelope (:class:`~soft_rom.predictor.envelope.Envelopes`): clipped
+  (``input_clipped``) or dropped (``input_out_of_envelope``), ``WARN``;
+* stamp older than the channel's newest whose step is taken: ``backwards`` (dropped); older
+  than the newest stamp by more than ``clock_reset_s``: a restarted clock, ``clock_reset``;
+* a prediction outside the output envelope or non-finite: ``diverged``, ``ERROR``, state
+  reset to the reference when ``auto_reset``;
+* more than ``max_catchup_steps`` due at once (clock stall or jump): ``catchup_skipped``
+  steps skipped, ``clock_jump`` counted, ``WARN``;
+* measurements of wrong size, non-finite, outside the output envelope or too old for the
+  history: ``measured_dropped``.
+
+With ``kalman=True`` a measurement at the current step corrects the state with a
+steady-state Kalman gain designed on the discretized model.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+import heapq
+import math
+import os
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from soft_rom.errors import ModelFileError
+from soft_rom.models import LinearROM, load_model
+from soft_rom.predictor.channels import ChannelStats
+from soft_rom.predictor.config import Health, Level, PredictorConfig, REBUILD_FIELDS, SEVERITY
+from soft_rom.predictor.dynamics import Dynamics
+from soft_rom.predictor.envelope import Envelopes
+from soft_rom.predictor.health import assess
+from soft_rom.predictor.monitor import ErrorMonitor
+
+__all__ = ['COUNTERS', 'Predictor', 'to_ns']
+
+Array = NDArray[np.float64]
+
+COUNTERS = ('wrong_length', 'nonfinite', 'bad_time', 'backwards', 'clock_reset', 'late',
+            'timeouts', 'lag_forced', 'input_clipped', 'input_out_of_envelope',
+            'measured_dropped', 'diverged', 'clock_jump', 'catchup_skipped', 'steps',
+            'inputs', 'measurements')
+_T_LIMIT = 2 ** 62
+_NONE = -(2 ** 63)
+_HISTORY = 512
+
+
+def to_ns(t: float) -> int | None:
+    """Float seconds to int ns; ``None`` for non-finite or out-of-range times."""
+    try:
+        if not math.isfinite(t) or abs(t) > _T_LIMIT * 1e-9:
+            return None
+        return int(round(t * 1e9))
+    except TypeError:
+        return None
+
+
+def _ok_ns(t: Any) -> bool:
+    return isinstance(t, (int, np.integer)) and not isinstance(t, bool) and -_T_LIMIT <= t \
+        <= _T_LIMIT
+
+
+class Predictor:
+    """A ROM running in real time: held inputs, state, envelopes, monitor, optional Kalman.
+
+    Parameters
+    ----------
+    model : LinearROM, a model of the predictor protocol, or path
+        See :mod:`soft_rom.predictor.dynamics`.
+    config : PredictorConfig, optional
+
+    Attributes
+    ----------
+    x : ndarray, shape (n_states,)
+        State (deviation from the reference) at :attr:`t_ns`.
+    u : ndarray, shape (m,)
+        Held absolute inputs (after the envelope).
+    counters : dict of str to int
+    channels : ChannelStats
+        Per-input figures (received, late, dropped, clipped, newest stamp, timed out).
+    emit_outputs : bool
+        Record ``(t_ns, y)`` of every completed step for :meth:`take_emitted` (the runtime
+        loop sets it).
+    """
+
+    def __init__(self, model: Any, config: PredictorConfig | None = None) -> None:
+        self.config = PredictorConfig() if config is None else config
+        path = None
+        if isinstance(model, (str, os.PathLike)):
+            path = model
+            model = load_model(model)
+        self._dyn = Dynamics(model, self.config, path)
+        self._env = Envelopes(model, self.config)
+        self.counters = dict.fromkeys(COUNTERS, 0)
+        self.emit_outputs = False
+        self._emitted: list[tuple[int, Array]] = []
+        self._init_buffers()
+        self.reset()
+
+    # -- construction / reload -----------------------------------------------------------
+    def _init_buffers(self) -> None:
+        d = self._dyn
+        self.x = d.initial_state()
+        self._xn = np.zeros(d.n)
+        self.u = np.zeros(d.m)
+        self._Bu = np.zeros(d.n)
+        self._y = np.zeros(d.p)
+        self._dy = np.zeros(d.p)
+        self._dev = np.zeros(d.p)
+        self.channels = ChannelStats(list(self.model.input_names))
+        self._hist = np.zeros((_HISTORY, d.p))
+        self._hist_k = np.full(_HISTORY, _NONE, dtype=np.int64)
+        self._monitor = ErrorMonitor(self.config.error_window,
+                                     int(self.config.error_window_s * 1e9))
+        self._alarms: dict[str, tuple[int, str]] = {}
+        self._diverged_latched = False
+        self.totals = [0.0, 0.0, 0.0]     # sums of |y - y_hat|^2, |y|^2, |y - y_ref|^2
+
+    @property
+    def model(self) -> Any:
+        """The running model."""
+        return self._dyn.model
+
+    @property
+    def h(self) -> float:
+        """Step in seconds."""
+        return self._dyn.h
+
+    @property
+    def info(self) -> dict[str, Any]:
+        """Model description (``~/model_info``) with the envelopes in force."""
+        info = dict(self._dyn.info)
+        info['envelope'] = self._env.summary()
+        return info
+
+    @property
+    def envelopes(self) -> Envelopes:
+        """The input and output bounds in force."""
+        return self._env
+
+    @property
+    def t_ns(self) -> int | None:
+        """Model time in int nanoseconds (``None`` before the first update)."""
+        if self._k is None:
+            return None
+        d = self._dyn
+        if d.h_ns_int:
+            return self._origin + self._k * d.h_ns_int
+        return self._origin + int(round(self._k * d.h_ns))
+
+    @property
+    def t(self) -> float | None:
+        """Model time in float seconds (derived from :attr:`t_ns`)."""
+        t = self.t_ns
+        return None if t is None else t * 1e-9
+
+    def reload(self, model: Any, config: PredictorConfig | None = None, *,
+               validate: Callable[[Any], None] | None = None) -> None:
+        """Swap in another model (and/or config) atomically.
+
+        Everything (file, discretization, Kalman gain, envelopes) is built first; on any
+        failure the running model, state and config stay and the error propagates. On
+        success the state restarts at the model time; held inputs are kept if the new model
+        has the same number of inputs. ``validate(model)`` may raise to refuse it first.
+        """
+        config = self.config if config is None else config
+        path = None
+        if isinstance(model, (str, os.PathLike)):
+            path = model
+            try:
+                model = load_model(model)
+            except (FileNotFoundError, ModelFileError):
+                raise
+            except (OSError, ValueError) as err:
+                raise ModelFileError(f'{path}: cannot load model ({err}).') from err
+        if validate is not None:
+            validate(model)
+        self._swap(Dynamics(model, config, path), Envelopes(model, config), config)
+
+    def _swap(self, dyn: Dynamics, env: Envelopes, config: PredictorConfig) -> None:
+        old_u, old_ch = self.u, self.channels
+        t = self.t_ns
+        self._dyn, self._env, self.config = dyn, env, config
+        self._init_buffers()
+        if old_u.shape == self.u.shape:
+            self.u[:] = old_u
+            self.channels.take_over(old_ch)
+        self.reset()
+        if t is not None:
+            self._anchor(t, exact=config.stepping != 'event')
+            self._done = True
+
+    def set_config(self, config: PredictorConfig) -> None:
+        """Change settings; atomic like :meth:`reload`.
+
+        Monitor thresholds, metric, timeouts and lag apply at once (state kept); a new
+        ``error_window`` / ``error_window_s`` clears the monitor; stepping, rate, Kalman
+        design or envelopes rebuild the discretization (the running model, same file).
+        """
+        old = self.config
+        if any(getattr(old, k) != getattr(config, k) for k in REBUILD_FIELDS):
+            dyn = Dynamics(self.model, config, None)
+            dyn.path, dyn.sha256 = self._dyn.path, self._dyn.sha256
+            dyn.info = dict(self._dyn.info)
+            self._swap(dyn, Envelopes(self.model, config), config)
+            return
+        self.config = config
+        if (config.error_window, config.error_window_s) != (old.error_window,
+                                                            old.error_window_s):
+            self._monitor = ErrorMonitor(config.error_window, int(config.error_window_s * 1e9))
+
+    def reset(self) -> None:
+        """Back to the initial state; clears the monitor, the queue and the stamp history.
+
+        Held inputs are kept; the model time restarts at the next input (so a restarted
+        clock, e.g. a bag played again, is accepted after a reset).
+        """
+        self.x = self._dyn.initial_state()
+        self._k: int | None = None
+        self._origin = 0
+        self._done = False
+        self._released = False
+        self._queue: list[tuple[int, int, int, int, Any]] = []
+        self._seq = 0
+        self._monitor.clear()
+        self._diverged_latched = False
+        self._alarms.pop('diverged', None)
+        self._awaiting_init = self.config.initial_state == 'measured'
+        self.channels.forget_stamps()
+        self._newest = _NONE
+        self._first = _NONE
+        self._exact_cache: dict[int, Any] = {}
+        self._update_Bu()
+
+    def _update_Bu(self) -> None:
+        if self._dyn.linear:
+            np.dot(self._dyn.B, self.u, out=self._Bu)
+
+    # -- time ----------------------------------------------------------------------------
+    def _step_of(self, t_ns: int) -> int:
+        d = self._dyn
+        if d.h_ns_int:
+            return (t_ns - self._origin + d.h_ns_int // 2) // d.h_ns_int
+        return int(round((t_ns - self._origin) / d.h_ns))
+
+    def _anchor(self, t_ns: int, *, exact: bool) -> None:
+        d = self._dyn
+        if exact or not d.h_ns_int:
+            self._origin, self._k = t_ns, 0
+        else:
+            self._origin = 0
+            self._k = self._step_of(t_ns)
+
+    def _alarm(self, key: str, t_ns: int | None, why: str) -> None:
+        self._alarms[key] = (self.t_ns if t_ns is None else t_ns) or 0, why
+
+    def _bad_time(self, what: str) -> bool:
+        self.counters['bad_time'] += 1
+        self._alarm('dropped', None, f'{what}: time not finite or out of range')
+        return False
+
+    # -- inputs --------------------------------------------------------------------------
+    def set_input(self, u: ArrayLike, stamp: float) -> bool:
+        """:meth:`set_input_ns` with the stamp in float seconds."""
+        t = to_ns(stamp)
+        return self._bad_time('input') if t is None else self.set_input_ns(u, t)
+
+    def set_channel(self, index: int, value: float, stamp: float) -> bool:
+        """:meth:`set_channel_ns` with the stamp in float seconds."""
+        t = to_ns(stamp)
+        return self._bad_time('input') if t is None else self.set_channel_ns(index, value, t)
+
+    def set_input_ns(self, u: ArrayLike, stamp_ns: int) -> bool:
+        """Take a whole input vector stamped ``stamp_ns``; returns whether it was used."""
+        if not _ok_ns(stamp_ns):
+            return self._bad_time('input')
+        stamp_ns = int(stamp_ns)
+        u = np.asarray(u, dtype=np.float64)
+        m = self._dyn.m
+        if u.shape != (m,):
+            return self._drop('wrong_length', None, stamp_ns,
+                              f'input of length {u.size}, expected {m}')
+        if not math.isfinite(u.sum()):
+            return self._drop('nonfinite', None, stamp_ns, 'input with NaN/Inf')
+        u = self._envelope_vector(u, stamp_ns)
+        if u is None:
+            return False
+        return self._take(None, u, stamp_ns)
+
+    def set_channel_ns(self, index: int, value: float, stamp_ns: int) -> bool:
+        """Take one input channel (per-chamber topics); returns whether it was used."""
+        if not _ok_ns(stamp_ns):
+            return self._bad_time(f'input {index}')
+        stamp_ns = int(stamp_ns)
+        m = self._dyn.m
+        if not (isinstance(index, (int, np.integer)) and 0 <= index < m):
+            return self._drop('wrong_length', None, stamp_ns,
+                              f'input channel {index} not in 0..{m - 1}')
+        index = int(index)
+        value = float(value)
+        if not math.isfinite(value):
+            return self._drop('nonfinite', index, stamp_ns, f'input {index} NaN/Inf')
+        if not self._env.input_ok(index, value):
+            if self.config.input_envelope_action == 'drop':
+                self.channels.out_of_envelope[index] += 1
+                return self._drop('input_out_of_envelope', index, stamp_ns,
+                                  f'input {self.model.input_names[index]}={value:.4g} outside '
+                                  'its envelope')
+            self._clipped(index, value, stamp_ns)
+            value = self._env.clip(index, value)
+        return self._take(index, value, stamp_ns)
+
+    def _envelope_vector(self, u: Array, stamp_ns: int) -> Array | None:
+        env = self._env
+        if env.u_lo is None:
+            return u
+        bad = np.flatnonzero((u < env.u_lo) | (u > env.u_hi))
+        if not bad.size:
+            return u
+        if self.config.input_envelope_action == 'drop':
+            for i in bad.tolist():
+                self.channels.out_of_envelope[i] += 1
+            self._drop('input_out_of_envelope', None, stamp_ns,
+                       f'input {self.model.input_names[int(bad[0])]}={u[bad[0]]:.4g} outside '
+                       'its envelope')
+            return None
+        for i in bad.tolist():
+            self._clipped(i, float(u[i]), stamp_ns)
+        return np.clip(u, env.u_lo, env.u_hi)
+
+    def _clipped(self, index: int, value: float, stamp_ns: int) -> None:
+        self.counters['input_clipped'] += 1
+        self.channels.clipped[index] += 1
+        self._alarm('clipped', stamp_ns, f'input {self.model.input_names[index]}={value:.4g} '
+                                         'clipped to its envelope')
+
+    def _drop(self, counter: str, index: int | None, stamp_ns: int | None, why: str) -> bool:
+        self.counters[counter] += 1
+        if index is not None:
+            self.channels.dropped[index] += 1
+        self._alarm('dropped', stamp_ns, f'dropped messages (last: {why})')
+        return False
+
+    def _take(self, index: int | None, value: Any, stamp_ns: int) -> bool:
+        """A valid input: clock checks, then queue (event) or latch (fixed/input)."""
+        ch = self.channels
+        newest_ch = ch.newest_max() if index is None else ch.newest[index]
+        if stamp_ns < newest_ch:
+            limit = self.config.clock_reset_s
+            if limit > 0 and stamp_ns < self._newest - limit * 1e9:
+                self.counters['clock_reset'] += 1
+                self.reset()
+            elif self.config.stepping != 'event' or self._k is None or \
+                    self._step_of(stamp_ns) < self._k or (
+                        self._step_of(stamp_ns) == self._k and self._done):
+                return self._drop('backwards', index, stamp_ns,
+                                  'input stamp went backwards')
+        self.counters['inputs'] += 1
+        ch.received_one(index, stamp_ns)
+        self._newest = max(self._newest, stamp_ns)
+        if self.config.stepping == 'event':
+            self._take_event(index, value, stamp_ns)
+        else:
+            self._take_clocked(index, value, stamp_ns)
+        return True
+
+    def _latch(self, index: int | None, value: Any) -> None:
+        if index is None:
+            self.u[:] = value
+        else:
+            self.u[index] = value
+
+    # -- clocked stepping ('fixed', 'input') ----------------------------------------------
+    def _take_clocked(self, index: int | None, value: Any, stamp_ns: int) -> None:
+        if self._k is None:
+            self._anchor(stamp_ns, exact=True)
+        elif stamp_ns < self.t_ns:
+            self.counters['late'] += 1
+            self.channels.late_one(index)
+        else:
+            self.advance_to_ns(stamp_ns)
+        self._latch(index, value)
+        self._update_Bu()
+
+    def advance_to(self, t: float) -> int:
+        """:meth:`advance_to_ns` with the time in float seconds."""
+        t_ns = to_ns(t)
+        return self._bad_time('advance') if t_ns is None else self.advance_to_ns(t_ns)
+
+    def advance_to_ns(self, t_ns: int) -> int:
+        """Advance the model to ``t_ns`` with the held inputs; returns steps taken.
+
+        ``'fixed'``: every whole step due; ``'input'``: exactly to ``t_ns`` (discrete-time
+        models: whole native steps, remainder carried); ``'event'``: every step up to the
+        one ``t_ns`` belongs to, as if every input were known until then. Past times do
+        nothing; refused times (non-finite, out of range) are counted ``bad_time``.
+        """
+        if not _ok_ns(t_ns):
+            return int(self._bad_time('advance'))
+        t_ns = int(t_ns)
+        if self._k is None:
+            self._anchor(t_ns, exact=self.config.stepping != 'event')
+            if self.config.stepping == 'event':
+                self._release(self._k)
+            return 0
+        if self.config.stepping == 'event':
+            before = self.counters['steps']
+            self._release(self._step_of(t_ns))
+            return self.counters['steps'] - before
+        d = self._dyn
+        now = self.t_ns
+        elapsed = t_ns - now
+        if elapsed <= 0:
+            return 0
+        if self.config.stepping == 'fixed' or d.discrete or not d.linear:
+            n = int((elapsed + d.h_ns * 1e-3) // d.h_ns)
+            n = self._limit_catchup(n)
+            self._steps(n)
+            if n:
+                self._check_output(self.t_ns)
+            return n
+        A, B = d.matrices_for(elapsed)
+        self.x = A @ self.x + B @ self.u
+        self._origin, self._k = t_ns, 0
+        self.counters['steps'] += 1
+        self._check_output(t_ns)
+        return 1
+
+    def _limit_catchup(self, n: int) -> int:
+        limit = self.config.max_catchup_steps
+        if n <= limit:
+            return n
+        skipped = n - limit
+        self.counters['catchup_skipped'] += skipped
+        self.counters['clock_jump'] += 1
+        self._k += skipped
+        self._alarm('clock', None, f'clock stalled or jumped: {skipped} steps '
+                                   f'({skipped * self._dyn.h:.3g} s) skipped, state held')
+        return limit
+
+    def step(self) -> None:
+        """One step ``h`` with the held inputs (the hot path; no checks)."""
+        d = self._dyn
+        if d.linear:
+            np.dot(d.A, self.x, out=self._xn)
+            self._xn += self._Bu
+            self.x, self._xn = self._xn, self.x
+        else:
+            self.x = d.stepper(self.x, self.u)
+        self.counters['steps'] += 1
+        if self._k is not None:
+            self._k += 1
+
+    def _steps(self, n: int) -> None:
+        for _ in range(n):
+            self.step()
+
+    # -- event stepping ------------------------------------------------------------------
+    def _take_event(self, index: int | None, value: Any, stamp_ns: int) -> None:
+        if self._k is None:
+            self._anchor(stamp_ns, exact=False)
+            self._first = stamp_ns
+        s = self._step_of(stamp_ns)
+        if not self._released and s < self._k:      # nothing taken yet: move the start back
+            self._k = s
+            self._first = min(self._first, stamp_ns)
+        if s > self._k:
+            self._seq += 1
+            heapq.heappush(self._queue, (s, 0, self._seq, -1 if index is None else index,
+                                         value))
+        else:
+            if s < self._k or self._done:
+                self.counters['late'] += 1
+                self.channels.late_one(index)
+            self._latch(index, value)
+            self._update_Bu()
+        self._release(self._target())
+
+    def _target(self) -> int:
+        """Step the model may advance to: watermark, timeouts, lag."""
+        ch = self.channels
+        timeout = self.config.input_timeout_s * 1e9
+        newest = self._newest
+        before_first = self._first - self._dyn.h_ns       # unseen inputs: known until here
+        wm = None
+        for i, s in enumerate(ch.newest):
+            s_eff = before_first if s == _NONE else s
+            silent = newest - s_eff > timeout
+            if silent != ch.timed_out[i]:
+                ch.timed_out[i] = silent
+                if silent:
+                    self.counters['timeouts'] += 1
+            if not silent and (wm is None or s_eff < wm):
+                wm = s_eff
+        k_wm = self._step_of(newest if wm is None else int(wm))
+        k_lag = self._step_of(newest - int(self.config.max_lag_s * 1e9))
+        if k_lag > k_wm and k_lag > self._k:
+            self.counters['lag_forced'] += k_lag - max(k_wm, self._k)
+            return k_lag
+        return k_wm
+
+    def _release(self, target: int) -> None:
+        """Complete every step up to ``target`` (event stepping)."""
+        if self._k is None or target < self._k:
+            return
+        if target - self._k > self.config.max_catchup_steps:
+            self._limit_catchup(target - self._k)
+            self._done = False
+        q = self._queue
+        while True:
+            if not self._done:
+                k = self._k
+                changed = False
+                while q and q[0][0] <= k and (q[0][1] == 0 or q[0][0] < k):
+                    s, kind, _, i, v = heapq.heappop(q)
+                    if kind == 0:
+                        self._latch(None if i < 0 else i, v)
+                        changed = True
+                    else:
+                        self._measure_now(v[0], v[1], s)
+                if changed:
+                    self._update_Bu()
+                self._complete(k)
+                while q and q[0][0] <= k:
+                    s, _, _, _, v = heapq.heappop(q)
+                    self._measure_now(v[0], v[1], s)
+                self._done = True
+                self._released = True
+            if self._k >= target:
+                return
+            self.step()
+            self._done = False
+
+    def _complete(self, k: int) -> None:
+        """Output of step ``k`` into the history; envelope check; emission."""
+        row = self._hist[k % _HISTORY]
+        self._output_into(row)
+        self._hist_k[k % _HISTORY] = k
+        t_ns = self.t_ns
+        if not self._check_output(t_ns, row):
+            self._output_into(row)
+        if self.emit_outputs:
+            self._emitted.append((t_ns, row.copy()))
+
+    def take_emitted(self) -> list[tuple[int, Array]]:
+        """``(t_ns, y)`` of every step completed since the last call (``emit_outputs``)."""
+        out, self._emitted = self._emitted, []
+        return out
+
+    # -- outputs and divergence -------------------------------------------------------
+    def _output_into(self, y: Array) -> Array:
+        d = self._dyn
+        if d.linear:
+            np.dot(d.C, self.x, out=y)
+            if d.has_D:
+                y += d.D @ self.u
+            y += d.y_ref
+        else:
+            y[:] = self.model.output(self.x, self.u)
+        return y
+
+    def output(self, out: Array | None = None) -> Array:
+        """Predicted absolute output at the model time, shape (p,)."""
+        y = self._output_into(self._y if out is None else out)
+        return y if out is not None else y.copy()
+
+    def _check_output(self, t_ns: int | None, y: Array | None = None) -> bool:
+        """Divergence check; returns False if the state was found outside the envelope."""
+        y = self._output_into(self._y) if y is None else y
+        np.subtract(y, self._dyn.y_ref, out=self._dev)
+        dev = float(np.max(np.abs(self._dev))) if self._dev.size else 0.0
+        if self._env.output_ok(dev) and math.isfinite(float(self.x.sum())):
+            self._diverged_latched = False
+            return True
+        if not self._diverged_latched or self.config.auto_reset:
+            self.counters['diverged'] += 1
+        self._diverged_latched = True
+        what = 'non-finite' if not math.isfinite(dev) else f'max |y - y_ref| = {dev:.3g}'
+        action = 'state reset to the reference' if self.config.auto_reset else 'state kept'
+        self._alarm('diverged', t_ns, f'prediction diverged ({what} > bound '
+                                      f'{self._env.y_bound:.3g}); {action}')
+        if self.config.auto_reset or not math.isfinite(float(self.x.sum())):
+            self.x = self._dyn.initial_state()
+        return False
+
+    # -- measurements ----------------------------------------------------------------
+    def measure(self, y: ArrayLike, stamp: float) -> float | None:
+        """:meth:`measure_ns` with the stamp in float seconds."""
+        t = to_ns(stamp)
+        if t is None:
+            self.counters['measured_dropped'] += 1
+            return None
+        return self.measure_ns(y, t)
+
+    def measure_ns(self, y: ArrayLike, stamp_ns: int) -> float | None:
+        """Compare a measured absolute output with the prediction at ``stamp_ns``.
+
+        ``'event'``: compared with the prediction of its step once the model is there
+        (queued until then; from the history if the model is past it). Clocked stepping:
+        the model first advances to ``stamp_ns``. The error is taken before any correction;
+        then the state is initialised from it (``initial_state='measured'``) or corrected
+        by the Kalman filter (current step only).
+
+        Returns
+        -------
+        float or None
+            The windowed error so far (``None``: dropped, counted ``measured_dropped``, or
+            queued for a step not reached yet).
+        """
+        y = np.array(y, dtype=np.float64)
+        d = self._dyn
+        if not _ok_ns(stamp_ns) or y.shape != (d.p,) or not math.isfinite(y.sum()):
+            self.counters['measured_dropped'] += 1
+            return None
+        stamp_ns = int(stamp_ns)
+        dev = float(np.max(np.abs(y - d.y_ref))) if d.p else 0.0
+        if not self._env.output_ok(dev):
+            self.counters['measured_dropped'] += 1
+            self._alarm('measured', stamp_ns, f'measurement outside the output envelope '
+                                              f'(max |y - y_ref| = {dev:.3g})')
+            return None
+        if self.config.stepping != 'event':
+            self.advance_to_ns(stamp_ns)
+            if self._k is None:
+                return None
+            return self._measure_now(y, stamp_ns, self._k)
+        if self._k is None:
+            self.counters['measured_dropped'] += 1
+            return None
+        s = self._step_of(stamp_ns)
+        if s > self._k or (s == self._k and not self._done):
+            self._seq += 1
+            heapq.heappush(self._queue, (s, 1, self._seq, -1, (y, stamp_ns)))
+            return None
+        return self._measure_now(y, stamp_ns, s)
+
+    def _measure_now(self, y: Array, stamp_ns: int, k: int) -> float | None:
+        d = self._dyn
+        current = k == self._k
+        if current and self._awaiting_init:
+            self.x[:] = self.model.state_from_output(y, self.u)
+            self._awaiting_init = False
+        if current:
+            yhat = self._output_into(self._y)
+        elif self._hist_k[k % _HISTORY] == k:
+            yhat = self._hist[k % _HISTORY]
+        else:
+            self.counters['measured_dropped'] += 1
+            return None
+        np.subtract(y, yhat, out=self._dy)
+        np.subtract(y, d.y_ref, out=self._dev)
+        e2 = float(self._dy @ self._dy)
+        if not self._monitor.push(stamp_ns, e2, float(y @ y), float(self._dev @ self._dev)):
+            self.counters['measured_dropped'] += 1
+            return None
+        self.totals[0] += e2
+        self.totals[1] += float(y @ y)
+        self.totals[2] += float(self._dev @ self._dev)
+        if d.L is not None and current:
+            self.x += d.L @ self._dy
+        self.counters['measurements'] += 1
+        self.channels.measured_one(stamp_ns)
+        return self.windowed_error()
+
+    def windowed_errors(self, now_ns: int | None = None) -> tuple[float, float]:
+        """``(absolute, deviation)`` windowed relative errors (``nan`` without data)."""
+        self._monitor.expire(now_ns)
+        return self._monitor.errors()
+
+    def windowed_error(self, now_ns: int | None = None) -> float:
+        """The windowed relative error chosen by ``error_metric``."""
+        a, dv = self.windowed_errors(now_ns)
+        return dv if self.config.error_metric == 'deviation' else a
+
+    # -- health --------------------------------------------------------------------------
+    def health(self, now: float | int | None = None) -> Health:
+        """Monitor state at ``now`` (int ns, or float seconds; default the model time)."""
+        if isinstance(now, float):
+            now = to_ns(now)
+        elif now is not None and not _ok_ns(now):
+            now = None
+        return assess(self, self.t_ns if now is None else int(now), Level, SEVERITY)

@@ -1,0 +1,171 @@
+"""Envelopes: the range of inputs a model was trained on, and the bound of a sane output.
+
+:func:`training_envelope` is called where model metadata is assembled at fit time; it
+records, per input channel, the smallest and largest training value and, for the outputs,
+the largest deviation from the reference ``max |Y - y_ref|``:
+
+.. code-block:: python
+
+    {'u_min': [...], 'u_max': [...], 'y_dev_max': float, 'samples': int}
+
+stored as ``model.metadata['envelope']``. :class:`Envelopes` turns it (and the
+predictor's settings) into the bounds the predictor applies:
+
+* input envelope -- ``[lo - f w, hi + f w]`` per channel with ``w = hi - lo`` and
+  ``f = input_envelope_margin`` (default 1); explicit ``input_min`` / ``input_max``
+  replace it; a model file without a recorded range has none;
+* output envelope -- ``max |y_hat - y_ref| <= output_envelope_factor * S`` with ``S`` the
+  recorded ``y_dev_max`` (files without it: ``max |y_ref|``, or 1 if that is 0).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from soft_rom.errors import ConfigError
+
+__all__ = ['Envelopes', 'training_envelope']
+
+Array = NDArray[np.float64]
+
+
+def training_envelope(episodes: Iterable[Any], y_ref: ArrayLike | None = None
+                      ) -> dict[str, Any]:
+    """Range of the training data, for the model file's ``metadata['envelope']``.
+
+    Parameters
+    ----------
+    episodes : iterable
+        Objects with ``U`` (m, k) and ``Y`` (p, k) attributes (:class:`~soft_rom.data.Episode`),
+        or ``(U, Y)`` pairs.
+    y_ref : ndarray, shape (p,), optional
+        Output reference; default the first output sample of the first episode.
+
+    Returns
+    -------
+    dict
+        ``u_min``, ``u_max`` (lists of m floats), ``y_dev_max`` (float, ``max |Y - y_ref|``
+        over all outputs and samples; ``None`` without outputs) and ``samples``.
+    """
+    lo: Array | None = None
+    hi: Array | None = None
+    dev = 0.0
+    have_y = False
+    samples = 0
+    ref = None if y_ref is None else np.asarray(y_ref, dtype=np.float64).reshape(-1)
+    for ep in episodes:
+        U, Y = (ep.U, ep.Y) if hasattr(ep, 'U') else ep
+        U = np.asarray(U, dtype=np.float64)
+        Y = np.asarray(Y, dtype=np.float64)
+        if U.ndim == 2 and U.shape[1]:
+            u_lo, u_hi = np.nanmin(U, axis=1), np.nanmax(U, axis=1)
+            lo = u_lo if lo is None else np.minimum(lo, u_lo)
+            hi = u_hi if hi is None else np.maximum(hi, u_hi)
+            samples += U.shape[1]
+        if Y.ndim == 2 and Y.shape[0] and Y.shape[1]:
+            if ref is None:
+                ref = Y[:, 0].copy()
+            if ref.shape[0] == Y.shape[0]:
+                dev = max(dev, float(np.nanmax(np.abs(Y - ref[:, None]))))
+                have_y = True
+    return {
+        'u_min': [] if lo is None else [float(v) for v in lo],
+        'u_max': [] if hi is None else [float(v) for v in hi],
+        'y_dev_max': dev if have_y else None,
+        'samples': int(samples),
+    }
+
+
+class Envelopes:
+    """Input and output bounds of one model under one configuration.
+
+    Parameters
+    ----------
+    model : object
+        With ``n_inputs``, ``y_ref`` and ``metadata``.
+    config : PredictorConfig
+
+    Attributes
+    ----------
+    u_lo, u_hi : ndarray, shape (m,) or None
+        Input envelope (``None``: none).
+    y_bound : float
+        Largest allowed ``max |y - y_ref|``.
+    input_source, output_source : str
+        Where the bounds came from, for the health values and the docs.
+    """
+
+    def __init__(self, model: Any, config: Any) -> None:
+        m = int(model.n_inputs)
+        meta = model.metadata.get('envelope') if isinstance(model.metadata, dict) else None
+        meta = meta if isinstance(meta, dict) else {}
+        self.u_lo: Array | None = None
+        self.u_hi: Array | None = None
+        self.input_source = 'none'
+        if config.input_min:
+            if len(config.input_min) != m:
+                raise ConfigError(f'input_min/input_max list {len(config.input_min)} values; '
+                                  f'the model has {m} inputs.')
+            self.u_lo = np.array(config.input_min, dtype=np.float64)
+            self.u_hi = np.array(config.input_max, dtype=np.float64)
+            self.input_source = 'configured'
+        else:
+            lo, hi = _floats(meta.get('u_min'), m), _floats(meta.get('u_max'), m)
+            if lo is not None and hi is not None and np.all(lo <= hi):
+                width = hi - lo
+                f = float(config.input_envelope_margin)
+                self.u_lo, self.u_hi = lo - f * width, hi + f * width
+                self.input_source = f'training range widened by {f:g} x its width'
+        y_ref = np.asarray(model.y_ref, dtype=np.float64)
+        dev = meta.get('y_dev_max')
+        if isinstance(dev, (int, float)) and math.isfinite(dev) and dev > 0:
+            scale = float(dev)
+            self.output_source = 'training max |Y - y_ref|'
+        else:
+            scale = float(np.max(np.abs(y_ref))) if y_ref.size else 0.0
+            if not (math.isfinite(scale) and scale > 0):
+                scale = 1.0
+            self.output_source = 'max |y_ref| (no training envelope in the model file)'
+        self.y_scale = scale
+        self.y_bound = float(config.output_envelope_factor) * scale
+
+    def input_ok(self, index: int, value: float) -> bool:
+        """Whether one channel's value is inside the input envelope."""
+        if self.u_lo is None:
+            return True
+        return bool(self.u_lo[index] <= value <= self.u_hi[index])
+
+    def clip(self, index: int, value: float) -> float:
+        """``value`` clipped into channel ``index``'s envelope."""
+        if self.u_lo is None:
+            return value
+        return float(min(max(value, self.u_lo[index]), self.u_hi[index]))
+
+    def output_ok(self, dev_inf: float) -> bool:
+        """Whether ``max |y - y_ref|`` (``dev_inf``) is inside the output envelope."""
+        return dev_inf <= self.y_bound      # False for NaN
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-able description (for ``model_info`` and diagnostics)."""
+        return {
+            'input_min': None if self.u_lo is None else self.u_lo.tolist(),
+            'input_max': None if self.u_hi is None else self.u_hi.tolist(),
+            'input_source': self.input_source,
+            'output_bound': self.y_bound,
+            'output_source': self.output_source,
+        }
+
+
+def _floats(values: Any, m: int) -> Array | None:
+    if not isinstance(values, list) or len(values) != m:
+        return None
+    try:
+        arr = np.array([float(v) for v in values], dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    return arr if np.all(np.isfinite(arr)) else None

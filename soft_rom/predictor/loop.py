@@ -1,0 +1,333 @@
+"""The runtime loop: one ROS-free object that decides what the predictor publishes, and when.
+
+The predictor node, ``soft-rom replay`` and ``soft-rom replay --stream`` all run a
+:class:`RuntimeLoop` around a :class:`~soft_rom.predictor.Predictor`; each feeds it
+messages (value, stamp in int ns, reception time in int ns) and publishes the
+:class:`Publish` it returns:
+
+* ``outputs`` -- ``~/output`` messages, each paired with its model time (int ns): every
+  completed step (``output_rate_hz = 0``) or decimated to that rate on the model clock;
+* ``centerline`` -- the newest prediction as points, for ``~/centerline`` and the markers,
+  at ``centerline_rate_hz`` (default 30 Hz, what RViz can take), model-time decimated;
+  ``measured_points`` (the last accepted measurement) and ``error`` go with it;
+* ``diagnostics_due`` -- time for :meth:`RuntimeLoop.diagnostics` (reception clock).
+
+Stepping is the predictor's: with ``'event'`` stepping the inputs drive the model, so no
+fast timer is needed -- :meth:`RuntimeLoop.tick` only has to run at the diagnostics rate;
+with ``'fixed'`` stepping a timer calls it at :meth:`RuntimeLoop.timer_period_ns`.
+A zero stamp (un-stamped sources) falls back to the reception time (counted
+``stamp_fallback``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from soft_rom.errors import ConfigError
+from soft_rom.predictor.config import Health, PredictorConfig
+from soft_rom.predictor.conversions import check_components, outputs_to_points, \
+    points_to_outputs
+from soft_rom.predictor.core import Predictor
+
+__all__ = ['Diagnostics', 'LoopSettings', 'MARKER_STYLES', 'Publish', 'RuntimeLoop']
+
+Array = NDArray[np.float64]
+
+#: ``kind -> (namespace, id, rgba, line width)`` of the centerline markers.
+MARKER_STYLES: dict[str, tuple[str, int, tuple[float, float, float, float], float]] = {
+    'predicted': ('predicted', 0, (0.1, 0.4, 1.0, 1.0), 0.004),
+    'measured': ('measured', 1, (1.0, 0.3, 0.1, 1.0), 0.003),
+}
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """What the loop publishes and how it converts (the node's non-core parameters).
+
+    Parameters
+    ----------
+    output_rate_hz : float
+        ``~/output`` rate on the model clock; ``0`` = every step.
+    centerline_rate_hz : float
+        ``~/centerline`` and markers; ``0`` = with every output.
+    diagnostics_rate_hz : float
+        Diagnostics on the reception clock (``> 0``).
+    components : str
+        Output layout, component-major (``'xz'``: ``y = [x_1..x_N, z_1..z_N]``).
+    fill_value : float
+        Coordinate value of the components the model does not predict.
+    input_scale, input_offset : float
+        ``u = input_scale * value + input_offset``.
+    """
+
+    output_rate_hz: float = 0.0
+    centerline_rate_hz: float = 30.0
+    diagnostics_rate_hz: float = 1.0
+    components: str = 'xz'
+    fill_value: float = 0.0
+    input_scale: float = 1.0
+    input_offset: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ('output_rate_hz', 'centerline_rate_hz', 'diagnostics_rate_hz',
+                     'fill_value', 'input_scale', 'input_offset'):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                    and math.isfinite(value)):
+                raise ConfigError(f'{name} must be a finite number; got {value!r}.')
+        for name in ('output_rate_hz', 'centerline_rate_hz'):
+            if getattr(self, name) < 0:
+                raise ConfigError(f'{name} must be >= 0; got {getattr(self, name)!r}.')
+        if self.diagnostics_rate_hz <= 0:
+            raise ConfigError(f'diagnostics_rate_hz must be > 0; got '
+                              f'{self.diagnostics_rate_hz!r}.')
+
+
+class Publish:
+    """What to publish after one call (all fields empty when nothing is due)."""
+
+    __slots__ = ('centerline', 'diagnostics_due', 'error', 'measured_points', 'outputs')
+
+    def __init__(self) -> None:
+        self.outputs: list[tuple[int, Array]] = []
+        self.centerline: tuple[int, Array] | None = None
+        self.measured_points: Array | None = None
+        self.error: float | None = None
+        self.diagnostics_due = False
+
+    def __bool__(self) -> bool:
+        return bool(self.outputs) or self.centerline is not None or self.diagnostics_due
+
+
+@dataclass(frozen=True)
+class Diagnostics:
+    """One diagnostics report: level (``DiagnosticStatus`` byte), message, key-values."""
+
+    level: int
+    message: str
+    values: list[tuple[str, str]]
+    health: Health
+
+
+def _period_ns(rate_hz: float, h: float) -> int:
+    """A publish period, a whole number of steps ``h`` (0 = every step)."""
+    if rate_hz <= 0:
+        return 0
+    return int(round(max(1, round(1.0 / (rate_hz * h))) * h * 1e9))
+
+
+def _fmt(value: Any) -> str:
+    if isinstance(value, float):
+        return 'nan' if math.isnan(value) else f'{value:.6g}'
+    return str(value)
+
+
+class RuntimeLoop:
+    """Stepping, publish schedule, rate figures and diagnostics around one predictor.
+
+    Parameters
+    ----------
+    predictor : Predictor
+    settings : LoopSettings, optional
+
+    Attributes
+    ----------
+    counts : dict of str to int
+        ``outputs``, ``centerlines``, ``diagnostics``, ``stamp_fallback`` published/used.
+    """
+
+    def __init__(self, predictor: Predictor, settings: LoopSettings | None = None) -> None:
+        self.predictor = predictor
+        self.settings = LoopSettings() if settings is None else settings
+        self.counts = {'outputs': 0, 'centerlines': 0, 'diagnostics': 0, 'stamp_fallback': 0}
+        predictor.emit_outputs = True
+        self._install()
+
+    # -- configuration -------------------------------------------------------------------
+    def _install(self) -> None:
+        pred = self.predictor
+        check_components(self.settings.components, pred.model.n_outputs)
+        self._n_points = pred.model.n_outputs // len(self.settings.components)
+        self._out_period = _period_ns(self.settings.output_rate_hz, pred.h)
+        self._cl_period = _period_ns(self.settings.centerline_rate_hz, pred.h)
+        self._diag_period = int(round(1e9 / self.settings.diagnostics_rate_hz))
+        self._next_out: int | None = None
+        self._next_cl: int | None = None
+        self._next_diag: int | None = None
+        self._last_t: int | None = None
+        self._measured: Array | None = None
+        self._rate_mark: tuple[int, list[int], int, int, int] | None = None
+        pred.take_emitted()
+
+    def set_settings(self, settings: LoopSettings) -> None:
+        """New publish rates / conversion (checked against the model first)."""
+        check_components(settings.components, self.predictor.model.n_outputs)
+        self.settings = settings
+        self._install()
+
+    def replace_settings(self, **changes: Any) -> None:
+        """:meth:`set_settings` with some fields changed."""
+        self.set_settings(replace(self.settings, **changes))
+
+    def timer_period_ns(self) -> int:
+        """Period of the timer that must call :meth:`tick`.
+
+        ``'fixed'`` stepping: the output period (or one step); otherwise the diagnostics
+        period (the inputs drive the stepping).
+        """
+        if self.predictor.config.stepping == 'fixed':
+            return self._out_period or int(round(self.predictor.h * 1e9))
+        return self._diag_period
+
+    def reset(self) -> None:
+        """Reset the predictor and the publish schedule."""
+        self.predictor.reset()
+        self._install()
+
+    def reload(self, model: Any, config: PredictorConfig | None = None, *,
+               validate: Any = None) -> None:
+        """Atomic model reload (see :meth:`Predictor.reload`); the components are checked."""
+        comps = self.settings.components
+
+        def check(candidate: Any) -> None:
+            check_components(comps, candidate.n_outputs)
+            if validate is not None:
+                validate(candidate)
+
+        self.predictor.reload(model, config, validate=check)
+        self.predictor.emit_outputs = True
+        self._install()
+
+    def set_config(self, config: PredictorConfig) -> None:
+        """Change core settings (see :meth:`Predictor.set_config`)."""
+        self.predictor.set_config(config)
+        self.predictor.emit_outputs = True
+        self._install()
+
+    # -- feeding -------------------------------------------------------------------------
+    def _stamp(self, stamp_ns: int, now_ns: int) -> int:
+        if stamp_ns == 0:
+            self.counts['stamp_fallback'] += 1
+            return now_ns
+        return stamp_ns
+
+    def on_channel(self, index: int, value: float, stamp_ns: int, now_ns: int) -> Publish:
+        """One per-chamber value (raw units; scale and offset applied here)."""
+        s = self.settings
+        self.predictor.set_channel_ns(index, s.input_scale * value + s.input_offset,
+                                      self._stamp(stamp_ns, now_ns))
+        return self._collect(now_ns)
+
+    def on_array(self, values: ArrayLike, stamp_ns: int, now_ns: int) -> Publish:
+        """All inputs at once (``Float64MultiArray``: pass ``stamp_ns=0`` for ``now_ns``)."""
+        s = self.settings
+        u = np.asarray(values, dtype=np.float64).reshape(-1)
+        if s.input_scale != 1.0 or s.input_offset != 0.0:
+            u = s.input_scale * u + s.input_offset
+        self.predictor.set_input_ns(u, self._stamp(stamp_ns, now_ns))
+        return self._collect(now_ns)
+
+    def on_measured(self, measured: ArrayLike, stamp_ns: int, now_ns: int) -> Publish:
+        """A measured output: points ``(N, 3)`` (centerline) or the vector ``(p,)``."""
+        arr = np.asarray(measured, dtype=np.float64)
+        pred = self.predictor
+        if arr.ndim == 2:
+            if arr.shape[1] != 3 or arr.shape[0] != self._n_points:
+                pred.counters['measured_dropped'] += 1
+                return self._collect(now_ns)
+            arr = points_to_outputs(arr, self.settings.components)
+        before = pred.counters['measured_dropped']
+        pred.measure_ns(arr, self._stamp(stamp_ns, now_ns))
+        if pred.counters['measured_dropped'] == before:     # compared, or queued
+            self._measured = arr
+        return self._collect(now_ns)
+
+    def measured_points(self) -> Array | None:
+        """The last accepted measurement as points ``(N, 3)`` (``None`` before one)."""
+        if self._measured is None:
+            return None
+        s = self.settings
+        return outputs_to_points(self._measured, s.components, s.fill_value)
+
+    def tick(self, now_ns: int) -> Publish:
+        """Timer: ``'fixed'`` stepping advances to ``now_ns``; then what is due."""
+        if self.predictor.config.stepping == 'fixed':
+            self.predictor.advance_to_ns(now_ns)
+        return self._collect(now_ns)
+
+    # -- schedule --------------------------------------------------------------------
+    def _collect(self, now_ns: int) -> Publish:
+        pred = self.predictor
+        pub = Publish()
+        emitted = pred.take_emitted()
+        t = pred.t_ns
+        if not emitted and pred.config.stepping != 'event' and t is not None and \
+                t != self._last_t:
+            emitted = [(t, pred.output())]
+        if emitted:
+            self._last_t = emitted[-1][0]
+            if self._out_period:
+                for t_e, y in emitted:
+                    if self._next_out is None or t_e >= self._next_out:
+                        pub.outputs.append((t_e, y))
+                        self._next_out = t_e + self._out_period
+            else:
+                pub.outputs = emitted
+            t_last, y_last = emitted[-1]
+            if not self._cl_period or self._next_cl is None or t_last >= self._next_cl:
+                s = self.settings
+                pub.centerline = (t_last, outputs_to_points(y_last, s.components,
+                                                            s.fill_value))
+                if self._measured is not None:
+                    pub.measured_points = outputs_to_points(self._measured, s.components,
+                                                            s.fill_value)
+                err = pred.windowed_error(now_ns)
+                pub.error = err if math.isfinite(err) else None
+                self._next_cl = t_last + self._cl_period
+                self.counts['centerlines'] += 1
+            self.counts['outputs'] += len(pub.outputs)
+        if self._next_diag is None or now_ns >= self._next_diag:
+            pub.diagnostics_due = True
+            base = now_ns if self._next_diag is None else self._next_diag
+            self._next_diag = base + self._diag_period
+            if self._next_diag <= now_ns:         # clock jumped: no burst of reports
+                self._next_diag = now_ns + self._diag_period
+        return pub
+
+    # -- diagnostics -----------------------------------------------------------------
+    def diagnostics(self, now_ns: int, extra: list[tuple[str, str]] | None = None
+                    ) -> Diagnostics:
+        """Health at ``now_ns`` with global and per-input figures (rates since last call)."""
+        pred = self.predictor
+        health = pred.health(int(now_ns))
+        values = [(str(k), _fmt(v)) for k, v in health.values.items()]
+        ch = pred.channels
+        mark = self._rate_mark
+        dt = (now_ns - mark[0]) * 1e-9 if mark is not None else 0.0
+        for i, name in enumerate(ch.names):
+            age = math.inf if ch.newest[i] == -(2 ** 63) else (now_ns - ch.newest[i]) * 1e-9
+            rate = (ch.received[i] - mark[1][i]) / dt if mark and dt > 0 else math.nan
+            values += [(f'input.{name}.rate_hz', _fmt(float(rate))),
+                       (f'input.{name}.age_s', _fmt(float(age))),
+                       (f'input.{name}.received', str(ch.received[i])),
+                       (f'input.{name}.late', str(ch.late[i])),
+                       (f'input.{name}.dropped', str(ch.dropped[i])),
+                       (f'input.{name}.clipped', str(ch.clipped[i])),
+                       (f'input.{name}.timed_out', str(ch.timed_out[i]).lower())]
+        m_rate = (ch.measured - mark[2]) / dt if mark and dt > 0 else math.nan
+        o_rate = (self.counts['outputs'] - mark[3]) / dt if mark and dt > 0 else math.nan
+        values += [('measured.rate_hz', _fmt(float(m_rate))),
+                   ('output.rate_hz', _fmt(float(o_rate))),
+                   ('input_rate_hz', _fmt((pred.counters['inputs'] - mark[4]) / dt)
+                    if mark and dt > 0 else 'nan'),
+                   ('stamp_fallback', str(self.counts['stamp_fallback']))]
+        values += list(extra or [])
+        self._rate_mark = (int(now_ns), list(ch.received), ch.measured, self.counts['outputs'],
+                           pred.counters['inputs'])
+        self.counts['diagnostics'] += 1
+        return Diagnostics(int(health.level), health.message, values, health)
