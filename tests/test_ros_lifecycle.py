@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import signal
 
-from _ros import Client, NodeProcess, no_noise, require_rclpy
+from _ros import Client, no_noise, NodeProcess, require_rclpy
 import numpy as np
 import pytest
 
@@ -17,7 +17,7 @@ require_rclpy()
 from lifecycle_msgs.msg import State, Transition  # noqa: E402
 from lifecycle_msgs.srv import ChangeState, GetState  # noqa: E402
 from sensor_msgs.msg import FluidPressure  # noqa: E402
-from test_ros_node import MS, model, Outputs, params, pressure, RELIABLE, T0_NS, TOPICS  # noqa: E402
+from test_ros_node import model, MS, Outputs, params, pressure, RELIABLE, T0_NS, TOPICS  # noqa: E402
 
 
 @pytest.fixture
