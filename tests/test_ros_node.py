@@ -127,11 +127,12 @@ def _connected(client: Client, pubs: list, out: Outputs | None = None) -> None:
         assert client.spin_until(lambda: bool(out.infos), timeout=10.0), 'no model_info'
 
 
-def test_per_chamber_input_at_full_rate_equals_replay(client, tmp_path) -> None:
+@pytest.mark.parametrize('executor', ['single_threaded', 'events'])
+def test_per_chamber_input_at_full_rate_equals_replay(client, tmp_path, executor) -> None:
     m = model()
     ep = episode(m)
     ref = replay_episode(Predictor(m, PredictorConfig()), ep, measured=False, t0_ns=T0_NS)
-    node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz')))
+    node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz'), executor=executor))
     try:
         out = Outputs(client, node.fqn)
         pubs = _publishers(client)
@@ -148,6 +149,8 @@ def test_per_chamber_input_at_full_rate_equals_replay(client, tmp_path) -> None:
         assert worst <= 1e-12 * max(1.0, np.max(np.abs(ref.Y)))
         assert client.spin_until(lambda: len(out.plain) == ep.n_samples, timeout=5.0)
         assert out.infos[-1]['r'] == 4 and len(out.infos[-1]['sha256']) == 64
+        assert node.stop(signal.SIGINT) == 0
+        assert not no_noise(node.log()), node.log()
     finally:
         node.kill()
 

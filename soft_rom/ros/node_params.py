@@ -32,6 +32,9 @@ __all__ = ['NODE_PARAMS', 'NodeSettings', 'ParameterMixin']
 NODE_PARAMS: tuple[Param, ...] = (
     Param('lifecycle', False, 'true: a managed (lifecycle) node, started by configure and '
           'activate transitions; false: a plain node that starts at once.'),
+    Param('executor', 'single_threaded', 'rclpy executor: single_threaded '
+          '(SingleThreadedExecutor) or events (rclpy.experimental.EventsExecutor, less CPU '
+          'per message).', choices=('single_threaded', 'events')),
     Param('hardware_id', '', 'hardware_id of the /diagnostics statuses; empty = the node '
           'name.'),
 )
@@ -59,6 +62,7 @@ class NodeSettings:
     measured_topic: str
     wait_for_model: bool
     lifecycle: bool
+    executor: str
     hardware_id: str
 
 
@@ -113,7 +117,8 @@ class ParameterMixin:
             diagnostics_rate_hz=float(v['diagnostics_rate_hz']), frame_id=str(v['frame_id']),
             output_components=str(v['output_components']), fill_value=float(v['fill_value']),
             measured_topic=str(v['measured_topic']), wait_for_model=bool(v['wait_for_model']),
-            lifecycle=bool(v['lifecycle']), hardware_id=str(v['hardware_id']))
+            lifecycle=bool(v['lifecycle']), executor=str(v['executor']),
+            hardware_id=str(v['hardware_id']))
 
     def parameter_values(self, changes: list[Parameter] | None = None) -> dict[str, Any]:
         """Every parameter's value, with ``changes`` applied over them."""

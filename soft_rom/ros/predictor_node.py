@@ -454,6 +454,14 @@ class _StopFlag:
             signal.signal(sig, handler)
 
 
+def _executor(kind: str) -> Any:
+    if kind == 'events':
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor()
+    return SingleThreadedExecutor()
+
+
 def main(args: list[str] | None = None) -> int:
     """Run the node until SIGINT/SIGTERM; returns the exit status (0, or 1: no model)."""
     stop = _StopFlag()
@@ -467,7 +475,7 @@ def main(args: list[str] | None = None) -> int:
                                                    or node.managed):
             code = 1
         else:
-            executor = SingleThreadedExecutor()
+            executor = _executor(node.settings.executor)
             executor.add_node(node)
             while not stop.event.is_set() and rclpy.ok():
                 executor.spin_once(timeout_sec=0.1)
