@@ -131,3 +131,17 @@ def test_rviz_config_shows_the_node_topics() -> None:
                                                        measured]
     frame = next(p.default for p in PARAMS if p.name == 'frame_id')
     assert frame == 'world'
+
+
+def test_readme_lists_the_run_time_parameters_and_commands() -> None:
+    readme = (ROOT / 'README.md').read_text(encoding='utf-8')
+    start = readme.index('Parameters changeable at run time:')
+    listed = readme[start:readme.index('All others are read-only', start)]
+    names = {w.strip('`,. \n') for w in listed.split('`')[1::2]}
+    assert names == {p.name for p in PARAMS if not p.read_only}
+    for command in ('ros2 param set /soft_rom_predictor model_path',
+                    'ros2 service call /soft_rom_predictor/reset std_srvs/srv/Trigger',
+                    'ros2 bag play recording/ --clock', 'use_sim_time:=true',
+                    'ros2 lifecycle set /soft_rom_predictor configure',
+                    'ros2 lifecycle set /soft_rom_predictor activate', 'rviz:=true'):
+        assert command in readme, command
