@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import ast
 import importlib.util
+import os
 from pathlib import Path
 import py_compile
+import subprocess
 import sys
 import types
 
@@ -145,3 +147,22 @@ def test_readme_lists_the_run_time_parameters_and_commands() -> None:
                     'ros2 lifecycle set /soft_rom_predictor configure',
                     'ros2 lifecycle set /soft_rom_predictor activate', 'rviz:=true'):
         assert command in readme, command
+
+
+def test_predictor_without_ros_says_so_in_one_line(tmp_path) -> None:
+    # rclpy shadowed by a package that is not there, as on a machine without ROS
+    fake = tmp_path / 'rclpy'
+    fake.mkdir()
+    (fake / '__init__.py').write_text(
+        "raise ModuleNotFoundError(\"No module named 'rclpy'\", name='rclpy')\n",
+        encoding='utf-8')
+    exe = Path(sys.executable).parent / 'predictor'
+    assert exe.exists(), 'pip install -e . puts predictor beside python'
+    env = dict(os.environ, PYTHONPATH=str(tmp_path))
+    out = subprocess.run([str(exe), '--ros-args', '-p', 'model_path:=m.npz'], env=env,
+                         capture_output=True, text=True, timeout=60, check=False)
+    assert out.returncode == 2, out.stdout + out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and 'Traceback' not in out.stderr, out.stderr
+    assert 'ROS 2 Jazzy' in lines[0] and 'ros extra' in lines[0] and 'rclpy' in lines[0]
+    assert out.stdout == ''

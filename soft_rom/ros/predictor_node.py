@@ -33,6 +33,7 @@ checks at least every 0.1 s, so no callback runs after the context shuts down (n
 
 from __future__ import annotations
 
+import functools
 import signal
 import sys
 import threading
@@ -230,7 +231,7 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
         if s.input_mode == 'per_chamber':
             for i, topic in enumerate(s.input_topics):
                 ents.append(self.create_subscription(
-                    FluidPressure, topic, lambda msg, i=i: self._on_pressure(i, msg), qos))
+                    FluidPressure, topic, functools.partial(self._on_pressure, i), qos))
         else:
             ents.append(self.create_subscription(Float64MultiArray, s.array_topic,
                                                  self._on_array, qos))
