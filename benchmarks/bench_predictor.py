@@ -1,10 +1,14 @@
-"""Predictor benchmarks: core step, replay, message conversion, bag writing.
+"""Predictor benchmarks: core step, event-time input paths, runtime loop, replay, bags.
 
-Run: ``.venv/bin/python benchmarks/bench_predictor.py [--r 16] [--k 2000]``
+Run: ``.venv/bin/python benchmarks/bench_predictor.py [--r 16] [--k 2000] [--epoch-minutes 10]``
 
-Each figure is printed beside a naive baseline measured in the same run (and the target
-from issue 5 where there is one). Message conversions are timed on plain attribute
-objects (no rclpy here); rclpy's checked setters add their own cost on top.
+Each figure is printed beside a naive baseline measured in the same run (a bare
+``x <- A x + B u`` through the model's own ``step``/``output``, or an interpreted loop)
+and the ratio. All input stamps are int nanoseconds at an epoch (1.7e9 s), as a live robot
+sends them. Message conversions are timed on plain attribute objects (no rclpy here);
+rclpy's checked setters add their own cost on top. ``--epoch-minutes`` runs that many
+minutes at 1 kHz through the core and prints the largest difference from
+``model.simulate`` (the time-base acceptance figure).
 """
 
 # ruff: noqa: E402  (thread settings must precede the numpy import)
@@ -34,6 +38,7 @@ from soft_rom.predictor.conversions import (
     poses_to_points,
     set_points,
 )
+from soft_rom.predictor.loop import LoopSettings, RuntimeLoop
 
 
 def _model(r: int, m: int = 6, p: int = 40, seed: int = 0) -> SecondOrderModel:
@@ -67,6 +72,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument('--r', type=int, default=16)
     ap.add_argument('--k', type=int, default=2000)
+    ap.add_argument('--epoch-minutes', type=float, default=10.0)
     args = ap.parse_args()
     model = _model(args.r)
     rng = np.random.default_rng(1)
@@ -86,11 +92,13 @@ def main() -> None:
 
     _row('core step (held input)', _best(pred.step, 20000), _best(naive_step, 20000),
          target='<= 20 us')
-    t = [0.0]
+    T0 = 1_700_000_000 * 10 ** 9
+    h_ns = int(round(model.dt * 1e9))
+    t = [T0]
 
-    def update() -> None:               # what one input callback + publish does
-        t[0] += model.dt
-        pred.set_input(u, t[0])
+    def update() -> None:               # one array message: event step + latch + output
+        t[0] += h_ns
+        pred.set_input_ns(u, t[0])
         pred.output()
 
     x2 = np.zeros(model.n_states)
@@ -100,17 +108,69 @@ def main() -> None:
         x2 = model.step(x2, u)
         model.output(x2, u)
 
-    _row('input callback: advance + latch + output', _best(update, 10000),
+    _row('array input (event, epoch ns): step+output', _best(update, 10000),
+         _best(naive_update, 10000), target='<= 20 us')
+    pf = Predictor(model, PredictorConfig(stepping='fixed'))
+    tf = [T0]
+
+    def fixed_update() -> None:         # the clocked path: advance + latch + output
+        tf[0] += h_ns
+        pf.advance_to_ns(tf[0])
+        pf.set_input_ns(u, tf[0])
+        pf.output()
+
+    _row('array input (fixed stepping): same', _best(fixed_update, 10000),
          _best(naive_update, 10000))
-    pj = Predictor(model, PredictorConfig(stepping='input'))
-    tj = [0.0]
-    jitter = rng.uniform(0.9e-3, 1.1e-3, 64)       # 64 distinct intervals, then cache hits
+    pc = Predictor(model)
+    tc = [T0]
+    order = [list(rng.permutation(m)) for _ in range(64)]
     cnt = [0]
+
+    def chambers() -> None:             # six per-chamber messages, any order, one step
+        tc[0] += h_ns
+        for i in order[cnt[0] % 64]:
+            pc.set_channel_ns(i, float(u[i]), tc[0])
+        cnt[0] += 1
+
+    def naive_chambers() -> None:
+        nonlocal x2
+        for i in range(m):
+            u[i] = float(u[i])
+        x2 = model.step(x2, u)
+        model.output(x2, u)
+
+    _row(f'{m} chamber messages (event, shuffled) per step', _best(chambers, 5000),
+         _best(naive_chambers, 5000), target='<= 6 x 20 us')
+    loop = RuntimeLoop(Predictor(model), LoopSettings())
+    tl = [T0]
+
+    def loop_array() -> None:           # what the node's array callback does
+        tl[0] += h_ns
+        pub = loop.on_array(u, tl[0], tl[0])
+        for _t, _y in pub.outputs:
+            pass
+
+    _row('runtime loop: array message -> Publish', _best(loop_array, 10000),
+         _best(naive_update, 10000))
+    loop_c = RuntimeLoop(Predictor(model), LoopSettings())
+    tlc = [T0]
+
+    def loop_chambers() -> None:
+        tlc[0] += h_ns
+        for i in order[cnt[0] % 64]:
+            loop_c.on_channel(i, float(u[i]), tlc[0], tlc[0])
+        cnt[0] += 1
+
+    _row(f'runtime loop: {m} chamber messages per step', _best(loop_chambers, 5000),
+         _best(naive_chambers, 5000))
+    pj = Predictor(model, PredictorConfig(stepping='input'))
+    tj = [T0]
+    jitter = np.round(rng.uniform(0.9e6, 1.1e6, 64)).astype(int).tolist()
 
     def jittered() -> None:
         tj[0] += jitter[cnt[0] % 64]
         cnt[0] += 1
-        pj.set_input(u, tj[0])
+        pj.set_input_ns(u, tj[0])
 
     _row('input stepping, jittered stamps (cached)', _best(jittered, 5000),
          _best(naive_update, 5000))
@@ -121,7 +181,7 @@ def main() -> None:
     ep = Episode(t=np.arange(k) * model.dt, U=U, Y=model.simulate(U))
 
     def ours_replay() -> None:
-        replay_episode(Predictor(model), ep, measured=True)
+        replay_episode(Predictor(model), ep, measured=True, t0_ns=T0)
 
     def naive_replay() -> None:
         xs = np.zeros(model.n_states)
@@ -138,8 +198,14 @@ def main() -> None:
     ours_replay()
     print(f'  replay CPU time (process_time, robust to a busy machine): '
           f'{(time.process_time() - c0) * 1e3:.1f} ms')
-    res = replay_episode(Predictor(model), ep, measured=False)
+    res = replay_episode(Predictor(model), ep, measured=False, t0_ns=T0)
     print(f'  replay vs simulate max abs difference: {np.abs(res.Y - ep.Y).max():.2e}')
+    loop_r = RuntimeLoop(Predictor(model), LoopSettings())
+    ours_loop = _best(lambda: replay_episode(loop_r.predictor, ep, measured=True, t0_ns=T0,
+                                             loop=loop_r, publish=lambda pub, t: None)
+                      if not loop_r.reset() else None, 1, repeat=3)
+    _row(f'replay {k} steps through the runtime loop', ours_loop,
+         _best(naive_replay, 1, repeat=3), unit='ms')
 
     # 3. conversions -----------------------------------------------------------------------
     n = p // 2
@@ -181,10 +247,48 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for every in (1, 20):
             t0 = time.perf_counter()
-            replay_to_bag(Predictor(model), epb, f'{tmp}/b{every}', publish_every=every)
+            replay_to_bag(Predictor(model), epb, f'{tmp}/b{every}', publish_every=every,
+                          t0_ns=T0)
             dt = time.perf_counter() - t0
             print(f'replay -> MCAP bag, {kb} steps, publish every {every:>2d}: '
                   f'{dt * 1e3:8.1f} ms ({dt / kb * 1e6:.0f} us/step)')
+        t0 = time.perf_counter()
+        replay_to_bag(Predictor(model), epb, f'{tmp}/bdef', t0_ns=T0)
+        dt = time.perf_counter() - t0
+        print(f'replay -> MCAP bag, {kb} steps, output every step + centerline 30 Hz: '
+              f'{dt * 1e3:8.1f} ms ({dt / kb * 1e6:.0f} us/step)')
+    if args.epoch_minutes > 0:
+        epoch_figure(args.epoch_minutes)
+
+
+def epoch_figure(minutes: float) -> None:
+    """Minutes at 1 kHz from an epoch stamp through the core vs ``model.simulate``."""
+    model = _model(4, m=6, p=40, seed=5)
+    k = int(round(minutes * 60_000))
+    rng = np.random.default_rng(6)
+    U = np.repeat(rng.standard_normal((6, k // 50 + 1)), 50, axis=1)[:, :k]
+    t0 = time.perf_counter()
+    Y = model.simulate(U)
+    t_sim = time.perf_counter() - t0
+    pred = Predictor(model)
+    Ut = np.ascontiguousarray(U.T)
+    y = np.empty(40)
+    worst = 0.0
+    T0 = 1_700_000_000 * 10 ** 9
+    t0 = time.perf_counter()
+    for j in range(k):
+        pred.set_input_ns(Ut[j], T0 + j * 1_000_000)
+        pred.output(y)
+        d = np.abs(y - Y[:, j]).max()
+        if d > worst:
+            worst = float(d)
+    t_run = time.perf_counter() - t0
+    rel = worst / np.abs(Y).max()
+    print(f'{minutes:g} min at 1 kHz from t0 = 1.7e9 s through the core: {k} inputs, '
+          f'{pred.counters["steps"]} steps (one per input: {pred.counters["steps"] == k - 1}), '
+          f'max |y - simulate| = {worst:.2e} ({rel:.1e} relative; target 1e-12); '
+          f'{t_run / k * 1e6:.1f} us/input incl. the comparison (simulate: '
+          f'{t_sim / k * 1e6:.1f} us/step)')
 
 
 def kalman_figures() -> None:

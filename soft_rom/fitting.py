@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from soft_rom.data import Episode
+from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError, DatasetError
 from soft_rom.models import LinearROM
 
@@ -230,6 +231,7 @@ def _fit_streaming(ts: Any, method: str, r_values: tuple[int, ...] | None,
         bar.close()
     t_pass = time.perf_counter() - t0
     out: list[tuple[LinearROM, float]] = []
+    envelope = training_envelope(select_episodes(ts, episodes, t_max), ts.y_ref)
     for r in (r_values or (None,)):
         t1 = time.perf_counter()
         if method == 'era':  # inputs and outputs only: nothing to stream
@@ -242,5 +244,6 @@ def _fit_streaming(ts: Any, method: str, r_values: tuple[int, ...] | None,
             kw: dict[str, Any] = {'p': dmdc_p} if method == 'dmdc' else {}
             model = fit_reduced_model(red, method, r, **kw)
         model.metadata.setdefault('training', provenance)
+        model.metadata.setdefault('envelope', envelope)
         out.append((model, t_pass / len(r_values or (1,)) + time.perf_counter() - t1))
     return out

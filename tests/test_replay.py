@@ -43,6 +43,7 @@ def test_replay_bag_has_node_topics_and_exact_predictions(tmp_path, storage: str
     ep = _episode(model)
     out = tmp_path / 'out'
     res = replay_to_bag(Predictor(path), ep, out, storage=storage, publish_every=4,
+                        centerline_rate_hz=0.0,
                         diagnostics_period=0.05)
     assert res.summary['relative_error'] <= 1e-12
     msgs = list(read_messages(out))
@@ -154,7 +155,8 @@ def test_cli_replay_with_params_file_and_kalman_comparison(tmp_path, capsys) -> 
     assert data['config']['kalman'] is True and data['config']['measurement_noise'] == 1e-8
     assert data['compare']['kalman'] <= 0.5 * data['compare']['open_loop']
     count = Counter(tp for tp, _, _ in read_messages(tmp_path / 'pred'))
-    assert count[f'{NODE}/centerline'] == 30                 # 100 Hz from 1 kHz
+    assert count[f'{NODE}/output'] == 30                     # 100 Hz from 1 kHz
+    assert count[f'{NODE}/centerline'] == 10                 # 30 Hz default: every 33 steps
     assert main(['replay', str(tmp_path / 'nope.npz'), str(bag), '-o',
                  str(tmp_path / 'x')]) == 2
 
@@ -236,3 +238,29 @@ def test_cli_replay_stream(tmp_path, capsys) -> None:
     data = json.loads(summary.read_text())
     assert data['messages']['inputs'] == 60 and data['messages']['measured'] == 60
     assert data['relative_error'] <= 1e-12
+
+
+def test_bags_do_not_import_the_ros_package() -> None:
+    import ast
+    from pathlib import Path
+
+    import soft_rom.bags
+
+    for path in Path(soft_rom.bags.__file__).parent.glob('*.py'):
+        tree = ast.parse(path.read_text(encoding='utf-8'))
+        names = [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+        names += [n.module or '' for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)]
+        assert not [n for n in names if n.startswith('soft_rom.ros')], path.name
+
+
+def test_replay_stamps_at_the_recordings_epoch_start(tmp_path) -> None:
+    model = _model()
+    ep = _episode(model, k=50)
+    t0_ns = 1_700_000_000_123_456_789
+    ep = Episode(t=ep.t - ep.t[0], U=ep.U, Y=ep.Y, name='ep', metadata={'t0_ns': t0_ns})
+    res = replay_to_bag(Predictor(model), ep, tmp_path / 'o', storage='mcap')
+    assert res.summary['relative_error'] <= 1e-12
+    stamps = []
+    for _, _, m in read_messages(tmp_path / 'o', [f'{NODE}/centerline']):
+        stamps.append(m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec)
+    assert stamps[0] == t0_ns and stamps[1] == t0_ns + 33 * 1_000_000    # exact int ns

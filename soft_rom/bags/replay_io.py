@@ -4,28 +4,32 @@
 (:mod:`soft_rom.ros.predictor_node`) publishes, under the node's name
 (default ``soft_rom_predictor``):
 
-================================== ====================================== =====================
+================================== ====================================== ======================
 topic                              type                                   when
-================================== ====================================== =====================
-``/<node>/centerline``             ``geometry_msgs/msg/PoseArray``        every published step
+================================== ====================================== ======================
+``/<node>/output``                 ``std_msgs/msg/Float64MultiArray``     every step (or at the
+                                                                          output rate)
+``/<node>/centerline``             ``geometry_msgs/msg/PoseArray``        at the centerline rate
 ``/<node>/centerline_marker``      ``visualization_msgs/msg/Marker``      idem (ns ``predicted``,
                                                                           and ``measured``)
-``/<node>/output``                 ``std_msgs/msg/Float64MultiArray``     every published step
-``/<node>/error``                  ``std_msgs/msg/Float64``               with measurements
+``/<node>/error``                  ``std_msgs/msg/Float64``               idem, with measurements
 ``/diagnostics``                   ``diagnostic_msgs/msg/DiagnosticArray`` every period
 ``/<node>/model_info``             ``std_msgs/msg/String`` (JSON)         once, transient local
-================================== ====================================== =====================
+================================== ====================================== ======================
 
-:func:`replay_to_bag` runs a :class:`~soft_rom.predictor.Predictor` over an episode and
-writes those topics; :func:`replay_stream_to_bag` feeds a bag's messages one by one with
-their own stamps and emulates the node's publish timer (what the node does under
-``ros2 bag play --clock`` with ``use_sim_time``); :func:`write_input_bag` writes an
-episode as the *inputs* of the bag contract (pressures per chamber or as one array,
-measured centerline), for tests and demos; :func:`read_messages` reads any bag back as
-deserialized messages.
+What is due when is decided by the node's own
+:class:`~soft_rom.predictor.loop.RuntimeLoop`, so a replay bag holds what the node would
+have published. :func:`replay_to_bag` runs the loop over an episode;
+:func:`replay_stream_to_bag` feeds a bag's messages one by one with their own stamps and
+the bag time as reception clock (what the node does under ``ros2 bag play --clock`` with
+``use_sim_time``); :func:`write_input_bag` writes an episode as the *inputs* of the bag
+contract (pressures per chamber or as one array, measured centerline), for tests and
+demos; :func:`read_messages` / :func:`read_messages_ns` read any bag back as deserialized
+messages.
 
 Both rosbag2 storage formats are supported: ``'sqlite3'`` and ``'mcap'`` (Jazzy's
-default). Bag time stamps are nanoseconds here and seconds everywhere else.
+default). Times are int nanoseconds (exact at epoch stamps); the writer also takes float
+seconds.
 """
 
 from __future__ import annotations
@@ -49,10 +53,9 @@ from soft_rom.predictor import Predictor, replay_episode, ReplayResult
 from soft_rom.predictor.conversions import (
     check_components,
     model_info_json,
-    outputs_to_points,
-    points_to_outputs,
-    poses_to_points,
     ns_to_stamp,
+    outputs_to_points,
+    poses_to_points,
     stamp_to_ns,
 )
 from soft_rom.predictor.loop import Diagnostics, LoopSettings, MARKER_STYLES, Publish, RuntimeLoop
@@ -73,6 +76,7 @@ __all__ = [
     'DEFAULT_NODE_NAME',
     'PredictionBagWriter',
     'read_messages',
+    'read_messages_ns',
     'replay_stream_to_bag',
     'replay_to_bag',
     'storage_plugin',
@@ -373,26 +377,29 @@ def _writer_for(loop: RuntimeLoop, writer: PredictionBagWriter
 
 def replay_to_bag(predictor: Predictor, episode: Episode, out: str | os.PathLike[str], *,
                   storage: str = 'mcap', publish_every: int | None = None,
-                  settings: LoopSettings | None = None,
+                  settings: LoopSettings | None = None, centerline_rate_hz: float = 30.0,
                   diagnostics_period: float = 1.0, measured: bool = True,
                   node_name: str = DEFAULT_NODE_NAME, frame_id: str = 'world',
-                  components: str = 'xz', overwrite: bool = False, t0_ns: int = 0,
+                  components: str = 'xz', overwrite: bool = False, t0_ns: int | None = None,
                   progress: Callable[[int], Any] | None = None) -> ReplayResult:
     """Run ``predictor`` over ``episode`` through the node's runtime loop; write its topics.
 
     The loop (:class:`~soft_rom.predictor.loop.RuntimeLoop`) decides what is published:
-    ``~/output`` every step (or at ``settings.output_rate_hz``), centerline and markers at
-    ``settings.centerline_rate_hz``, diagnostics every ``diagnostics_period`` seconds, the
-    model info once. ``publish_every=j`` (legacy) publishes output and centerline every
-    j-th step. Inputs are taken as they are (the episode is in model units). Stamps are
-    ``t0_ns + t`` (``t`` in ns). Returns the :class:`ReplayResult`.
+    ``~/output`` every step (``publish_every=j``: every j-th step), centerline and markers
+    at ``centerline_rate_hz`` (0: with every output), diagnostics every
+    ``diagnostics_period`` seconds, the model info once; ``settings`` replaces all of
+    these. Inputs are taken as they are (the episode is in model units). Stamps are
+    ``t0_ns + t`` in ns; ``t0_ns`` defaults to the episode's ``metadata['t0_ns']`` (the
+    recording's absolute start), else 0. Returns the :class:`ReplayResult`.
     """
     if settings is None:
         rate = 0.0 if publish_every is None else _legacy_rates(predictor, publish_every)
-        settings = LoopSettings(output_rate_hz=rate,
-                                centerline_rate_hz=30.0 if publish_every is None else rate,
+        settings = LoopSettings(output_rate_hz=rate, centerline_rate_hz=centerline_rate_hz,
                                 diagnostics_rate_hz=1.0 / diagnostics_period,
                                 components=components)
+    if t0_ns is None:
+        start = (episode.metadata or {}).get('t0_ns')
+        t0_ns = start if isinstance(start, int) and not isinstance(start, bool) else 0
     settings = replace(settings, input_scale=1.0, input_offset=0.0)
     loop = RuntimeLoop(predictor, settings)
     with PredictionBagWriter(out, storage=storage, node_name=node_name, frame_id=frame_id,

@@ -57,6 +57,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.data import as_signal, check_finite, Episode
+from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
 from soft_rom.models import DiscreteModel
 
@@ -337,6 +338,7 @@ class DMDc:
         self._model_kwargs = dict(input_names=input_names, output_names=output_names,
                                   input_units=input_units, output_units=output_units)
         self._metadata = dict(metadata or {})
+        self._metadata.setdefault('envelope', training_envelope(eps, y_ref))
         self._episodes = [ep.name for ep in eps]
         self.fit_time_ = time.perf_counter() - t0
         self.model_ = self.model_for(self.r, self.p)

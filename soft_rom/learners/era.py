@@ -57,6 +57,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.data import as_signal, check_finite, Episode
+from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
 from soft_rom.learners.dmdc import channel_scale
 from soft_rom.models import DiscreteModel
@@ -427,6 +428,7 @@ class ERAOKID:
         self.output_scale_ = s_y
         self.fit_time_ = time.perf_counter() - t0
         meta = dict(metadata or {})
+        meta.setdefault('envelope', training_envelope([ep], y_ref))
         meta.update({
             'learner': 'ERAOKID', 'r': r, 'episode': ep.name,
             'decimation': d, 'dt_data': ep.dt, 'n_markov': int(self.n_markov),

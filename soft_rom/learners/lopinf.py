@@ -37,6 +37,7 @@ from numpy.typing import ArrayLike, NDArray
 from soft_rom.basis import BasisBuilder, POD, project
 from soft_rom.data import as_signal, check_finite, Episode
 from soft_rom.ddt import as_estimator, DerivativeEstimator, FiniteDifference
+from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
 from soft_rom.learners.lopinf_solvers import DEFAULT_EPS, FastSPDSolver, OperatorSolver
 from soft_rom.models import SecondOrderModel
@@ -331,6 +332,7 @@ class LOpInf:
         self._names = dict(input_names=input_names, output_names=output_names,
                            input_units=input_units, output_units=output_units)
         self._extra_meta = dict(metadata or {})
+        self._extra_meta.setdefault('envelope', training_envelope(zip(U, Y), y_ref))
         self._rebuild_model()
         return self
 

@@ -1,4 +1,4 @@
-"""Settings and health of the predictor: :class:`PredictorConfig`, :class:`Level`, :class:`Health`."""
+"""Settings and health levels of the predictor: PredictorConfig, Level, Health."""
 
 from __future__ import annotations
 
@@ -43,7 +43,9 @@ class PredictorConfig:
         arrival; ``'input'``: an exact step to each input stamp, latched on arrival.
     rate_hz : float
         Step rate; ``0`` means the model's native ``1/dt``. A discrete-time model (DMDc,
-        ERA) accepts only integer divisors of its rate.
+        ERA) accepts only integer divisors of its rate. With ``'event'`` stepping an input
+        faster than this rate has its extra samples within a step counted ``late``
+        (applied from the next step); keep the step rate at least the input rate.
     input_timeout_s : float
         An input whose newest stamp trails the newest stamp of all inputs by more than
         this stops holding the model back (value held, ``STALE``, counted ``timeouts``).

@@ -10,15 +10,20 @@ epoch (stamps near 1.7e18 ns) loses or gains a step. Non-finite times, and times
 
 Stepping (:attr:`PredictorConfig.stepping`)
 -------------------------------------------
-``'event'`` (default): steps of ``h`` on a grid aligned to whole multiples of ``h`` (epoch
-aligned); a stamp belongs to the nearest grid step. Inputs are queued and the model
+``'event'`` (default): steps of ``h`` on a grid anchored at the first stamp; a stamp
+belongs to the nearest grid step (so stamp jitter up to ``h/2`` around the grid of the
+first input does not move a sample). Inputs are queued and the model
 advances to the *watermark* -- the smallest over inputs of their newest step -- and never
-past it, so inputs arriving in any order whose step is not yet taken are applied at their
-stamp: the outputs equal ``model.simulate(U)``. An input whose newest stamp trails the
-newest stamp of all inputs by more than ``input_timeout_s`` stops holding the model back
-(value held, ``STALE``, counted ``timeouts``); ``max_lag_s`` caps how far the model trails
+past it, so inputs arriving in any order across inputs whose step is not yet taken are
+applied at their stamp: the outputs equal ``model.simulate(U)``. Each input's own messages
+are assumed in stamp order (a ROS topic delivers a publisher's messages in order); an
+older stamp of the same input is still applied at its step if that step is not taken.
+An input whose newest stamp trails the newest stamp of all inputs by more than
+``input_timeout_s`` stops holding the model back (value held, ``STALE``, counted
+``timeouts``); ``max_lag_s`` caps how far the model trails
 the newest stamp (counted ``lag_forced``). Measurements are compared with the prediction
-at their own step (kept in a short history) once the model has reached it.
+at their own step once the model has reached it (the last 512 steps are kept for
+measurements that arrive after the model passed their step).
 Inputs for a step already taken are applied from the current step on (``late``).
 
 ``'fixed'``: a clock drives the model (:meth:`Predictor.advance_to_ns` takes every whole
@@ -56,13 +61,14 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.errors import ModelFileError
-from soft_rom.models import LinearROM, load_model
+from soft_rom.models import load_model
 from soft_rom.predictor.channels import ChannelStats
 from soft_rom.predictor.config import Health, Level, PredictorConfig, REBUILD_FIELDS, SEVERITY
 from soft_rom.predictor.dynamics import Dynamics
 from soft_rom.predictor.envelope import Envelopes
 from soft_rom.predictor.health import assess
 from soft_rom.predictor.monitor import ErrorMonitor
+from soft_rom.predictor.stepping import _HISTORY, _ok_ns, Stepping, to_ns
 
 __all__ = ['COUNTERS', 'Predictor', 'to_ns']
 
@@ -72,27 +78,10 @@ COUNTERS = ('wrong_length', 'nonfinite', 'bad_time', 'backwards', 'clock_reset',
             'timeouts', 'lag_forced', 'input_clipped', 'input_out_of_envelope',
             'measured_dropped', 'diverged', 'clock_jump', 'catchup_skipped', 'steps',
             'inputs', 'measurements')
-_T_LIMIT = 2 ** 62
 _NONE = -(2 ** 63)
-_HISTORY = 512
 
 
-def to_ns(t: float) -> int | None:
-    """Float seconds to int ns; ``None`` for non-finite or out-of-range times."""
-    try:
-        if not math.isfinite(t) or abs(t) > _T_LIMIT * 1e-9:
-            return None
-        return int(round(t * 1e9))
-    except TypeError:
-        return None
-
-
-def _ok_ns(t: Any) -> bool:
-    return isinstance(t, (int, np.integer)) and not isinstance(t, bool) and -_T_LIMIT <= t \
-        <= _T_LIMIT
-
-
-class Predictor:
+class Predictor(Stepping):
     """A ROM running in real time: held inputs, state, envelopes, monitor, optional Kalman.
 
     Parameters
@@ -140,6 +129,8 @@ class Predictor:
         self._dy = np.zeros(d.p)
         self._dev = np.zeros(d.p)
         self.channels = ChannelStats(list(self.model.input_names))
+        slack = self._env.y_bound - float(np.linalg.norm(self._dyn.y_ref))
+        self._fast2 = slack * slack if slack > 0 else -1.0
         self._hist = np.zeros((_HISTORY, d.p))
         self._hist_k = np.full(_HISTORY, _NONE, dtype=np.int64)
         self._monitor = ErrorMonitor(self.config.error_window,
@@ -173,12 +164,13 @@ class Predictor:
     @property
     def t_ns(self) -> int | None:
         """Model time in int nanoseconds (``None`` before the first update)."""
-        if self._k is None:
-            return None
+        return None if self._k is None else self._time_of(self._k)
+
+    def _time_of(self, k: int) -> int:
         d = self._dyn
         if d.h_ns_int:
-            return self._origin + self._k * d.h_ns_int
-        return self._origin + int(round(self._k * d.h_ns))
+            return self._origin + k * d.h_ns_int
+        return self._origin + int(round(k * d.h_ns))
 
     @property
     def t(self) -> float | None:
@@ -219,8 +211,8 @@ class Predictor:
             self.channels.take_over(old_ch)
         self.reset()
         if t is not None:
-            self._anchor(t, exact=config.stepping != 'event')
-            self._done = True
+            self._anchor(t)
+            self._done = self._released = True
 
     def set_config(self, config: PredictorConfig) -> None:
         """Change settings; atomic like :meth:`reload`.
@@ -275,16 +267,14 @@ class Predictor:
             return (t_ns - self._origin + d.h_ns_int // 2) // d.h_ns_int
         return int(round((t_ns - self._origin) / d.h_ns))
 
-    def _anchor(self, t_ns: int, *, exact: bool) -> None:
-        d = self._dyn
-        if exact or not d.h_ns_int:
-            self._origin, self._k = t_ns, 0
-        else:
-            self._origin = 0
-            self._k = self._step_of(t_ns)
+    def _anchor(self, t_ns: int) -> None:
+        """Model time starts at ``t_ns``: the step grid is ``t_ns + k h``."""
+        self._origin, self._k = t_ns, 0
 
     def _alarm(self, key: str, t_ns: int | None, why: str) -> None:
-        self._alarms[key] = (self.t_ns if t_ns is None else t_ns) or 0, why
+        """Remember a WARN/ERROR event at ``t_ns`` (default the newest known time)."""
+        when = self.stamp_now() if t_ns is None else t_ns
+        self._alarms[key] = (_NONE if when is None else when), why
 
     def _bad_time(self, what: str) -> bool:
         self.counters['bad_time'] += 1
@@ -402,219 +392,6 @@ class Predictor:
         else:
             self.u[index] = value
 
-    # -- clocked stepping ('fixed', 'input') ----------------------------------------------
-    def _take_clocked(self, index: int | None, value: Any, stamp_ns: int) -> None:
-        if self._k is None:
-            self._anchor(stamp_ns, exact=True)
-        elif stamp_ns < self.t_ns:
-            self.counters['late'] += 1
-            self.channels.late_one(index)
-        else:
-            self.advance_to_ns(stamp_ns)
-        self._latch(index, value)
-        self._update_Bu()
-
-    def advance_to(self, t: float) -> int:
-        """:meth:`advance_to_ns` with the time in float seconds."""
-        t_ns = to_ns(t)
-        return self._bad_time('advance') if t_ns is None else self.advance_to_ns(t_ns)
-
-    def advance_to_ns(self, t_ns: int) -> int:
-        """Advance the model to ``t_ns`` with the held inputs; returns steps taken.
-
-        ``'fixed'``: every whole step due; ``'input'``: exactly to ``t_ns`` (discrete-time
-        models: whole native steps, remainder carried); ``'event'``: every step up to the
-        one ``t_ns`` belongs to, as if every input were known until then. Past times do
-        nothing; refused times (non-finite, out of range) are counted ``bad_time``.
-        """
-        if not _ok_ns(t_ns):
-            return int(self._bad_time('advance'))
-        t_ns = int(t_ns)
-        if self._k is None:
-            self._anchor(t_ns, exact=self.config.stepping != 'event')
-            if self.config.stepping == 'event':
-                self._release(self._k)
-            return 0
-        if self.config.stepping == 'event':
-            before = self.counters['steps']
-            self._release(self._step_of(t_ns))
-            return self.counters['steps'] - before
-        d = self._dyn
-        now = self.t_ns
-        elapsed = t_ns - now
-        if elapsed <= 0:
-            return 0
-        if self.config.stepping == 'fixed' or d.discrete or not d.linear:
-            n = int((elapsed + d.h_ns * 1e-3) // d.h_ns)
-            n = self._limit_catchup(n)
-            self._steps(n)
-            if n:
-                self._check_output(self.t_ns)
-            return n
-        A, B = d.matrices_for(elapsed)
-        self.x = A @ self.x + B @ self.u
-        self._origin, self._k = t_ns, 0
-        self.counters['steps'] += 1
-        self._check_output(t_ns)
-        return 1
-
-    def _limit_catchup(self, n: int) -> int:
-        limit = self.config.max_catchup_steps
-        if n <= limit:
-            return n
-        skipped = n - limit
-        self.counters['catchup_skipped'] += skipped
-        self.counters['clock_jump'] += 1
-        self._k += skipped
-        self._alarm('clock', None, f'clock stalled or jumped: {skipped} steps '
-                                   f'({skipped * self._dyn.h:.3g} s) skipped, state held')
-        return limit
-
-    def step(self) -> None:
-        """One step ``h`` with the held inputs (the hot path; no checks)."""
-        d = self._dyn
-        if d.linear:
-            np.dot(d.A, self.x, out=self._xn)
-            self._xn += self._Bu
-            self.x, self._xn = self._xn, self.x
-        else:
-            self.x = d.stepper(self.x, self.u)
-        self.counters['steps'] += 1
-        if self._k is not None:
-            self._k += 1
-
-    def _steps(self, n: int) -> None:
-        for _ in range(n):
-            self.step()
-
-    # -- event stepping ------------------------------------------------------------------
-    def _take_event(self, index: int | None, value: Any, stamp_ns: int) -> None:
-        if self._k is None:
-            self._anchor(stamp_ns, exact=False)
-            self._first = stamp_ns
-        s = self._step_of(stamp_ns)
-        if not self._released and s < self._k:      # nothing taken yet: move the start back
-            self._k = s
-            self._first = min(self._first, stamp_ns)
-        if s > self._k:
-            self._seq += 1
-            heapq.heappush(self._queue, (s, 0, self._seq, -1 if index is None else index,
-                                         value))
-        else:
-            if s < self._k or self._done:
-                self.counters['late'] += 1
-                self.channels.late_one(index)
-            self._latch(index, value)
-            self._update_Bu()
-        self._release(self._target())
-
-    def _target(self) -> int:
-        """Step the model may advance to: watermark, timeouts, lag."""
-        ch = self.channels
-        timeout = self.config.input_timeout_s * 1e9
-        newest = self._newest
-        before_first = self._first - self._dyn.h_ns       # unseen inputs: known until here
-        wm = None
-        for i, s in enumerate(ch.newest):
-            s_eff = before_first if s == _NONE else s
-            silent = newest - s_eff > timeout
-            if silent != ch.timed_out[i]:
-                ch.timed_out[i] = silent
-                if silent:
-                    self.counters['timeouts'] += 1
-            if not silent and (wm is None or s_eff < wm):
-                wm = s_eff
-        k_wm = self._step_of(newest if wm is None else int(wm))
-        k_lag = self._step_of(newest - int(self.config.max_lag_s * 1e9))
-        if k_lag > k_wm and k_lag > self._k:
-            self.counters['lag_forced'] += k_lag - max(k_wm, self._k)
-            return k_lag
-        return k_wm
-
-    def _release(self, target: int) -> None:
-        """Complete every step up to ``target`` (event stepping)."""
-        if self._k is None or target < self._k:
-            return
-        if target - self._k > self.config.max_catchup_steps:
-            self._limit_catchup(target - self._k)
-            self._done = False
-        q = self._queue
-        while True:
-            if not self._done:
-                k = self._k
-                changed = False
-                while q and q[0][0] <= k and (q[0][1] == 0 or q[0][0] < k):
-                    s, kind, _, i, v = heapq.heappop(q)
-                    if kind == 0:
-                        self._latch(None if i < 0 else i, v)
-                        changed = True
-                    else:
-                        self._measure_now(v[0], v[1], s)
-                if changed:
-                    self._update_Bu()
-                self._complete(k)
-                while q and q[0][0] <= k:
-                    s, _, _, _, v = heapq.heappop(q)
-                    self._measure_now(v[0], v[1], s)
-                self._done = True
-                self._released = True
-            if self._k >= target:
-                return
-            self.step()
-            self._done = False
-
-    def _complete(self, k: int) -> None:
-        """Output of step ``k`` into the history; envelope check; emission."""
-        row = self._hist[k % _HISTORY]
-        self._output_into(row)
-        self._hist_k[k % _HISTORY] = k
-        t_ns = self.t_ns
-        if not self._check_output(t_ns, row):
-            self._output_into(row)
-        if self.emit_outputs:
-            self._emitted.append((t_ns, row.copy()))
-
-    def take_emitted(self) -> list[tuple[int, Array]]:
-        """``(t_ns, y)`` of every step completed since the last call (``emit_outputs``)."""
-        out, self._emitted = self._emitted, []
-        return out
-
-    # -- outputs and divergence -------------------------------------------------------
-    def _output_into(self, y: Array) -> Array:
-        d = self._dyn
-        if d.linear:
-            np.dot(d.C, self.x, out=y)
-            if d.has_D:
-                y += d.D @ self.u
-            y += d.y_ref
-        else:
-            y[:] = self.model.output(self.x, self.u)
-        return y
-
-    def output(self, out: Array | None = None) -> Array:
-        """Predicted absolute output at the model time, shape (p,)."""
-        y = self._output_into(self._y if out is None else out)
-        return y if out is not None else y.copy()
-
-    def _check_output(self, t_ns: int | None, y: Array | None = None) -> bool:
-        """Divergence check; returns False if the state was found outside the envelope."""
-        y = self._output_into(self._y) if y is None else y
-        np.subtract(y, self._dyn.y_ref, out=self._dev)
-        dev = float(np.max(np.abs(self._dev))) if self._dev.size else 0.0
-        if self._env.output_ok(dev) and math.isfinite(float(self.x.sum())):
-            self._diverged_latched = False
-            return True
-        if not self._diverged_latched or self.config.auto_reset:
-            self.counters['diverged'] += 1
-        self._diverged_latched = True
-        what = 'non-finite' if not math.isfinite(dev) else f'max |y - y_ref| = {dev:.3g}'
-        action = 'state reset to the reference' if self.config.auto_reset else 'state kept'
-        self._alarm('diverged', t_ns, f'prediction diverged ({what} > bound '
-                                      f'{self._env.y_bound:.3g}); {action}')
-        if self.config.auto_reset or not math.isfinite(float(self.x.sum())):
-            self.x = self._dyn.initial_state()
-        return False
-
     # -- measurements ----------------------------------------------------------------
     def measure(self, y: ArrayLike, stamp: float) -> float | None:
         """:meth:`measure_ns` with the stamp in float seconds."""
@@ -705,10 +482,21 @@ class Predictor:
         return dv if self.config.error_metric == 'deviation' else a
 
     # -- health --------------------------------------------------------------------------
+    def stamp_now(self) -> int | None:
+        """Newest time known on the stamps' clock: model time, input and measurement stamps."""
+        known = [t for t in (self.t_ns, self.channels.measured_newest) if t is not None]
+        if self._newest != _NONE:
+            known.append(self._newest)
+        return max(known) if known else None
+
     def health(self, now: float | int | None = None) -> Health:
-        """Monitor state at ``now`` (int ns, or float seconds; default the model time)."""
+        """Monitor state at ``now`` on the stamps' clock (int ns, or float seconds).
+
+        Default :meth:`stamp_now`, which is right whatever clock the sensors stamp with;
+        the runtime loop adds what only the reception clock can tell (nothing received).
+        """
         if isinstance(now, float):
             now = to_ns(now)
         elif now is not None and not _ok_ns(now):
             now = None
-        return assess(self, self.t_ns if now is None else int(now), Level, SEVERITY)
+        return assess(self, self.stamp_now() if now is None else int(now), Level, SEVERITY)

@@ -8,9 +8,12 @@ provide (the *predictor model protocol*):
   ``input_names``, ``output_names``, ``input_units``, ``output_units``, ``metadata``;
 * ``initial_state() -> x`` (shape (n_states,));
 * ``stepper(h) -> step`` with ``step(x, u) -> x_next``: one zero-order-hold step of ``h``
-  seconds (may be implicit); must not modify its arguments;
+  seconds (may be implicit); must not modify its arguments -- or, instead,
+  ``step(x, u, dt) -> x_next``;
 * ``output(x, u) -> y`` (absolute output, shape (p,));
-* ``linearize(x, u, h) -> (A, B, C, D)``: discrete Jacobians at ``(x, u)`` (Kalman gain);
+* ``linearize(x, u, h) -> (A, B, C, D)``: discrete Jacobians at ``(x, u)`` (Kalman gain)
+  -- or, instead, ``step_jacobian(x, u, dt) -> (x_next, A, B)`` with ``C``, ``D`` taken
+  from ``discretize(h)``;
 * ``simulate(U) -> Y`` and ``state_from_output(y, u) -> x``; optionally
   ``stability_margin()``.
 """
@@ -34,8 +37,28 @@ Array = NDArray[np.float64]
 
 
 def is_linear(model: Any) -> bool:
-    """Whether ``model`` takes the linear fast path."""
-    return isinstance(model, LinearROM) and getattr(model, 'is_linear', True) is not False
+    """Whether ``model`` takes the linear fast path.
+
+    A :class:`~soft_rom.models.LinearROM` unless it says otherwise (``is_linear`` false or
+    ``is_nonlinear`` true).
+    """
+    return (isinstance(model, LinearROM) and getattr(model, 'is_linear', True) is not False
+            and not getattr(model, 'is_nonlinear', False))
+
+
+def _stepper(model: Any, h: float) -> Any:
+    if callable(getattr(model, 'stepper', None)):
+        return model.stepper(h)
+    return lambda x, u: model.step(x, u, h)
+
+
+def _linearize(model: Any, x: Array, u: Array, h: float) -> tuple[Array, ...]:
+    if callable(getattr(model, 'linearize', None)):
+        return tuple(np.asarray(a, dtype=np.float64) for a in model.linearize(x, u, h))
+    _, A, B = model.step_jacobian(x, u, h)
+    sys_h = model.discretize(h)
+    return (np.asarray(A, dtype=np.float64), np.asarray(B, dtype=np.float64),
+            np.asarray(sys_h.C, dtype=np.float64), np.asarray(sys_h.D, dtype=np.float64))
 
 
 def kalman_gain(A: Array, C: Array, Q: Array, R: Array) -> Array:
@@ -146,11 +169,10 @@ class Dynamics:
             self.stepper = None
             A_k, C_k = self.A, self.C
         else:
-            self.stepper = model.stepper(self.h)
+            self.stepper = _stepper(model, self.h)
             self.has_D = True
             x0 = np.asarray(model.initial_state(), dtype=np.float64)
-            A_k, _B, C_k, D_k = (np.asarray(a, dtype=np.float64)
-                                 for a in model.linearize(x0, np.zeros(self.m), self.h))
+            A_k, _B, C_k, D_k = _linearize(model, x0, np.zeros(self.m), self.h)
             self.C, self.D = C_k, D_k
         if config.kalman:
             Q = config.process_noise * np.eye(self.n)

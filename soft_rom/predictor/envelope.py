@@ -20,65 +20,18 @@ predictor's settings) into the bounds the predictor applies:
 
 from __future__ import annotations
 
-from collections.abc import Iterable
 import math
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
+from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError
 
 __all__ = ['Envelopes', 'training_envelope']
 
 Array = NDArray[np.float64]
-
-
-def training_envelope(episodes: Iterable[Any], y_ref: ArrayLike | None = None
-                      ) -> dict[str, Any]:
-    """Range of the training data, for the model file's ``metadata['envelope']``.
-
-    Parameters
-    ----------
-    episodes : iterable
-        Objects with ``U`` (m, k) and ``Y`` (p, k) attributes (:class:`~soft_rom.data.Episode`),
-        or ``(U, Y)`` pairs.
-    y_ref : ndarray, shape (p,), optional
-        Output reference; default the first output sample of the first episode.
-
-    Returns
-    -------
-    dict
-        ``u_min``, ``u_max`` (lists of m floats), ``y_dev_max`` (float, ``max |Y - y_ref|``
-        over all outputs and samples; ``None`` without outputs) and ``samples``.
-    """
-    lo: Array | None = None
-    hi: Array | None = None
-    dev = 0.0
-    have_y = False
-    samples = 0
-    ref = None if y_ref is None else np.asarray(y_ref, dtype=np.float64).reshape(-1)
-    for ep in episodes:
-        U, Y = (ep.U, ep.Y) if hasattr(ep, 'U') else ep
-        U = np.asarray(U, dtype=np.float64)
-        Y = np.asarray(Y, dtype=np.float64)
-        if U.ndim == 2 and U.shape[1]:
-            u_lo, u_hi = np.nanmin(U, axis=1), np.nanmax(U, axis=1)
-            lo = u_lo if lo is None else np.minimum(lo, u_lo)
-            hi = u_hi if hi is None else np.maximum(hi, u_hi)
-            samples += U.shape[1]
-        if Y.ndim == 2 and Y.shape[0] and Y.shape[1]:
-            if ref is None:
-                ref = Y[:, 0].copy()
-            if ref.shape[0] == Y.shape[0]:
-                dev = max(dev, float(np.nanmax(np.abs(Y - ref[:, None]))))
-                have_y = True
-    return {
-        'u_min': [] if lo is None else [float(v) for v in lo],
-        'u_max': [] if hi is None else [float(v) for v in hi],
-        'y_dev_max': dev if have_y else None,
-        'samples': int(samples),
-    }
 
 
 class Envelopes:

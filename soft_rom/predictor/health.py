@@ -45,7 +45,9 @@ def assess(pred: Any, now_ns: int | None, Level: Any, severity: dict[Any, int]) 
     hold = cfg.alarm_hold_s * 1e9
     for key, (t_alarm, why) in sorted(pred._alarms.items()):
         latched = key == 'diverged' and pred._diverged_latched and not cfg.auto_reset
-        if latched or (now_ns is not None and now_ns - t_alarm <= hold):
+        early = t_alarm == NO_STAMP       # before any time was known: until one is
+        if latched or (now_ns is None and early) or (
+                now_ns is not None and not early and now_ns - t_alarm <= hold):
             reasons.append((Level(_ALARM_LEVEL.get(key, 1)), why))
     if pred._dyn.unstable:
         reasons.append((Level.WARN, f'model unstable (stability margin '

@@ -30,8 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.errors import ConfigError
 from soft_rom.predictor.config import Health, PredictorConfig
-from soft_rom.predictor.conversions import check_components, outputs_to_points, \
-    points_to_outputs
+from soft_rom.predictor.conversions import check_components, outputs_to_points, points_to_outputs
 from soft_rom.predictor.core import Predictor
 
 __all__ = ['Diagnostics', 'LoopSettings', 'MARKER_STYLES', 'Publish', 'RuntimeLoop']
@@ -149,7 +148,8 @@ class RuntimeLoop:
         self._install()
 
     # -- configuration -------------------------------------------------------------------
-    def _install(self) -> None:
+    def _install(self, keep_figures: bool = False) -> None:
+        """(Re)build the schedule; ``keep_figures`` keeps the reception figures and rates."""
         pred = self.predictor
         check_components(self.settings.components, pred.model.n_outputs)
         self._n_points = pred.model.n_outputs // len(self.settings.components)
@@ -160,15 +160,21 @@ class RuntimeLoop:
         self._next_cl: int | None = None
         self._next_diag: int | None = None
         self._last_t: int | None = None
+        pred.take_emitted()
+        if keep_figures and len(self._recv) == pred.model.n_inputs:
+            return
         self._measured: Array | None = None
         self._rate_mark: tuple[int, list[int], int, int, int] | None = None
-        pred.take_emitted()
+        self._recv: list[int | None] = [None] * pred.model.n_inputs
+        self._moved: list[int | None] = [None] * pred.model.n_inputs    # stamp last advanced
+        self._seen = list(pred.channels.newest)
+        self._recv_measured: int | None = None
 
     def set_settings(self, settings: LoopSettings) -> None:
         """New publish rates / conversion (checked against the model first)."""
         check_components(settings.components, self.predictor.model.n_outputs)
         self.settings = settings
-        self._install()
+        self._install(keep_figures=True)
 
     def replace_settings(self, **changes: Any) -> None:
         """:meth:`set_settings` with some fields changed."""
@@ -207,7 +213,7 @@ class RuntimeLoop:
         """Change core settings (see :meth:`Predictor.set_config`)."""
         self.predictor.set_config(config)
         self.predictor.emit_outputs = True
-        self._install()
+        self._install(keep_figures=True)
 
     # -- feeding -------------------------------------------------------------------------
     def _stamp(self, stamp_ns: int, now_ns: int) -> int:
@@ -219,8 +225,9 @@ class RuntimeLoop:
     def on_channel(self, index: int, value: float, stamp_ns: int, now_ns: int) -> Publish:
         """One per-chamber value (raw units; scale and offset applied here)."""
         s = self.settings
-        self.predictor.set_channel_ns(index, s.input_scale * value + s.input_offset,
-                                      self._stamp(stamp_ns, now_ns))
+        if self.predictor.set_channel_ns(index, s.input_scale * value + s.input_offset,
+                                         self._stamp(stamp_ns, now_ns)):
+            self._received(index, now_ns)
         return self._collect(now_ns)
 
     def on_array(self, values: ArrayLike, stamp_ns: int, now_ns: int) -> Publish:
@@ -229,8 +236,17 @@ class RuntimeLoop:
         u = np.asarray(values, dtype=np.float64).reshape(-1)
         if s.input_scale != 1.0 or s.input_offset != 0.0:
             u = s.input_scale * u + s.input_offset
-        self.predictor.set_input_ns(u, self._stamp(stamp_ns, now_ns))
+        if self.predictor.set_input_ns(u, self._stamp(stamp_ns, now_ns)):
+            for i in range(len(self._recv)):
+                self._received(i, now_ns)
         return self._collect(now_ns)
+
+    def _received(self, i: int, now_ns: int) -> None:
+        self._recv[i] = now_ns
+        newest = self.predictor.channels.newest[i]
+        if newest != self._seen[i] or self._moved[i] is None:
+            self._seen[i] = newest
+            self._moved[i] = now_ns
 
     def on_measured(self, measured: ArrayLike, stamp_ns: int, now_ns: int) -> Publish:
         """A measured output: points ``(N, 3)`` (centerline) or the vector ``(p,)``."""
@@ -245,6 +261,7 @@ class RuntimeLoop:
         pred.measure_ns(arr, self._stamp(stamp_ns, now_ns))
         if pred.counters['measured_dropped'] == before:     # compared, or queued
             self._measured = arr
+            self._recv_measured = now_ns
         return self._collect(now_ns)
 
     def measured_points(self) -> Array | None:
@@ -278,15 +295,17 @@ class RuntimeLoop:
                         self._next_out = t_e + self._out_period
             else:
                 pub.outputs = emitted
-            t_last, y_last = emitted[-1]
-            if not self._cl_period or self._next_cl is None or t_last >= self._next_cl:
+            t_last, y_last = pub.outputs[-1] if not self._cl_period and pub.outputs \
+                else emitted[-1]
+            if (pub.outputs if not self._cl_period else
+                    self._next_cl is None or t_last >= self._next_cl):
                 s = self.settings
                 pub.centerline = (t_last, outputs_to_points(y_last, s.components,
                                                             s.fill_value))
                 if self._measured is not None:
                     pub.measured_points = outputs_to_points(self._measured, s.components,
                                                             s.fill_value)
-                err = pred.windowed_error(now_ns)
+                err = pred.windowed_error(pred.stamp_now())
                 pub.error = err if math.isfinite(err) else None
                 self._next_cl = t_last + self._cl_period
                 self.counts['centerlines'] += 1
@@ -302,23 +321,56 @@ class RuntimeLoop:
     # -- diagnostics -----------------------------------------------------------------
     def diagnostics(self, now_ns: int, extra: list[tuple[str, str]] | None = None
                     ) -> Diagnostics:
-        """Health at ``now_ns`` with global and per-input figures (rates since last call)."""
+        """Health with global and per-input figures (rates since the last call).
+
+        The predictor's health is judged on the stamps' clock; ``now_ns`` is the reception
+        clock, on which the loop adds: inputs from which nothing was received for longer
+        than ``input_timeout_s``, measurements stopped for longer than ``error_window_s``.
+        Per input: ``rate_hz``, ``age_s`` (since the last message received), ``stamp_lag_s``
+        (behind the newest input stamp), ``received``, ``late``, ``dropped``, ``clipped``,
+        ``timed_out``.
+        """
+        from soft_rom.predictor.config import Level, SEVERITY
+
         pred = self.predictor
-        health = pred.health(int(now_ns))
+        cfg = pred.config
+        health = pred.health()
+        reasons = [(health.level, health.message)] if health.level != Level.OK else []
         values = [(str(k), _fmt(v)) for k, v in health.values.items()]
         ch = pred.channels
         mark = self._rate_mark
         dt = (now_ns - mark[0]) * 1e-9 if mark is not None else 0.0
+        newest = ch.newest_max()
+        silent = []
         for i, name in enumerate(ch.names):
-            age = math.inf if ch.newest[i] == -(2 ** 63) else (now_ns - ch.newest[i]) * 1e-9
+            recv = self._recv[i]
+            age = math.inf if recv is None else (now_ns - recv) * 1e-9
+            if recv is not None and age > cfg.input_timeout_s:
+                silent.append(f'{name} {age:.2f} s')
+            lag = math.inf if ch.newest[i] == -(2 ** 63) else (newest - ch.newest[i]) * 1e-9
             rate = (ch.received[i] - mark[1][i]) / dt if mark and dt > 0 else math.nan
             values += [(f'input.{name}.rate_hz', _fmt(float(rate))),
                        (f'input.{name}.age_s', _fmt(float(age))),
+                       (f'input.{name}.stamp_lag_s', _fmt(float(lag))),
                        (f'input.{name}.received', str(ch.received[i])),
                        (f'input.{name}.late', str(ch.late[i])),
                        (f'input.{name}.dropped', str(ch.dropped[i])),
                        (f'input.{name}.clipped', str(ch.clipped[i])),
                        (f'input.{name}.timed_out', str(ch.timed_out[i]).lower())]
+        if silent:
+            reasons.append((Level.STALE, f'nothing received from input(s) {", ".join(silent)} '
+                                         f'(timeout {cfg.input_timeout_s:g} s)'))
+        stalled = [f'{name} {(now_ns - moved) * 1e-9:.2f} s' for name, recv, moved in zip(
+            ch.names, self._recv, self._moved) if recv is not None and moved is not None
+            and recv > moved and now_ns - moved > cfg.input_timeout_s * 1e9]
+        if stalled:
+            reasons.append((Level.WARN, f'stamps not advancing (clock stalled?) on input(s) '
+                                        f'{", ".join(stalled)} while messages arrive'))
+        if self._recv_measured is not None:
+            m_age = (now_ns - self._recv_measured) * 1e-9
+            values.append(('measured.age_s', _fmt(float(m_age))))
+            if m_age > cfg.error_window_s:
+                reasons.append((Level.STALE, f'no measurement received for {m_age:.2f} s'))
         m_rate = (ch.measured - mark[2]) / dt if mark and dt > 0 else math.nan
         o_rate = (self.counts['outputs'] - mark[3]) / dt if mark and dt > 0 else math.nan
         values += [('measured.rate_hz', _fmt(float(m_rate))),
@@ -330,4 +382,6 @@ class RuntimeLoop:
         self._rate_mark = (int(now_ns), list(ch.received), ch.measured, self.counts['outputs'],
                            pred.counters['inputs'])
         self.counts['diagnostics'] += 1
-        return Diagnostics(int(health.level), health.message, values, health)
+        level = max((lv for lv, _ in reasons), key=SEVERITY.__getitem__, default=Level.OK)
+        message = '; '.join(msg for _, msg in reasons) or 'ok'
+        return Diagnostics(int(level), message, values, health)

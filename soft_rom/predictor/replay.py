@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 import math
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np

@@ -1,0 +1,286 @@
+"""Stepping of the predictor: clocked (``'fixed'``, ``'input'``) and event-time (``'event'``).
+
+The :class:`Stepping` mixin holds the part of :class:`~soft_rom.predictor.core.Predictor`
+that moves the model in time, computes its output and checks it against the output
+envelope; the module notes of :mod:`soft_rom.predictor.core` describe the behaviour.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ['Stepping', 'to_ns']
+
+Array = NDArray[np.float64]
+_T_LIMIT = 2 ** 62
+_HISTORY = 512
+_NONE = -(2 ** 63)
+
+
+def to_ns(t: float) -> int | None:
+    """Float seconds to int ns; ``None`` for non-finite or out-of-range times."""
+    try:
+        if not math.isfinite(t) or abs(t) > _T_LIMIT * 1e-9:
+            return None
+        return int(round(t * 1e9))
+    except TypeError:
+        return None
+
+
+def _ok_ns(t: Any) -> bool:
+    return isinstance(t, (int, np.integer)) and not isinstance(t, bool) and -_T_LIMIT <= t \
+        <= _T_LIMIT
+
+
+class Stepping:
+    """Time stepping, outputs and divergence checks (mixed into ``Predictor``)."""
+
+    # attributes set by Predictor
+    _dyn: Any
+    _env: Any
+    config: Any
+    counters: dict[str, int]
+    channels: Any
+    x: Array
+    u: Array
+
+    # -- clocked stepping ('fixed', 'input') ----------------------------------------------
+    def _take_clocked(self, index: int | None, value: Any, stamp_ns: int) -> None:
+        if self._k is None:
+            self._anchor(stamp_ns)
+        elif stamp_ns < self.t_ns:
+            self.counters['late'] += 1
+            self.channels.late_one(index)
+        else:
+            self.advance_to_ns(stamp_ns)
+        self._latch(index, value)
+        self._update_Bu()
+
+    def advance_to(self, t: float) -> int:
+        """:meth:`advance_to_ns` with the time in float seconds."""
+        t_ns = to_ns(t)
+        return self._bad_time('advance') if t_ns is None else self.advance_to_ns(t_ns)
+
+    def advance_to_ns(self, t_ns: int) -> int:
+        """Advance the model to ``t_ns`` with the held inputs; returns steps taken.
+
+        ``'fixed'``: every whole step due; ``'input'``: exactly to ``t_ns`` (discrete-time
+        models: whole native steps, remainder carried); ``'event'``: every step up to the
+        one ``t_ns`` belongs to, as if every input were known until then. Past times do
+        nothing; refused times (non-finite, out of range) are counted ``bad_time``.
+        """
+        if not _ok_ns(t_ns):
+            return int(self._bad_time('advance'))
+        t_ns = int(t_ns)
+        if self._k is None:
+            self._anchor(t_ns)
+            if self.config.stepping == 'event':
+                self._first = t_ns
+                self._release(self._k)
+            return 0
+        if self.config.stepping == 'event':
+            before = self.counters['steps']
+            self._release(self._step_of(t_ns))
+            return self.counters['steps'] - before
+        d = self._dyn
+        now = self.t_ns
+        elapsed = t_ns - now
+        if elapsed <= 0:
+            return 0
+        if self.config.stepping == 'fixed' or d.discrete or not d.linear:
+            n = int((elapsed + d.h_ns * 1e-3) // d.h_ns)
+            n = self._limit_catchup(n)
+            self._steps(n)
+            if n:
+                self._check_output(self.t_ns)
+            return n
+        limit_ns = int(self.config.max_catchup_steps * d.h_ns)
+        if elapsed > limit_ns:          # exact stepping: the state is held over the gap too
+            self.counters['catchup_skipped'] += int((elapsed - limit_ns) // d.h_ns)
+            self.counters['clock_jump'] += 1
+            self._alarm('clock', t_ns, f'clock stalled or jumped: {elapsed * 1e-9:.3g} s '
+                                       'in one step, state held')
+            elapsed = limit_ns
+        A, B = d.matrices_for(elapsed)
+        self.x = A @ self.x + B @ self.u
+        self._origin, self._k = t_ns, 0
+        self.counters['steps'] += 1
+        self._check_output(t_ns)
+        return 1
+
+    def _limit_catchup(self, n: int) -> int:
+        limit = self.config.max_catchup_steps
+        if n <= limit:
+            return n
+        skipped = n - limit
+        self.counters['catchup_skipped'] += skipped
+        self.counters['clock_jump'] += 1
+        self._k += skipped
+        self._alarm('clock', self._time_of(self._k + limit),
+                    f'clock stalled or jumped: {skipped} steps ({skipped * self._dyn.h:.3g} s) '
+                    'skipped, state held')
+        return limit
+
+    def step(self) -> None:
+        """One step ``h`` with the held inputs (the hot path; no checks)."""
+        d = self._dyn
+        if d.linear:
+            np.dot(d.A, self.x, out=self._xn)
+            self._xn += self._Bu
+            self.x, self._xn = self._xn, self.x
+        else:
+            self.x = d.stepper(self.x, self.u)
+        self.counters['steps'] += 1
+        if self._k is not None:
+            self._k += 1
+
+    def _steps(self, n: int) -> None:
+        for _ in range(n):
+            self.step()
+
+    # -- event stepping ------------------------------------------------------------------
+    def _take_event(self, index: int | None, value: Any, stamp_ns: int) -> None:
+        if self._k is None:
+            self._anchor(stamp_ns)
+            self._first = stamp_ns
+        s = self._step_of(stamp_ns)
+        if index is None and s == self._k + 1 and self._done and not self._queue:
+            # the 1 kHz array path: every input known up to s, nothing queued, one step
+            if any(self.channels.timed_out):
+                self.channels.timed_out = [False] * len(self.channels.timed_out)
+            self.step()
+            self.u[:] = value
+            self._update_Bu()
+            self._complete(s)
+            return
+        if not self._released and s < self._k:      # nothing taken yet: move the start back
+            self._k = s
+            self._first = min(self._first, stamp_ns)
+        if s > self._k:
+            self._seq += 1
+            heapq.heappush(self._queue, (s, 0, self._seq, -1 if index is None else index,
+                                         value))
+        else:
+            if s < self._k or self._done:
+                self.counters['late'] += 1
+                self.channels.late_one(index)
+            self._latch(index, value)
+            self._update_Bu()
+        self._release(self._target())
+
+    def _target(self) -> int:
+        """Step the model may advance to: watermark, timeouts, lag."""
+        ch = self.channels
+        timeout = self.config.input_timeout_s * 1e9
+        newest = self._newest
+        before_first = self._first - self._dyn.h_ns       # unseen inputs: known until here
+        wm = None
+        for i, s in enumerate(ch.newest):
+            s_eff = before_first if s == _NONE else s
+            silent = newest - s_eff > timeout
+            if silent != ch.timed_out[i]:
+                ch.timed_out[i] = silent
+                if silent:
+                    self.counters['timeouts'] += 1
+            if not silent and (wm is None or s_eff < wm):
+                wm = s_eff
+        k_wm = self._step_of(newest if wm is None else int(wm))
+        k_lag = self._step_of(newest - int(self.config.max_lag_s * 1e9))
+        if k_lag > k_wm and k_lag > self._k:
+            self.counters['lag_forced'] += k_lag - max(k_wm, self._k)
+            return k_lag
+        return k_wm
+
+    def _release(self, target: int) -> None:
+        """Complete every step up to ``target`` (event stepping)."""
+        if self._k is None or target < self._k:
+            return
+        if target - self._k > self.config.max_catchup_steps:
+            self._limit_catchup(target - self._k)
+            self._done = False
+        q = self._queue
+        while True:
+            if not self._done:
+                k = self._k
+                changed = False
+                while q and q[0][0] <= k and (q[0][1] == 0 or q[0][0] < k):
+                    s, kind, _, i, v = heapq.heappop(q)
+                    if kind == 0:
+                        self._latch(None if i < 0 else i, v)
+                        changed = True
+                    else:
+                        self._measure_now(v[0], v[1], s)
+                if changed:
+                    self._update_Bu()
+                self._complete(k)
+                while q and q[0][0] <= k:
+                    s, _, _, _, v = heapq.heappop(q)
+                    self._measure_now(v[0], v[1], s)
+                self._done = True
+                self._released = True
+            if self._k >= target:
+                return
+            self.step()
+            self._done = False
+
+    def _complete(self, k: int) -> None:
+        """Output of step ``k`` into the history; envelope check; emission."""
+        row = self._hist[k % _HISTORY]
+        self._output_into(row)
+        self._hist_k[k % _HISTORY] = k
+        t_ns = self.t_ns
+        if not self._check_output(t_ns, row):
+            self._output_into(row)
+        if self.emit_outputs:
+            self._emitted.append((t_ns, row.copy()))
+
+    def take_emitted(self) -> list[tuple[int, Array]]:
+        """``(t_ns, y)`` of every step completed since the last call (``emit_outputs``)."""
+        out, self._emitted = self._emitted, []
+        return out
+
+    # -- outputs and divergence -------------------------------------------------------
+    def _output_into(self, y: Array) -> Array:
+        d = self._dyn
+        if d.linear:
+            np.dot(d.C, self.x, out=y)
+            if d.has_D:
+                y += d.D @ self.u
+            y += d.y_ref
+        else:
+            y[:] = self.model.output(self.x, self.u)
+        return y
+
+    def output(self, out: Array | None = None) -> Array:
+        """Predicted absolute output at the model time, shape (p,)."""
+        y = self._output_into(self._y if out is None else out)
+        return y if out is not None else y.copy()
+
+    def _check_output(self, t_ns: int | None, y: Array | None = None) -> bool:
+        """Divergence check; returns False if the state was found outside the envelope."""
+        y = self._output_into(self._y) if y is None else y
+        # fast path: |y - y_ref|_inf <= |y|_2 + |y_ref|_2 <= bound (one dot; NaN fails every
+        # comparison). A non-finite state always reaches y through C x (0 * inf is NaN).
+        if float(y @ y) <= self._fast2:
+            self._diverged_latched = False
+            return True
+        np.subtract(y, self._dyn.y_ref, out=self._dev)
+        dev = float(np.max(np.abs(self._dev))) if self._dev.size else 0.0
+        if self._env.output_ok(dev) and math.isfinite(float(self.x.sum())):
+            self._diverged_latched = False
+            return True
+        if not self._diverged_latched or self.config.auto_reset:
+            self.counters['diverged'] += 1
+        self._diverged_latched = True
+        what = 'non-finite' if not math.isfinite(dev) else f'max |y - y_ref| = {dev:.3g}'
+        action = 'state reset to the reference' if self.config.auto_reset else 'state kept'
+        self._alarm('diverged', t_ns, f'prediction diverged ({what} > bound '
+                                      f'{self._env.y_bound:.3g}); {action}')
+        if self.config.auto_reset or not math.isfinite(float(self.x.sum())):
+            self.x = self._dyn.initial_state()
+        return False
