@@ -5,10 +5,12 @@ Status names are stable (``<node name>: <task>``, the convention of diagnostic_u
 * ``<node>: prediction`` - the core's health (OK / WARN / ERROR / STALE with the reason)
   and its figures (windowed errors, counters, model time, ``callback_errors``);
 * ``<node>: input <topic>`` - one per chamber topic (or the array topic): ``rate_hz``
-  (messages per second since the previous report), ``stamp_age_s`` (now minus the newest
-  stamp), ``received``, ``late``, ``dropped``, ``clipped``, ``timed_out``; STALE when nothing
-  arrived yet or the input timed out (``input_timeout_s``), WARN when some were dropped or
-  clipped since the previous report;
+  (messages per second since the previous report), ``stamp_age_s`` (node clock minus the
+  newest header stamp, as diagnostic_updater's TimeStampStatus), ``age_s`` (since the last
+  message was received), ``stamp_lag_s`` (behind the newest stamp of all inputs),
+  ``received``, ``late``, ``dropped``, ``clipped``, ``timed_out``; STALE when nothing arrived
+  yet, nothing for ``input_timeout_s`` or the input timed out, WARN when some were dropped
+  or clipped since the previous report;
 * ``<node>: measured <topic>`` - ``rate_hz``, ``stamp_age_s``, ``received`` of the measured
   centerline; STALE (it is optional: not an error) when none arrives within
   ``input_timeout_s``.
@@ -82,16 +84,21 @@ class Diagnostics:
     def _status(self, task: str) -> DiagnosticStatus:
         return DiagnosticStatus(name=f'{self.node_name}: {task}', hardware_id=self.hardware_id)
 
-    def _input_statuses(self, values: dict[str, str], names: list[str]
-                        ) -> list[DiagnosticStatus]:
+    def _input_statuses(self, values: dict[str, str], names: list[str],
+                        stamp_ages: list[float], timeout: float) -> list[DiagnosticStatus]:
         out = []
         per_topic = len(names) == len(self.input_topics)
+        keys = ('rate_hz', 'age_s', 'stamp_lag_s', 'received', 'late', 'dropped', 'clipped',
+                'timed_out')
         for i, topic in enumerate(self.input_topics):
             mine = names if not per_topic else [names[i]]
             st = self._status(f'input {topic}')
-            fig = {k: values.get(f'input.{n}.{k}', 'nan') for n in mine[:1]
-                   for k in ('rate_hz', 'age_s', 'received', 'late', 'dropped', 'clipped',
-                             'timed_out')}
+            fig = {k: values.get(f'input.{mine[0]}.{k}', 'nan') for k in keys}
+            stamp_age = stamp_ages[i] if per_topic else min(stamp_ages, default=math.inf)
+            try:
+                silent = float(fig['age_s']) > timeout
+            except ValueError:
+                silent = False
             received = int(fig['received']) if fig['received'].isdigit() else 0
             bad = sum(int(values.get(f'input.{n}.{k}', '0') or 0) for n in mine
                       for k in ('dropped', 'clipped'))
@@ -99,18 +106,18 @@ class Diagnostics:
             self._dropped[topic] = bad
             if received == 0:
                 st.level, st.message = DiagnosticStatus.STALE, 'no messages yet'
-            elif fig['timed_out'] == 'true':
+            elif fig['timed_out'] == 'true' or silent:
                 st.level = DiagnosticStatus.STALE
-                st.message = f'timed out: newest stamp {fig["age_s"]} s old'
+                st.message = (f'nothing received for {fig["age_s"]} s' if silent else
+                              f'timed out: {fig["stamp_lag_s"]} s behind the other inputs')
             elif new_bad > 0:
                 st.level = DiagnosticStatus.WARN
                 st.message = f'{new_bad} dropped or clipped since the last report'
             else:
                 st.level, st.message = DiagnosticStatus.OK, f'{fig["rate_hz"]} Hz'
             st.values = [KeyValue(key='rate_hz', value=fig['rate_hz']),
-                         KeyValue(key='stamp_age_s', value=fig['age_s'])] + [
-                KeyValue(key=k, value=fig[k])
-                for k in ('received', 'late', 'dropped', 'clipped', 'timed_out')]
+                         KeyValue(key='stamp_age_s', value=f'{stamp_age:.6g}')] + [
+                KeyValue(key=k, value=fig[k]) for k in keys[1:]]
             out.append(st)
         return out
 
@@ -134,11 +141,12 @@ class Diagnostics:
         return st
 
     def message(self, now_ns: int, stamp: Any, report: Any, startup_error: str | None,
-                measured: TopicMonitor | None, timeout: float) -> DiagnosticArray:
+                measured: TopicMonitor | None, timeout: float,
+                newest_stamps: list[int] | None = None) -> DiagnosticArray:
         """The whole array at node time ``now_ns``, header stamped ``stamp``.
 
         ``report`` is the loop's :class:`~soft_rom.predictor.loop.Diagnostics` (``None``
-        without a model).
+        without a model); ``newest_stamps`` the newest stamp (int ns) of each input.
         """
         msg = DiagnosticArray()
         msg.header.stamp = stamp
@@ -156,7 +164,9 @@ class Diagnostics:
             names = list(report.health.values.get('input_names', ())) or [
                 k[len('input.'):-len('.received')] for k in values
                 if k.startswith('input.') and k.endswith('.received')]
-            msg.status = [status] + self._input_statuses(values, names)
+            ages = [math.inf if t == _NO_STAMP else (now_ns - t) * 1e-9
+                    for t in (newest_stamps or [])] or [math.inf] * len(names)
+            msg.status = [status] + self._input_statuses(values, names, ages, timeout)
         if measured is not None:
             msg.status.append(self._measured_status(measured, now_ns, timeout))
         return msg

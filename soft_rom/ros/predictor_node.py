@@ -394,9 +394,10 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
             now_ns, extra=[('callback_errors', str(self.callback_errors))])
         sec, nsec = ns_to_stamp(now_ns)
         timeout = float(self.settings_value('input_timeout_s'))
+        newest = None if loop is None else [int(t) for t in loop.predictor.channels.newest]
         self._pub_diag.publish(self.diagnostics.message(
             now_ns, TimeMsg(sec=sec, nanosec=nsec), report, self.startup_error,
-            self.measured_monitor, timeout))
+            self.measured_monitor, timeout, newest))
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:
