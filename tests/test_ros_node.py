@@ -84,7 +84,11 @@ class Outputs:
         self.plain: list[np.ndarray] = []
         self.infos: list[dict] = []
         self.diagnostics: list[DiagnosticArray] = []
+        self.centerlines: list[int] = []
         n = client.node
+        n.create_subscription(PoseArray, f'{fqn}/centerline',
+                              lambda m: self.centerlines.append(stamp_to_ns(m.header.stamp)),
+                              RELIABLE)
         n.create_subscription(JointState, f'{fqn}/output_stamped', self._on_stamped, RELIABLE)
         n.create_subscription(Float64MultiArray, f'{fqn}/output',
                               lambda m: self.plain.append(np.array(m.data)), RELIABLE)
@@ -148,6 +152,10 @@ def test_per_chamber_input_at_full_rate_equals_replay(client, tmp_path, executor
         worst = max(np.max(np.abs(y - want[t])) for t, y in out.stamped.items())
         assert worst <= 1e-12 * max(1.0, np.max(np.abs(ref.Y)))
         assert client.spin_until(lambda: len(out.plain) == ep.n_samples, timeout=5.0)
+        # the centerline (and markers) at their own rate: 30 Hz of model time, not 1 kHz
+        span = (ep.n_samples - 1) * 1e-3
+        assert 0.8 * 30 * span <= len(out.centerlines) <= 30 * span + 2, len(out.centerlines)
+        assert min(np.diff(out.centerlines)) >= 33 * MS
         assert out.infos[-1]['r'] == 4 and len(out.infos[-1]['sha256']) == 64
         assert node.stop(signal.SIGINT) == 0
         assert not no_noise(node.log()), node.log()
