@@ -12,12 +12,15 @@ same message; with per-chamber input it subscribes to all six topics, as the nod
 echoes the last chamber, one message per step as the node's output) as the floor of what
 rclpy can do on this machine.
 
-Printed, per input mode: % of inputs applied at their stamp / late / lost (from the node's
-counters), latency publish -> first ``~/output`` that includes the input (p50 / p99 / max)
-for the node and for the echo node, node CPU % of one core and RSS while idle and under
-input, and the largest difference between the published outputs and ``model.simulate``
-of the inputs sent (array input: the model run with the inputs as the node applied them at
-their reception, since un-stamped arrays cannot be placed on the sender's grid).
+Input modes: ``array`` (un-stamped arrays stamped on arrival, ``array_stamping: arrival``),
+``array_sequence`` (each array the next model step, ``array_stamping: sequence``) and
+``per_chamber``. Printed, per input mode: % of inputs applied at their stamp / late / lost
+(from the node's counters); latency publish -> first ``~/output`` that includes the input
+(p50 / p99 / max) for the node and for the echo node; node CPU % of one core and RSS, idle
+and under input; the largest difference between the published outputs and
+``model.simulate`` of the inputs sent (``array``: the model run with the inputs as the node
+applied them at their reception, read off the outputs greedily -- an upper bound, since a
+wrong guess also counts -- because arrival-stamped arrays are not on the sender's grid).
 """
 
 # ruff: noqa: E402  (thread settings must precede the numpy import)
@@ -213,11 +216,14 @@ def run_mode(mode: str, seconds: float, idle: float, work: Path,
 
     model = _model()
     path = model.save(work / 'model.npz')
-    params = {'model_path': str(path), 'input_mode': mode, 'input_topics': TOPICS,
+    label, sequenced = mode, mode == 'array_sequence'
+    mode = 'array' if sequenced else mode
+    params = {'model_path': str(path), 'input_mode': mode,
+              'array_stamping': 'sequence' if sequenced else 'arrival', 'input_topics': TOPICS,
               'array_topic': ARRAY, 'input_qos': 'reliable', 'qos_depth': 1000,
               'measured_topic': '', 'diagnostics_rate_hz': 2.0, 'publish_rate_hz': 0.0,
               'executor': executor}
-    pfile = work / f'{mode}.yaml'
+    pfile = work / f'{label}.yaml'
     pfile.write_text(yaml.safe_dump({'/**': {'ros__parameters': params}}), encoding='utf-8')
     exe = str(Path(sys.executable).parent / 'predictor')
     me = [sys.executable, str(Path(__file__).resolve())]
@@ -253,7 +259,7 @@ def run_mode(mode: str, seconds: float, idle: float, work: Path,
     def subscribed(topics: list[str]) -> bool:
         return all(sub.count_subscribers(tp) >= 1 for tp in topics)
 
-    out: dict = {'mode': mode}
+    out: dict = {'mode': label}
     inputs = TOPICS if mode == 'per_chamber' else [ARRAY]
     # ---- the predictor node
     node = _spawn([exe, '--ros-args', '-r', '__node:=bench_predictor', '--params-file',
@@ -291,8 +297,10 @@ def run_mode(mode: str, seconds: float, idle: float, work: Path,
     out['outputs'] = len(got)
     arrival = np.array([g[0] for g in got], dtype=np.int64)
     times = np.array([g[1] for g in got], dtype=np.int64)
-    if mode == 'per_chamber':
+    if mode == 'per_chamber' or sequenced:
         Y = model.simulate(U)
+        if sequenced:       # one array per step, from the first one on
+            t0 = int(times.min()) if times.size else 0
         j = (times - t0) // MS
         ok = (j >= 0) & (j < k) & ((times - t0) % MS == 0)
         out['max_diff'] = max(float(np.max(np.abs(got[i][2] - Y[:, j[i]])))
@@ -301,7 +309,7 @@ def run_mode(mode: str, seconds: float, idle: float, work: Path,
         for a, jj in zip(arrival[ok], j[ok]):
             first.setdefault(int(jj), int(a))
         lat = np.array([first[jj] - s_ns[jj] for jj in range(k) if jj in first])
-    else:
+    else:   # arrival stamping
         out['max_diff'] = _array_diff(model, U, times, [g[2] for g in got])
         order = np.argsort(times, kind='stable')
         t_sorted, a_sorted = times[order], arrival[order]
@@ -375,7 +383,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--seconds', type=float, default=4.0)
     ap.add_argument('--idle', type=float, default=3.0)
-    ap.add_argument('--modes', default='array,per_chamber')
+    ap.add_argument('--modes', default='array,array_sequence,per_chamber',
+                    help='array (array_stamping arrival), array_sequence (array_stamping '
+                         'sequence), per_chamber')
     ap.add_argument('--executor', choices=('single_threaded', 'events'),
                     default='single_threaded', help="the node's executor parameter")
     ap.add_argument('--role', choices=('publisher', 'echo'), default=None)
@@ -393,7 +403,9 @@ def main() -> None:
     try:
         for mode in args.modes.split(','):
             r = run_mode(mode, args.seconds, args.idle, work, args.executor)
-            what = '6 FluidPressure topics' if mode == 'per_chamber' else '1 Float64MultiArray'
+            what = {'per_chamber': '6 FluidPressure topics',
+                    'array': '1 Float64MultiArray, stamped on arrival',
+                    'array_sequence': '1 Float64MultiArray, one per step (sequence)'}[mode]
             print(f'\n== {mode}: {what} at 1 kHz, reliable QoS, node executor '
                   f'{args.executor} ==')
             print(f'  inputs applied at stamp {r["at_stamp"]:6.2f} %   late {r["late"]:6.2f} %'

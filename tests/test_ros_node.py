@@ -202,6 +202,28 @@ def test_array_input_equals_replay_of_what_arrived(client, tmp_path) -> None:
         node.kill()
 
 
+def test_sequenced_array_input_at_full_rate_equals_simulate(client, tmp_path) -> None:
+    m = model()
+    ep = episode(m, k=150)
+    node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz'), input_mode='array',
+                                        array_stamping='sequence'))
+    try:
+        out = Outputs(client, node.fqn)
+        pub = client.node.create_publisher(Float64MultiArray, '/t/pressures', RELIABLE)
+        _connected(client, [pub], out)
+        for j in range(ep.n_samples):                  # a burst: no waiting at all
+            pub.publish(Float64MultiArray(data=ep.U[:, j].tolist()))
+        assert client.spin_until(lambda: len(out.stamped) >= ep.n_samples, timeout=20.0), (
+            len(out.stamped), out.status(': prediction'))
+        client.spin_for(0.1)
+        steps = sorted(out.stamped)
+        assert steps == [steps[0] + j * MS for j in range(ep.n_samples)]
+        Y = np.array([out.stamped[t] for t in steps]).T
+        np.testing.assert_allclose(Y, ep.Y, rtol=0, atol=1e-12)      # each array one step
+    finally:
+        node.kill()
+
+
 def test_hostile_messages_reset_and_diagnostics(client, tmp_path) -> None:
     m = model()
     node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz'), hardware_id='eel_1'))
