@@ -8,9 +8,9 @@ reliable QoS), a publisher (this file, ``--role publisher``: six ``FluidPressure
 at 1 kHz stamped on a 1 ms grid, or one ``Float64MultiArray`` at 1 kHz), and this process,
 which subscribes to the node's ``~/output_stamped`` and measures. In the same run the
 publisher then drives a bare rclpy echo node (``--role echo``: subscribe -> publish the
-same message; with per-chamber input it subscribes to all six topics, as the node does, and
-echoes the last chamber, one message per step as the node's output) as the floor of what
-rclpy can do on this machine.
+same message, with the node's executor; with per-chamber input it subscribes to all six
+topics, as the node does, and echoes the last chamber, one message per step as the node's
+output) as the floor of what rclpy can do on this machine.
 
 Input modes: ``array`` (un-stamped arrays stamped on arrival, ``array_stamping: arrival``),
 ``array_sequence`` (each array the next model step, ``array_stamping: sequence``) and
@@ -124,10 +124,10 @@ def role_publisher(mode: str, seconds: float, out: str, expect: int) -> None:
     rclpy.try_shutdown()
 
 
-def role_echo(mode: str) -> None:
+def role_echo(mode: str, executor: str) -> None:
     """A bare rclpy node: every input message published again, unchanged."""
     import rclpy
-    from rclpy.executors import ExternalShutdownException
+    from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from sensor_msgs.msg import FluidPressure
     from std_msgs.msg import Float64MultiArray
 
@@ -143,8 +143,15 @@ def role_echo(mode: str) -> None:
     else:
         pub = node.create_publisher(Float64MultiArray, ECHO + ARRAY, qos)
         node.create_subscription(Float64MultiArray, ARRAY, pub.publish, qos)
+    if executor == 'events':
+        from rclpy.experimental import EventsExecutor
+
+        ex = EventsExecutor()
+    else:
+        ex = SingleThreadedExecutor()
+    ex.add_node(node)
     try:
-        rclpy.spin(node)
+        ex.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
@@ -317,7 +324,8 @@ def run_mode(mode: str, seconds: float, idle: float, work: Path,
         lat = np.array([a_sorted[i] - s for i, s in zip(idx, s_ns) if i < len(t_sorted)])
     out['node_lat'] = lat
     # ---- the echo node (the floor), same publisher
-    echo = _spawn(me + ['--role', 'echo', '--mode', mode], work / f'echo_{mode}.log')
+    echo = _spawn(me + ['--role', 'echo', '--mode', mode, '--executor', executor],
+                  work / f'echo_{label}.log')
     sampler = Sampler(echo.pid)
     sampler.start()
     spin_while(lambda: not subscribed(inputs), 30)
@@ -396,7 +404,7 @@ def main() -> None:
     if args.role == 'publisher':
         return role_publisher(args.mode, args.seconds, args.out, args.expect)
     if args.role == 'echo':
-        return role_echo(args.mode)
+        return role_echo(args.mode, args.executor)
     work = Path(tempfile.mkdtemp(prefix='bench_node_'))
     print(f'bench_node: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}; '
           f'{args.seconds:g} s at 1 kHz per phase; model r={R}, {M_IN} inputs, {P} outputs')
