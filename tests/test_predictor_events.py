@@ -391,6 +391,58 @@ def test_loop_reload_and_settings_at_run_time(tmp_path) -> None:
     assert [t for t, _ in outs] == [T0_NS + 100 * H_NS]
 
 
+def test_unstamped_arrays_follow_the_senders_sequence_not_the_reception_jitter() -> None:
+    model = _model(m=3)
+    k = 3000
+    U = _inputs(3, k, seed=10)
+    Y = model.simulate(U)
+    rng = np.random.default_rng(11)
+    sent = T0_NS + np.arange(k) * H_NS
+    recv = sent + rng.integers(50_000, 900_000, k)       # 0.05 .. 0.9 ms transport jitter
+    for a in (500, 1500, 2500):                          # executor stalls of 30 ms: bunches
+        recv[a:a + 30] = recv[a + 30]
+    recv = np.maximum.accumulate(recv)
+    loop = RuntimeLoop(Predictor(model))
+    got = []
+    for j in range(k):
+        got += loop.on_array(U[:, j], 0, int(recv[j])).outputs
+    pred = loop.predictor
+    assert loop.counts['stamp_fallback'] == k
+    assert pred.counters['late'] == 0
+    times = np.array([t for t, _ in got])
+    assert len(got) == k and np.all(np.diff(times) == H_NS)     # one step per message
+    Yhat = np.array([y for _, y in got]).T
+    assert np.abs(Yhat - Y).max() <= 1e-12 * np.abs(Y).max()
+    kv = dict(loop.diagnostics(int(recv[-1])).values)
+    assert kv['stamp_resync'] == '0'
+    # a pause longer than max_lag_s: re-synchronised to the reception clock, counted
+    loop.on_array(U[:, 0], 0, int(recv[-1]) + 10 ** 9)
+    assert dict(loop.diagnostics(int(recv[-1]) + 10 ** 9).values)['stamp_resync'] == '1'
+
+
+def test_unstamped_slower_sender_gets_its_own_period() -> None:
+    loop = RuntimeLoop(Predictor(_model(m=3)))
+    rng = np.random.default_rng(12)
+    recv = T0_NS + np.arange(300) * 10 * H_NS + rng.integers(0, 2 * H_NS, 300)   # 100 Hz
+    times = []
+    for a in recv.tolist():
+        loop.on_array(np.zeros(3), 0, a)
+        times.append(loop.predictor.t_ns)
+    steps = np.diff(times[50:])
+    assert np.all(steps == 10 * H_NS)                    # one sender period per message
+    assert abs(times[-1] - int(recv[-1])) <= 100 * H_NS  # never far from the reception clock
+
+
+def test_unstamped_sender_faster_than_the_model_never_runs_ahead_or_back() -> None:
+    from soft_rom.predictor.loop import SequenceClock
+
+    clock = SequenceClock(H_NS, 100 * H_NS)
+    stamps = [clock.stamp(T0_NS + j * H_NS // 2) for j in range(2000)]     # 2 kHz sender
+    assert all(b >= a for a, b in zip(stamps, stamps[1:]))                  # never backwards
+    lead = max(s - (T0_NS + j * H_NS // 2) for j, s in enumerate(stamps))
+    assert lead <= 101 * H_NS and clock.resyncs > 0
+
+
 def test_loop_zero_stamp_falls_back_to_reception_time_and_scales_inputs() -> None:
     model = _model(m=3)
     loop = RuntimeLoop(Predictor(model), LoopSettings(input_scale=1e-3, input_offset=1.0))

@@ -15,12 +15,14 @@ messages (value, stamp in int ns, reception time in int ns) and publishes the
 Stepping is the predictor's: with ``'event'`` stepping the inputs drive the model, so no
 fast timer is needed -- :meth:`RuntimeLoop.tick` only has to run at the diagnostics rate;
 with ``'fixed'`` stepping a timer calls it at :meth:`RuntimeLoop.timer_period_ns`.
-A zero stamp (un-stamped sources) falls back to the reception time (counted
-``stamp_fallback``).
+A zero stamp (un-stamped sources: ``Float64MultiArray``) is replaced by the sender's
+sequence on the reception clock (:class:`SequenceClock`; counted ``stamp_fallback``);
+a measurement without a stamp takes its reception time.
 """
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass, replace
 import math
 from typing import Any
@@ -33,7 +35,8 @@ from soft_rom.predictor.config import Health, PredictorConfig
 from soft_rom.predictor.conversions import check_components, outputs_to_points, points_to_outputs
 from soft_rom.predictor.core import Predictor
 
-__all__ = ['Diagnostics', 'LoopSettings', 'MARKER_STYLES', 'Publish', 'RuntimeLoop']
+__all__ = ['Diagnostics', 'LoopSettings', 'MARKER_STYLES', 'Publish', 'RuntimeLoop',
+           'SequenceClock']
 
 Array = NDArray[np.float64]
 
@@ -120,6 +123,60 @@ def _period_ns(rate_hz: float, h: float) -> int:
     return int(round(max(1, round(1.0 / (rate_hz * h))) * h * 1e9))
 
 
+class SequenceClock:
+    """Stamps for un-stamped messages: the sender's sequence, not the reception jitter.
+
+    A message without a stamp is placed one *sender period* after the previous one; the
+    period is the mean reception interval over the last 64 messages (a burst after a stall
+    averages out), rounded to whole steps ``h``
+    (so a 1 kHz sender on a 1 kHz model gets exactly one step per message, however the
+    executor bunches them). When that sequence and the reception clock disagree by more
+    than ``resync_ns`` (a pause, lost messages, a different rate) the reception time is
+    taken instead when it is later, or the previous stamp when the sequence ran ahead (stamps
+    never go backwards); both counted in :attr:`resyncs`. Until 8 intervals are seen the period is
+    taken to be one step (the recommended set-up: the sender at the model rate).
+
+    Parameters
+    ----------
+    h_ns : int
+        Step of the model in ns.
+    resync_ns : int
+        Largest accepted disagreement with the reception clock.
+    """
+
+    def __init__(self, h_ns: int, resync_ns: int) -> None:
+        self.h_ns = max(1, int(h_ns))
+        self.resync_ns = int(resync_ns)
+        self.last: int | None = None
+        self.last_received: int | None = None
+        self.period = self.h_ns
+        self.resyncs = 0
+        self._times: deque[int] = deque(maxlen=65)
+        self._count = 0
+
+    def stamp(self, now_ns: int) -> int:
+        """The stamp of a message received at ``now_ns``."""
+        self._times.append(now_ns)
+        self._count += 1
+        n = len(self._times)
+        if n >= 9 and (self._count == 9 or self._count % 16 == 0):
+            mean = (self._times[-1] - self._times[0]) / (n - 1)
+            self.period = max(1, round(mean / self.h_ns)) * self.h_ns
+        self.last_received = now_ns
+        t = now_ns
+        if self.last is not None:
+            candidate = self.last + self.period
+            if abs(now_ns - candidate) <= self.resync_ns:
+                t = candidate
+            elif now_ns < candidate:    # far ahead of the reception clock: never backwards,
+                t = self.last           # hold (the message joins the current step)
+                self.resyncs += 1
+            else:
+                self.resyncs += 1
+        self.last = t
+        return t
+
+
 def _fmt(value: Any) -> str:
     if isinstance(value, float):
         return 'nan' if math.isnan(value) else f'{value:.6g}'
@@ -161,6 +218,7 @@ class RuntimeLoop:
         self._next_diag: int | None = None
         self._last_t: int | None = None
         pred.take_emitted()
+        self._clocks: dict[int, SequenceClock] = {}
         if keep_figures and len(self._recv) == pred.model.n_inputs:
             return
         self._measured: Array | None = None
@@ -216,17 +274,27 @@ class RuntimeLoop:
         self._install(keep_figures=True)
 
     # -- feeding -------------------------------------------------------------------------
-    def _stamp(self, stamp_ns: int, now_ns: int) -> int:
+    def _stamp(self, stamp_ns: int, now_ns: int, clock: SequenceClock | None = None) -> int:
         if stamp_ns == 0:
             self.counts['stamp_fallback'] += 1
-            return now_ns
+            return now_ns if clock is None else clock.stamp(now_ns)
         return stamp_ns
+
+    def _clock(self, index: int | None) -> SequenceClock:
+        key = -1 if index is None else index
+        clock = self._clocks.get(key)
+        if clock is None:
+            pred = self.predictor
+            clock = SequenceClock(int(round(pred.h * 1e9)), int(pred.config.max_lag_s * 1e9))
+            self._clocks[key] = clock
+        return clock
 
     def on_channel(self, index: int, value: float, stamp_ns: int, now_ns: int) -> Publish:
         """One per-chamber value (raw units; scale and offset applied here)."""
         s = self.settings
         if self.predictor.set_channel_ns(index, s.input_scale * value + s.input_offset,
-                                         self._stamp(stamp_ns, now_ns)):
+                                         self._stamp(stamp_ns, now_ns,
+                                                     self._clock(index))):
             self._received(index, now_ns)
         return self._collect(now_ns)
 
@@ -236,7 +304,7 @@ class RuntimeLoop:
         u = np.asarray(values, dtype=np.float64).reshape(-1)
         if s.input_scale != 1.0 or s.input_offset != 0.0:
             u = s.input_scale * u + s.input_offset
-        if self.predictor.set_input_ns(u, self._stamp(stamp_ns, now_ns)):
+        if self.predictor.set_input_ns(u, self._stamp(stamp_ns, now_ns, self._clock(None))):
             for i in range(len(self._recv)):
                 self._received(i, now_ns)
         return self._collect(now_ns)
@@ -377,7 +445,8 @@ class RuntimeLoop:
                    ('output.rate_hz', _fmt(float(o_rate))),
                    ('input_rate_hz', _fmt((pred.counters['inputs'] - mark[4]) / dt)
                     if mark and dt > 0 else 'nan'),
-                   ('stamp_fallback', str(self.counts['stamp_fallback']))]
+                   ('stamp_fallback', str(self.counts['stamp_fallback'])),
+                   ('stamp_resync', str(sum(c.resyncs for c in self._clocks.values())))]
         values += list(extra or [])
         self._rate_mark = (int(now_ns), list(ch.received), ch.measured, self.counts['outputs'],
                            pred.counters['inputs'])
