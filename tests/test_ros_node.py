@@ -202,11 +202,12 @@ def test_array_input_equals_replay_of_what_arrived(client, tmp_path) -> None:
         node.kill()
 
 
-def test_sequenced_array_input_at_full_rate_equals_simulate(client, tmp_path) -> None:
+def test_array_burst_one_step_each_equals_simulate(client, tmp_path) -> None:
+    # un-stamped arrays are placed on the sender's sequence: a burst (as after an executor
+    # stall) still gives one model step per array, in order
     m = model()
-    ep = episode(m, k=150)
-    node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz'), input_mode='array',
-                                        array_stamping='sequence'))
+    ep = episode(m, k=60)
+    node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz'), input_mode='array'))
     try:
         out = Outputs(client, node.fqn)
         pub = client.node.create_publisher(Float64MultiArray, '/t/pressures', RELIABLE)

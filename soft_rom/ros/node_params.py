@@ -35,11 +35,6 @@ NODE_PARAMS: tuple[Param, ...] = (
     Param('executor', 'single_threaded', 'rclpy executor: single_threaded '
           '(SingleThreadedExecutor) or events (rclpy.experimental.EventsExecutor, less CPU '
           'per message).', choices=('single_threaded', 'events')),
-    Param('array_stamping', 'arrival', 'Stamp of an un-stamped Float64MultiArray input: '
-          'arrival (its reception time; two in one step: the second is late) or sequence '
-          '(each array the next model step, re-anchored to the reception time when that is '
-          'more than max_lag_s later: one array per step, for a sender at the model rate).',
-          choices=('arrival', 'sequence')),
     Param('hardware_id', '', 'hardware_id of the /diagnostics statuses; empty = the node '
           'name.'),
 )
@@ -68,7 +63,6 @@ class NodeSettings:
     wait_for_model: bool
     lifecycle: bool
     executor: str
-    array_stamping: str
     hardware_id: str
 
 
@@ -124,7 +118,7 @@ class ParameterMixin:
             output_components=str(v['output_components']), fill_value=float(v['fill_value']),
             measured_topic=str(v['measured_topic']), wait_for_model=bool(v['wait_for_model']),
             lifecycle=bool(v['lifecycle']), executor=str(v['executor']),
-            array_stamping=str(v['array_stamping']), hardware_id=str(v['hardware_id']))
+            hardware_id=str(v['hardware_id']))
 
     def parameter_values(self, changes: list[Parameter] | None = None) -> dict[str, Any]:
         """Every parameter's value, with ``changes`` applied over them."""

@@ -102,12 +102,10 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
         self._entities: list[Any] = []
         self._timer: Any = None
         self._active = False
-        self._array_stamp: int | None = None
         self._latched = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                                    reliability=ReliabilityPolicy.RELIABLE,
                                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
         s = self.settings
-        self._sequenced = s.input_mode == 'array' and s.array_stamping == 'sequence'
         self.measured_monitor = (TopicMonitor(s.measured_topic, 'measured')
                                  if s.measured_topic else None)
         inputs = s.input_topics if s.input_mode == 'per_chamber' else (s.array_topic,)
@@ -193,7 +191,6 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
         """Make ``loop`` the running core: messages sized for its model, timer, model info."""
         self.startup_error = None
         self.loop = loop
-        self._array_stamp = None
         self._prepare_messages()
         pred = loop.predictor
         model = pred.model
@@ -329,26 +326,9 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
         if loop is None:
             return
         try:
-            now = self._now_ns()
-            stamp = self._sequence_stamp(now) if self._sequenced else 0
-            self._publish(loop.on_array(data_to_array(msg.data), stamp, now))
+            self._publish(loop.on_array(data_to_array(msg.data), 0, self._now_ns()))
         except Exception as err:  # noqa: BLE001
             self._guard('pressures', err)
-
-    def _sequence_stamp(self, now_ns: int) -> int:
-        """``array_stamping: sequence``: the step after the previous array's.
-
-        Re-anchored to ``now_ns`` when that is more than ``max_lag_s`` later (the first
-        array, a pause, a sender slower than the model rate); never moved back (a burst, or a
-        sender faster than the model rate, runs the model time ahead of the reception time).
-        """
-        assert self.loop is not None
-        pred = self.loop.predictor
-        nxt = None if self._array_stamp is None else self._array_stamp + int(round(pred.h * 1e9))
-        if nxt is None or now_ns - nxt > pred.config.max_lag_s * 1e9:
-            nxt = now_ns
-        self._array_stamp = nxt
-        return nxt
 
     def _on_measured(self, msg: PoseArray) -> None:
         loop = self.loop
@@ -426,7 +406,6 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
             response.message = f'no model loaded: {self.startup_error}'
             return response
         self.loop.reset()
-        self._array_stamp = None
         response.success = True
         response.message = f'reset to the {self.loop.predictor.config.initial_state} state'
         return response
