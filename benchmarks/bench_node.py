@@ -3,14 +3,15 @@
 Run: ``.venv/bin/python benchmarks/bench_node.py [--seconds 4] [--modes array,per_chamber]``
 (needs rclpy: a sourced Jazzy or the ros extra).
 
-Three kinds of process, each on its own: the installed ``predictor`` (event stepping,
-reliable QoS), a publisher (this file, ``--role publisher``: six ``FluidPressure`` topics
-at 1 kHz stamped on a 1 ms grid, or one ``Float64MultiArray`` at 1 kHz), and this process,
-which subscribes to the node's ``~/output_stamped`` and measures. In the same run the
-publisher then drives a bare rclpy echo node (``--role echo``: subscribe -> publish the
+Four processes: the installed ``predictor`` (event stepping, reliable QoS); beside it, on
+the same inputs at the same time (so under the same load), a bare rclpy echo node (this
+file, ``--role echo``: subscribe -> publish the
 same message, with the node's executor; with per-chamber input it subscribes to all six
 topics, as the node does, and echoes the last chamber, one message per step as the node's
-output) as the floor of what rclpy can do on this machine.
+output) as the floor of what rclpy can do on this machine; a publisher (``--role
+publisher``: six ``FluidPressure`` topics at 1 kHz stamped on a 1 ms grid, or one
+``Float64MultiArray`` at 1 kHz); and this process, which subscribes to the node's
+``~/output_stamped`` and the echoes and measures.
 
 Printed, per input mode (``array``, ``per_chamber``): % of inputs applied at their stamp /
 late / lost (from the node's counters); latency publish -> first ``~/output`` that includes
@@ -264,24 +265,27 @@ def run_mode(mode: str, seconds: float, idle: float, work: Path,
         while cond() and time.monotonic() < end:
             ex.spin_once(timeout_sec=0.01)
 
-    def subscribed(topics: list[str]) -> bool:
-        return all(sub.count_subscribers(tp) >= 1 for tp in topics)
+    def subscribed(topics: list[str], n: int) -> bool:
+        return all(sub.count_subscribers(tp) >= n for tp in topics)
 
     out: dict = {'mode': label}
     inputs = TOPICS if mode == 'per_chamber' else [ARRAY]
-    # ---- the predictor node
+    # ---- the predictor node and the echo node, side by side on the same inputs
     node = _spawn([exe, '--ros-args', '-r', '__node:=bench_predictor', '--params-file',
-                   str(pfile)], work / f'node_{mode}.log')
-    sampler = Sampler(node.pid)
+                   str(pfile)], work / f'node_{label}.log')
+    echo = _spawn(me + ['--role', 'echo', '--mode', mode, '--executor', executor],
+                  work / f'echo_{label}.log')
+    sampler, echo_sampler = Sampler(node.pid), Sampler(echo.pid)
     sampler.start()
-    spin_while(lambda: not subscribed(inputs), 30)
+    echo_sampler.start()
+    spin_while(lambda: not subscribed(inputs, 2), 30)
     spin_while(lambda: sub.count_publishers('/bench_predictor/output_stamped') < 1, 10)
     t_idle = time.time_ns()
     spin_while(lambda: True, idle)
     out['idle_cpu'], out['idle_rss'] = sampler.cpu(t_idle, time.time_ns())
-    pub_file = work / f'sent_{mode}_node.npz'
+    pub_file = work / f'sent_{label}.npz'
     pub = _spawn(me + ['--role', 'publisher', '--mode', mode, '--seconds', str(seconds),
-                       '--out', str(pub_file), '--expect', '2'], work / f'pub_{mode}.log')
+                       '--out', str(pub_file), '--expect', '2'], work / f'pub_{label}.log')
     spin_while(lambda: pub.poll() is None, seconds + 60)
     spin_while(lambda: True, 1.0)
     n_diag = len(diags)
@@ -289,9 +293,13 @@ def run_mode(mode: str, seconds: float, idle: float, work: Path,
     sent = np.load(pub_file)
     s_ns, t0, U = sent['sent'], int(sent['t0']), sent['U']
     out['busy_cpu'], out['busy_rss'] = sampler.cpu(int(s_ns[0]), int(s_ns[-1]))
+    out['echo_cpu'], out['echo_rss'] = echo_sampler.cpu(int(s_ns[0]), int(s_ns[-1]))
     node.send_signal(signal.SIGINT)
+    echo.send_signal(signal.SIGINT)
     out['exit'] = node.wait(20)
+    echo.wait(20)
     sampler.stop.set()
+    echo_sampler.stop.set()
     status = {kv.key: kv.value for st in diags[-1].status if st.name.endswith(': prediction')
               for kv in st.values}
     k = U.shape[1]
@@ -326,23 +334,6 @@ def run_mode(mode: str, seconds: float, idle: float, work: Path,
         a_sorted = arrival[order]
         lat = np.array([a - s for a, s in zip(a_sorted, s_ns)])
     out['node_lat'] = lat
-    # ---- the echo node (the floor), same publisher
-    echo = _spawn(me + ['--role', 'echo', '--mode', mode, '--executor', executor],
-                  work / f'echo_{label}.log')
-    sampler = Sampler(echo.pid)
-    sampler.start()
-    spin_while(lambda: not subscribed(inputs), 30)
-    echo_file = work / f'sent_{mode}_echo.npz'
-    pub = _spawn(me + ['--role', 'publisher', '--mode', mode, '--seconds', str(seconds),
-                       '--out', str(echo_file), '--expect', '1'], work / f'pube_{mode}.log')
-    spin_while(lambda: pub.poll() is None, seconds + 60)
-    spin_while(lambda: True, 1.0)
-    sent = np.load(echo_file)
-    s_ns, t0 = sent['sent'], int(sent['t0'])
-    out['echo_cpu'], out['echo_rss'] = sampler.cpu(int(s_ns[0]), int(s_ns[-1]))
-    echo.send_signal(signal.SIGINT)
-    echo.wait(20)
-    sampler.stop.set()
     if mode == 'per_chamber':
         first = {}
         for a, st in echoed:
