@@ -217,7 +217,7 @@ def _lat(x: np.ndarray) -> str:
 
 
 def run_mode(mode: str, seconds: float, idle: float, work: Path,
-             executor: str = 'single_threaded') -> dict:
+             executor: str = 'events') -> dict:
     """Node phase then echo phase for one input mode; the figures."""
     from diagnostic_msgs.msg import DiagnosticArray
     import rclpy
@@ -386,8 +386,8 @@ def main() -> None:
     ap.add_argument('--seconds', type=float, default=4.0)
     ap.add_argument('--idle', type=float, default=3.0)
     ap.add_argument('--modes', default='array,per_chamber')
-    ap.add_argument('--executor', choices=('single_threaded', 'events'),
-                    default='single_threaded', help="the node's executor parameter")
+    ap.add_argument('--executor', choices=('events', 'single_threaded'),
+                    default='events', help="the node's executor parameter (and the echo's)")
     ap.add_argument('--role', choices=('publisher', 'echo'), default=None)
     ap.add_argument('--mode', default='array')
     ap.add_argument('--out', default='')

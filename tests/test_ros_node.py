@@ -131,7 +131,7 @@ def _connected(client: Client, pubs: list, out: Outputs | None = None) -> None:
         assert client.spin_until(lambda: bool(out.infos), timeout=10.0), 'no model_info'
 
 
-@pytest.mark.parametrize('executor', ['single_threaded', 'events'])
+@pytest.mark.parametrize('executor', ['events', 'single_threaded'])
 def test_per_chamber_input_at_full_rate_equals_replay(client, tmp_path, executor) -> None:
     m = model()
     ep = episode(m)
@@ -368,11 +368,12 @@ def _flood(pubs, stop: threading.Event) -> None:
 
 
 @pytest.mark.parametrize('sig', [signal.SIGINT, signal.SIGTERM])
-@pytest.mark.parametrize('stepping', ['event', 'fixed'])
-def test_signal_under_load_exits_0_quietly(client, tmp_path, sig, stepping) -> None:
+@pytest.mark.parametrize('stepping,executor', [('event', 'events'),
+                                               ('fixed', 'single_threaded')])
+def test_signal_under_load_exits_0_quietly(client, tmp_path, sig, stepping, executor) -> None:
     m = model()
     node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz'), stepping=stepping,
-                                        centerline_rate_hz=0.0))
+                                        centerline_rate_hz=0.0, executor=executor))
     stop = threading.Event()
     try:
         out = Outputs(client, node.fqn)

@@ -456,11 +456,15 @@ class _StopFlag:
             signal.signal(sig, handler)
 
 
-def _executor(kind: str) -> Any:
-    if kind == 'events':
-        from rclpy.experimental import EventsExecutor
-
-        return EventsExecutor()
+def _executor(node: PredictorNode) -> Any:
+    if node.settings.executor == 'events':
+        try:
+            from rclpy.experimental import EventsExecutor
+        except ImportError:
+            node.get_logger().warning('this rclpy has no EventsExecutor: using the '
+                                      'SingleThreadedExecutor (more CPU per message)')
+        else:
+            return EventsExecutor()
     return SingleThreadedExecutor()
 
 
@@ -477,7 +481,7 @@ def main(args: list[str] | None = None) -> int:
                                                    or node.managed):
             code = 1
         else:
-            executor = _executor(node.settings.executor)
+            executor = _executor(node)
             executor.add_node(node)
             while not stop.event.is_set() and rclpy.ok():
                 executor.spin_once(timeout_sec=0.1)
