@@ -313,6 +313,35 @@ def kalman_figures() -> None:
           f'{res["kalman_abs"]:.3e}')
 
 
+def cubic_figures(r: int = 10) -> None:
+    """Nonlinear (cubic LOpInf) predictor step beside the linear step of its linear part."""
+    from soft_rom.models_cubic import CubicSecondOrderModel, symmetrize
+
+    lin = _model(r)
+    rng = np.random.default_rng(7)
+    G = 50.0 * symmetrize(rng.standard_normal((r, r, r)))
+    A = rng.standard_normal((2 * r, r))
+    H = 20.0 * np.einsum('ai,aj,ak,al->ijkl', A, A, A, A)     # sum of 4th powers: positive
+    cub = CubicSecondOrderModel(lin.K, lin.C, G, H, lin.B, lin.E, dt=lin.dt, y_ref=lin.y_ref)
+    U = np.repeat(rng.standard_normal((lin.n_inputs, 100)), 20, axis=1)
+    preds = {}
+    for name, model in (('linear', lin), ('cubic', cub)):
+        p = Predictor(model)
+        p.set_input(U[:, 0], 0.0)
+        for _ in range(200):                     # leave the rest state (real Newton work)
+            p.step()
+        preds[name] = p
+    t_lin = _best(preds['linear'].step, 5000)
+    t_cub = _best(preds['cubic'].step, 5000)
+    print(f'cubic LOpInf r={r}: predictor step {t_cub * 1e6:.1f} us (target <= 50 us), linear '
+          f'step {t_lin * 1e6:.1f} us, ratio {t_cub / t_lin:.1f}x')
+    t0 = time.perf_counter()
+    cub.simulate(U)
+    print(f'cubic LOpInf r={r}: simulate {(time.perf_counter() - t0) / U.shape[1] * 1e6:.1f} '
+          f'us/step ({U.shape[1]} steps)')
+
+
 if __name__ == '__main__':
     main()
     kalman_figures()
+    cubic_figures()

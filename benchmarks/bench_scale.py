@@ -233,8 +233,8 @@ def main(argv: list[str] | None = None) -> int:
 
     from soft_rom.dataset import TrainingSet
     from soft_rom.scale.blocks import LocalExecutor, SnapshotSet
-    from soft_rom.scale.fit import fit_reduced_model, open_training_data, ReducedData
     from soft_rom.scale.pod import StreamingPOD
+    from soft_rom.scale.streaming import fit_reduced_model, open_training_data, ReducedData
 
     files = chunk_files(path)
     if not args.warm:

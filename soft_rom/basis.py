@@ -194,7 +194,7 @@ class POD:
         -------
         self : POD
         """
-        parts = [snapshots] if hasattr(snapshots, 'shape') else list(snapshots)
+        parts: list[Any] = [snapshots] if hasattr(snapshots, 'shape') else list(snapshots)
         if not parts:
             raise DimensionError('POD.fit needs at least one snapshot array.')
         ref = np.asarray(q_ref, dtype=np.float64).reshape(-1)

@@ -4,6 +4,11 @@ One convention, stated once: **arrays are ``(n_channels, n_samples)``, float64, 
 seconds.** A snapshot is a column. Bag nanoseconds are converted to seconds at the bag
 boundary (:mod:`soft_rom.bags`) and nowhere else.
 
+Time: within an episode, ``t`` is float seconds from the episode's own start
+(``t[0] = 0`` for converted recordings); the absolute start is an integer number of
+nanoseconds, ``metadata['t0_ns']`` (an epoch stamp near 1.7e18 ns for a live recording),
+never a float.
+
 Linear models act on *deviations* from a reference configuration: states are centred on
 ``q_ref`` (the body at rest) and outputs on ``y_ref``; predictions are returned in absolute
 coordinates.
@@ -20,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.errors import DimensionError
 
-__all__ = ['Episode', 'as_signal', 'check_finite']
+__all__ = ['Episode', 'all_finite', 'as_signal', 'check_finite']
 
 
 def as_signal(name: str, values: ArrayLike, *, rows: int | None = None,
@@ -54,9 +59,23 @@ def as_signal(name: str, values: ArrayLike, *, rows: int | None = None,
     return arr
 
 
+def all_finite(arr: ArrayLike) -> bool:
+    """True if every value of ``arr`` is finite (one pass, no temporary in the common case).
+
+    The sum of finite values is finite unless it overflows, so the element-wise test runs
+    only when the sum is not finite.
+    """
+    a = np.asarray(arr)
+    if a.size == 0:
+        return True
+    with np.errstate(all='ignore'):
+        total = np.add.reduce(a, axis=None)
+    return bool(np.isfinite(total)) or bool(np.all(np.isfinite(a)))
+
+
 def check_finite(name: str, arr: NDArray[Any]) -> None:
     """Raise :class:`ValueError` naming ``name`` and the first bad index if ``arr`` has NaN/Inf."""
-    if not np.all(np.isfinite(arr)):
+    if not all_finite(arr):
         bad = np.argwhere(~np.isfinite(arr))[0]
         raise DimensionError(
             f'{name} contains NaN or Inf (first at index {tuple(int(i) for i in bad)}); '

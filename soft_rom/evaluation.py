@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 
 from soft_rom.data import Episode
 from soft_rom.errors import ConfigError, DimensionError
+from soft_rom.metrics import relative_error_from_squares
 from soft_rom.models import DiscreteModel, LinearROM, SecondOrderModel
 
 __all__ = ['Evaluation', 'evaluate', 'predict']
@@ -90,6 +91,8 @@ def predict(model: LinearROM, episode: Episode, *, initial: str = 'reference') -
     if not ep.is_uniform():
         raise DimensionError(f'episode {ep.name!r} is not uniformly sampled; resample it first.')
     h = ep.dt
+    if getattr(model, 'is_nonlinear', False):    # continuous nonlinear model: its own stepper
+        return np.asarray(model.simulate(ep.U, x0, dt=h))  # type: ignore[call-arg]
     if isinstance(model, SecondOrderModel):
         sys_ = model.discretize(h)
         X = _run(sys_.A, sys_.B, x0, ep.U[:, :-1])
@@ -155,11 +158,9 @@ class Evaluation:
 
 
 def _row(episode: str, segment: str, sq: dict[str, float], n: int) -> dict[str, Any]:
-    def ratio(a: float, b: float) -> float:
-        return float(np.sqrt(a / b)) if b > 0 else float('nan')
     return {'episode': episode, 'segment': segment, 'n_samples': int(n),
-            'relative_error': ratio(sq['err'], sq['abs']),
-            'relative_deviation_error': ratio(sq['err'], sq['dev'])}
+            'relative_error': relative_error_from_squares(sq['err'], sq['abs']),
+            'relative_deviation_error': relative_error_from_squares(sq['err'], sq['dev'])}
 
 
 def evaluate(model: LinearROM, episodes: Episode | Sequence[Episode], *,
@@ -198,7 +199,8 @@ def evaluate(model: LinearROM, episodes: Episode | Sequence[Episode], *,
         if return_predictions:
             preds[ep.name] = Y_hat
         for seg in segments:
-            if seg == 'all':
+            sel: slice | NDArray[np.bool_]
+            if seg == 'all' or t_split is None:
                 sel = slice(None)
             elif seg == 'train':
                 sel = ep.t - ep.t[0] < t_split - 1e-12

@@ -4,6 +4,16 @@ Several ``r`` values in one call reuse the expensive part: the POD basis and pro
 (LOpInf), the two SVDs (DMDc), the OKID Markov parameters (ERA). With ``streaming=True`` or a
 Dask ``client`` the snapshots are streamed from disk with bounded memory
 (:mod:`soft_rom.scale`) instead of being loaded.
+
+Coordinates: LOpInf and DMDc are fitted on generalized coordinates. With ``'state'`` those
+are the full states ``Q`` (POD of ``Q - q_ref``); with ``'outputs'`` (a recording of a real
+robot, whose training set has no ``Q``) they are the measured outputs: ``Q := Y`` and
+``q_ref := y_ref``, so that the POD runs on the output deviations. The default is
+``'state'`` when every selected episode has ``Q`` and ``'outputs'`` otherwise; it is said on
+stderr and recorded in the model file (``metadata['coordinates']``). Measured outputs are
+noisy, so their default derivative estimator is :class:`~soft_rom.ddt.SavitzkyGolay`
+(``ddt='savgol'``); states keep the eighth-order differences. The models predict outputs
+from inputs either way, so the predictor, replay, evaluate and the node use them unchanged.
 """
 
 from __future__ import annotations
@@ -20,7 +30,11 @@ from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError, DatasetError
 from soft_rom.models import LinearROM
 
-__all__ = ['fit_models', 'fit_models_streaming', 'open_training_set', 'select_episodes']
+__all__ = ['COORDINATES', 'choose_coordinates', 'fit_models', 'fit_models_streaming',
+           'open_training_set', 'select_episodes']
+
+#: Choices of generalized coordinates for LOpInf and DMDc.
+COORDINATES = ('state', 'outputs')
 
 
 def open_training_set(path: str | Path) -> Any:
@@ -65,20 +79,66 @@ def _names(ts: Any) -> dict[str, Any]:
                 input_units=list(ts.input_units), output_units=list(ts.output_units))
 
 
+def choose_coordinates(episodes: list[Episode], coordinates: str | None) -> str:
+    """``'state'`` or ``'outputs'``: the choice, or the default for these episodes."""
+    if coordinates is not None and coordinates not in COORDINATES:
+        raise ConfigError(f'--coordinates must be one of {COORDINATES}; got {coordinates!r}.')
+    if coordinates is None:
+        return 'state' if all(ep.Q is not None for ep in episodes) else 'outputs'
+    return coordinates
+
+
+def _output_coordinates(episodes: list[Episode]) -> list[Episode]:
+    """The episodes with their outputs as the coordinates (``Q := Y``)."""
+    return [Episode(t=ep.t, U=ep.U, Y=ep.Y, Q=ep.Y, name=ep.name, metadata=ep.metadata)
+            for ep in episodes]
+
+
 def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
                energy: float | None, episodes: list[Episode], provenance: dict[str, Any],
                solver: str = 'fast', ddt_order: int = 8, dmdc_p: int | None = None,
                era_options: dict[str, Any] | None = None,
-               progress: bool = True) -> list[tuple[LinearROM, float]]:
+               progress: bool = True, coordinates: str | None = None,
+               ddt: str | None = None, forces: str = 'linear',
+               cubic_options: dict[str, Any] | None = None) -> list[tuple[LinearROM, float]]:
     """Fit ``method`` for each r; returns ``[(model, seconds), ...]``.
 
+    ``forces`` and ``cubic_options`` are passed to :class:`~soft_rom.learners.lopinf.LOpInf`.
+
     The expensive step is shared between the r values (module docstring).
+
+    Parameters
+    ----------
+    coordinates : {'state', 'outputs'}, optional
+        Generalized coordinates of LOpInf / DMDc (default: ``'state'`` when every episode
+        has ``Q``, else ``'outputs'``).
+    ddt : str, optional
+        LOpInf derivative estimator by name (``fd2`` .. ``fd8``, ``savgol[:W[:P]]``);
+        default ``fd<ddt_order>`` on states and ``savgol`` on outputs.
     """
     names = _names(ts)
     out: list[tuple[LinearROM, float]] = []
     bar = _progress(len(r_values) if r_values else 1, f'fit {method}', progress)
     q_ref = getattr(ts, 'q_ref', None)
     y_ref = ts.y_ref
+    provenance = {**provenance, 't0_ns': {ep.name: int(ep.metadata.get('t0_ns', 0))
+                                          for ep in episodes}}
+    coords = 'state'
+    if method in ('lopinf', 'dmdc'):
+        coords = choose_coordinates(episodes, coordinates)
+        if coords == 'outputs':
+            episodes = _output_coordinates(episodes)
+            q_ref = y_ref
+    if ddt is None:
+        ddt = 'savgol' if coords == 'outputs' else f'fd{ddt_order}'
+    if coords == 'outputs':
+        why = ' (the training set has no Q)' if coordinates is None else ''
+        how = f', derivatives by {ddt}' if method == 'lopinf' else ''
+        print(f'note: {method} uses the measured outputs (deviations from y_ref) as its '
+              f'coordinates{why}{how}; --coordinates to choose.', file=sys.stderr)
+    from soft_rom.ddt import parse_estimator
+    estimator = parse_estimator(ddt)
+    extra = {'coordinates': coords}
     try:
         if method == 'lopinf':
             from soft_rom.basis import POD, project
@@ -96,13 +156,14 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             for r in (r_values or (pod.r_,)):
                 t1 = time.perf_counter()
                 slv = FastSPDSolver() if solver == 'fast' else CvxpySolver()
-                learner = LOpInf(r=r, ddt=ddt_order, solver=slv)
+                learner = LOpInf(r=r, ddt=estimator, solver=slv, forces=forces,
+                                 cubic_options=cubic_options)
                 learner.fit_reduced(
                     [q[:r] for q in Qhat], [ep.U for ep in episodes],
                     [ep.Y for ep in episodes], dt, y_ref, names=[ep.name for ep in episodes],
                     energy_captured=float(pod.energy_[r - 1]),
                     time_ranges=[[float(ep.t[0]), float(ep.t[-1])] for ep in episodes],
-                    metadata={'training': provenance,
+                    metadata={'training': provenance, **extra,
                               'pod_singular_values': pod.singular_values_[:100].tolist()},
                     **names)
                 out.append((learner.model_, t_basis / len(r_values or (1,))
@@ -113,13 +174,16 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             _need_states(episodes, 'DMDc')
             t0 = time.perf_counter()
             r0 = r_values[0] if r_values else None
-            learner = DMDc(r=r0, p=dmdc_p, energy=0.95 if energy is None else energy).fit(
-                episodes, _q_ref(q_ref, episodes), y_ref, metadata={'training': provenance},
-                **names)
+            dmdc = DMDc(r=r0, p=dmdc_p, energy=0.95 if energy is None else energy).fit(
+                episodes, _q_ref(q_ref, episodes), y_ref,
+                metadata={'training': provenance, **extra}, **names)
             t_svd = time.perf_counter() - t0
-            for r in (r_values or (None,)):
+            r_opt: int | None
+            for r_opt in (r_values or (None,)):
                 t1 = time.perf_counter()
-                model = learner.model_ if r == r0 else learner.model_for(r, dmdc_p)
+                model = (dmdc.model_ if r_opt is None or r_opt == r0
+                         else dmdc.model_for(r_opt, dmdc_p))
+                model.metadata.update(extra)
                 out.append((model, t_svd / len(r_values or (1,)) + time.perf_counter() - t1))
                 bar.update(1)
         elif method == 'era':
@@ -139,13 +203,13 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
                 ep = match[0]
             t0 = time.perf_counter()
             r0 = r_values[0] if r_values else None
-            learner = ERAOKID(r=r0, **opts).fit(
+            era = ERAOKID(r=r0, **opts).fit(
                 ep, y_ref, metadata={'training': {**provenance, 'episodes': [ep.name]}},
                 **names)
             t_okid = time.perf_counter() - t0
-            for r in (r_values or (None,)):
+            for r_opt in (r_values or (None,)):
                 t1 = time.perf_counter()
-                model = learner.model_ if r == r0 else learner.model_for(r)
+                model = era.model_ if r_opt is None or r_opt == r0 else era.model_for(r_opt)
                 out.append((model, t_okid / len(r_values or (1,)) + time.perf_counter() - t1))
                 bar.update(1)
         else:  # pragma: no cover - argparse restricts the choices
@@ -158,8 +222,9 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
 def _need_states(episodes: list[Episode], what: str) -> None:
     missing = [ep.name for ep in episodes if ep.Q is None]
     if missing:
-        raise DatasetError(f'{what} needs full states Q but episodes {missing} have none '
-                           '(converted with --no-state?). ERA/OKID needs inputs/outputs only.')
+        raise DatasetError(f'{what} with --coordinates state needs full states Q but episodes '
+                           f'{missing} have none (converted with --no-state?); use '
+                           '--coordinates outputs (the default without Q).')
 
 
 def _q_ref(q_ref: Any, episodes: list[Episode]) -> np.ndarray:
@@ -197,6 +262,12 @@ def fit_models_streaming(ts: Any, method: str, *, r_values: tuple[int, ...] | No
     One streamed POD pass (:func:`soft_rom.scale.fit.reduce_streaming`) serves every ``r``;
     ``client`` is a ``dask.distributed.Client`` or a scheduler address.
     """
+    if method in ('lopinf', 'dmdc') and getattr(ts, 'q_ref', None) is None:
+        # no Q: the outputs are the coordinates, small enough to fit in memory
+        eps = select_episodes(ts, episodes, t_max)
+        return fit_models(ts, method, r_values=r_values, energy=energy, episodes=eps,
+                          provenance=provenance, dmdc_p=dmdc_p, era_options=era_options,
+                          progress=progress)
     opts = {k: v for k, v in (era_options or {}).items() if v is not None}
     era_episode = opts.pop('episode', None)
     own_client = isinstance(client, str)
@@ -242,6 +313,8 @@ def _fit_streaming(ts: Any, method: str, r_values: tuple[int, ...] | None,
                                progress=False)[0][0]
         else:
             kw: dict[str, Any] = {'p': dmdc_p} if method == 'dmdc' else {}
+            if red is None:  # pragma: no cover - set above for lopinf and dmdc
+                raise ConfigError(f'unknown method {method!r}.')
             model = fit_reduced_model(red, method, r, **kw)
         model.metadata.setdefault('training', provenance)
         model.metadata.setdefault('envelope', envelope)

@@ -15,14 +15,22 @@ Two families, one interface (:class:`LinearROM`):
 
       x_{k+1} = A x_k + B u_k, \\qquad y_k = C x_k + D u_k + y_{ref}.
 
+The file format (the bounded reader, :func:`load_model`, the class registry) lives in
+:mod:`soft_rom.model_io`; this module holds the models, their discretization and their
+trust checks (about 640 lines: two families sharing one interface).
+
 Models know nothing of how they were made (no training arrays); they carry matrices,
 offsets, names/units and JSON metadata. States are deviations from the reference
 configuration; outputs are returned in absolute coordinates.
 
 Model files are ``.npz`` archives of plain numeric arrays plus one JSON document stored as
 a ``uint8`` array; they are read with ``allow_pickle=False`` and validated (format
-version, shapes, finite values, dtypes) before any model is built. See
-:func:`load_model`.
+version, sizes, shapes, finite and plausible values, dtypes) before any model is built, by
+the bounded reader of :mod:`soft_rom.model_io`. See :func:`load_model`.
+
+A model that loads may still not deserve trust (unstable, indefinite stiffness or damping,
+absurd offsets): :meth:`LinearROM.trust_issues` says why; ``load_model(..., strict=True)``
+refuses such models.
 """
 
 from __future__ import annotations
@@ -30,12 +38,10 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from functools import lru_cache
-import hashlib
 import json
 import os
 from pathlib import Path
 from typing import Any, ClassVar
-import zipfile
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -43,6 +49,15 @@ import scipy.linalg as sla
 
 from soft_rom.data import as_signal
 from soft_rom.errors import DimensionError, ModelFileError
+from soft_rom.model_io import (
+    _META_KEY,
+    file_sha256,
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    load_model,
+    MAX_STATES,
+    register_model_class,
+)
 
 __all__ = [
     'DiscreteModel',
@@ -50,14 +65,18 @@ __all__ = [
     'FORMAT_NAME',
     'FORMAT_VERSION',
     'LinearROM',
+    'MAX_STATES',
     'SecondOrderModel',
+    'TRUST_TOL',
     'file_sha256',
     'load_model',
+    'register_model_class',
 ]
 
-FORMAT_NAME = 'soft_rom.model'
-FORMAT_VERSION = 1
-_META_KEY = '__metadata__'
+#: Relative tolerance of the trust checks (spectral radius, definiteness, symmetry).
+TRUST_TOL = 1e-6
+#: Output offsets larger than this (in output units) are reported as absurd.
+ABSURD_OFFSET = 1e6
 
 Array = NDArray[np.float64]
 
@@ -96,6 +115,29 @@ def _arr(name: str, value: ArrayLike, shape: tuple[int, ...] | None = None) -> A
     return a
 
 
+def _eigvals(A: Array) -> NDArray[np.complex128]:
+    """Eigenvalues of ``A``; :class:`DimensionError` when LAPACK cannot compute them."""
+    try:
+        with np.errstate(all='ignore'):
+            ev = np.linalg.eigvals(A)
+    except (np.linalg.LinAlgError, ValueError) as err:
+        raise DimensionError(f'eigenvalues cannot be computed ({err}).') from None
+    if not np.all(np.isfinite(ev)):
+        raise DimensionError('eigenvalues cannot be computed (overflow).')
+    return np.asarray(ev, dtype=np.complex128)
+
+
+def _finite_system(sys_: DiscreteSystem, what: str) -> DiscreteSystem:
+    if not (np.all(np.isfinite(sys_.A)) and np.all(np.isfinite(sys_.B))):
+        raise DimensionError(f'{what}: the discrete system at dt = {sys_.dt:g} s overflows '
+                             '(entries are not finite); the model is unusable at that step.')
+    return sys_
+
+
+def _finite_or_none(value: float) -> float | None:
+    return value if np.isfinite(value) else None
+
+
 def _names(kind: str, names: Sequence[str] | None, count: int, prefix: str) -> list[str]:
     if names is None:
         return [f'{prefix}{i + 1}' for i in range(count)]
@@ -124,6 +166,10 @@ class LinearROM(ABC):
 
     method: ClassVar[str] = ''
     _matrix_names: ClassVar[tuple[str, ...]] = ()
+    #: Arrays a file of this class may hold besides :attr:`_matrix_names` (loader hook).
+    _optional_matrices: ClassVar[tuple[str, ...]] = ()
+    #: Methods a file of this class may declare (empty: any short name).
+    _file_methods: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, *, dt: float, y_ref: ArrayLike | None, n_inputs: int, n_outputs: int,
                  input_names: Sequence[str] | None = None,
@@ -143,6 +189,7 @@ class LinearROM(ABC):
                                    n_outputs, '')
         self.metadata: dict[str, Any] = json.loads(json.dumps(dict(metadata or {})))
         self._native: DiscreteSystem | None = None
+        self._trust: list[str] | None = None
 
     # -- sizes --------------------------------------------------------------------------
     @property
@@ -247,17 +294,56 @@ class LinearROM(ABC):
         if u is not None:
             dy = dy - self.system.D @ np.asarray(u, dtype=np.float64)
         x, *_ = np.linalg.lstsq(self.system.C, dy, rcond=None)
-        return x
+        return np.asarray(x, dtype=np.float64)
 
     # -- spectrum -----------------------------------------------------------------------
     def discrete_eigenvalues(self) -> NDArray[np.complex128]:
         """Eigenvalues of the native discrete state matrix ``A``."""
-        return np.linalg.eigvals(self.system.A)
+        return _eigvals(self.system.A)
 
     def stability_margin(self) -> float:
-        """``1 - max |λ(A)|`` at the native ``dt``: positive means asymptotically stable."""
-        ev = self.discrete_eigenvalues()
+        """``1 - max |λ(A)|`` at the native ``dt``: positive means asymptotically stable.
+
+        NaN when the eigenvalues cannot be computed (see :meth:`trust_issues`).
+        """
+        try:
+            ev = self.discrete_eigenvalues()
+        except DimensionError:
+            return float('nan')
         return float(1.0 - np.max(np.abs(ev))) if ev.size else 1.0
+
+    # -- trust --------------------------------------------------------------------------
+    def trust_issues(self) -> list[str]:
+        """Reasons not to trust this model's predictions; empty when there are none.
+
+        Checked (relative tolerance :data:`TRUST_TOL`): the native discrete system is
+        unstable (spectral radius of ``A`` above ``1 + tol``), the output offsets are absurd
+        (``|y_ref| >`` :data:`ABSURD_OFFSET`), and for LOpInf models an eigenvalue of the
+        continuous system with positive real part and a stiffness ``K`` or damping ``C``
+        that is not symmetric positive semidefinite. Computed once, then cached.
+        """
+        if self._trust is None:
+            self._trust = self._check_trust()
+        return list(self._trust)
+
+    @property
+    def trusted(self) -> bool:
+        """Whether :meth:`trust_issues` found nothing."""
+        return not self.trust_issues()
+
+    def _check_trust(self) -> list[str]:
+        issues: list[str] = []
+        margin = self.stability_margin()
+        if not np.isfinite(margin):
+            issues.append('the eigenvalues of its discrete system cannot be computed')
+        elif margin < -TRUST_TOL:
+            issues.append(f'unstable: spectral radius of the discrete A is {1 - margin:.6g} '
+                          f'> 1 at dt = {self.dt:g} s')
+        if self.y_ref.size:
+            peak = float(np.max(np.abs(self.y_ref)))
+            if peak > ABSURD_OFFSET:
+                issues.append(f'absurd output offset: max |y_ref| = {peak:.3g}')
+        return issues
 
     # -- files --------------------------------------------------------------------------
     def matrices(self) -> dict[str, Array]:
@@ -278,12 +364,15 @@ class LinearROM(ABC):
             'output_names': self.output_names,
             'input_units': self.input_units,
             'output_units': self.output_units,
-            'stability_margin': self.stability_margin(),
+            'stability_margin': _finite_or_none(self.stability_margin()),
             'metadata': self.metadata,
         }
 
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write the model to ``path`` (``.npz``), atomically; returns the path written."""
+        if self.n_states > MAX_STATES:
+            raise ModelFileError(f'a model with {self.n_states} states cannot be saved: model '
+                                 f'files hold at most {MAX_STATES} states.')
         path = Path(path)
         if path.suffix != '.npz':
             path = path.with_suffix(path.suffix + '.npz') if path.suffix else path.with_suffix(
@@ -296,7 +385,7 @@ class LinearROM(ABC):
         path.parent.mkdir(parents=True, exist_ok=True)
         try:
             with open(tmp, 'wb') as fh:
-                np.savez(fh, **arrays)
+                np.savez(fh, **arrays)  # type: ignore[arg-type]
             os.replace(tmp, path)
         finally:
             if tmp.exists():
@@ -304,13 +393,24 @@ class LinearROM(ABC):
         return path
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str]) -> LinearROM:
+    def load(cls, path: str | os.PathLike[str], *, strict: bool = False) -> LinearROM:
         """Load a model file (see :func:`load_model`) and check it is of this class."""
-        model = load_model(path)
+        model = load_model(path, strict=strict)
         if not isinstance(model, cls):
             raise ModelFileError(
                 f'{path}: holds a {type(model).__name__} ({model.method}), not a {cls.__name__}.')
         return model
+
+    @classmethod
+    def _from_file(cls, arrays: dict[str, Array], **common: Any) -> LinearROM:
+        """Build a model from a file's arrays (loader hook; see :func:`register_model_class`).
+
+        ``arrays`` holds :attr:`_matrix_names` (and any :attr:`_optional_matrices` present)
+        as float64; ``common`` holds ``dt``, ``y_ref``, names, units, ``metadata`` and the
+        declared ``method``.
+        """
+        common.pop('method', None)
+        return cls(*(arrays[name] for name in cls._matrix_names), **common)
 
     def _common_kwargs(self) -> dict[str, Any]:
         return dict(dt=self.dt, y_ref=self.y_ref, input_names=self.input_names,
@@ -331,7 +431,11 @@ def _zoh_cached(key: bytes, r: int, m: int, dt: float) -> tuple[Array, Array]:
     M = np.zeros((n + m, n + m))
     M[:n, :n] = Ac * dt
     M[:n, n:] = Bc * dt
-    F = sla.expm(M)
+    try:
+        with np.errstate(all='ignore'):
+            F = sla.expm(M)
+    except (np.linalg.LinAlgError, ValueError, OverflowError, ArithmeticError) as err:
+        raise DimensionError(f'the matrix exponential at dt = {dt:g} s fails ({err}).') from None
     Ad, Bd = F[:n, :n].copy(), F[:n, n:].copy()
     Ad.setflags(write=False)
     Bd.setflags(write=False)
@@ -406,7 +510,7 @@ class SecondOrderModel(LinearROM):
 
     def eigenvalues(self) -> NDArray[np.complex128]:
         """Continuous-time eigenvalues of ``[[0, I], [-K, -C]]``."""
-        return np.linalg.eigvals(self.first_order()[0])
+        return np.asarray(np.linalg.eigvals(self.first_order()[0]), dtype=np.complex128)
 
     def discretize(self, dt: float | None = None) -> DiscreteSystem:
         dt = self.dt if dt is None else float(dt)
@@ -415,19 +519,43 @@ class SecondOrderModel(LinearROM):
         Ac, Bc, Cc = self.first_order()
         key = np.concatenate([Ac.ravel(), Bc.ravel()]).tobytes()
         Ad, Bd = _zoh_cached(key, self.r, self.n_inputs, dt)
-        return DiscreteSystem(Ad, Bd, Cc, np.zeros((self.n_outputs, self.n_inputs)), dt)
+        return _finite_system(
+            DiscreteSystem(Ad, Bd, Cc, np.zeros((self.n_outputs, self.n_inputs)), dt),
+            'LOpInf model')
+
+    def _check_trust(self) -> list[str]:
+        issues = super()._check_trust()
+        try:
+            ev = _eigvals(self.first_order()[0])
+        except DimensionError:
+            ev = np.zeros(0, dtype=np.complex128)
+        if ev.size:
+            scale = max(1.0, float(np.max(np.abs(ev))))
+            worst = float(np.max(ev.real))
+            if worst > TRUST_TOL * scale and not any(i.startswith('unstable') for i in issues):
+                issues.append(f'unstable: a continuous eigenvalue has real part {worst:.3g} > 0')
+        for name in ('K', 'C'):
+            M = getattr(self, name)
+            norm = float(np.linalg.norm(M))
+            if norm == 0.0:
+                continue
+            if float(np.linalg.norm(M - M.T)) > TRUST_TOL * norm:
+                issues.append(f'{name} is not symmetric')
+            try:
+                lam = np.linalg.eigvalsh(0.5 * (M + M.T))
+            except np.linalg.LinAlgError:
+                issues.append(f'the eigenvalues of {name} cannot be computed')
+                continue
+            if lam[0] < -TRUST_TOL * max(abs(lam[0]), abs(lam[-1])):
+                kind = 'negative definite' if lam[-1] < 0 else 'indefinite'
+                issues.append(f'{name} is {kind} (eigenvalues in [{lam[0]:.3g}, {lam[-1]:.3g}]'
+                              '); LOpInf stiffness and damping are positive')
+        return issues
 
     def state_from_output(self, y: ArrayLike, u: ArrayLike | None = None) -> Array:
         dy = np.asarray(y, dtype=np.float64) - self.y_ref
         q, *_ = np.linalg.lstsq(self.E, dy, rcond=None)
         return np.concatenate([q, np.zeros(self.r)])
-
-    def to_discrete(self, dt: float | None = None) -> DiscreteModel:
-        """The exact ZOH discretization as a :class:`DiscreteModel` (same outputs)."""
-        A, B, C, D, dt = self.discretize(dt)
-        kw = self._common_kwargs()
-        kw['dt'] = dt
-        return DiscreteModel(A, B, C, D, method='lopinf', **kw)
 
 
 class DiscreteModel(LinearROM):
@@ -495,109 +623,20 @@ class DiscreteModel(LinearROM):
             raise DimensionError(
                 f'{self.method} model has sample time {self.dt:g} s; it can step by whole '
                 f'multiples of it only, not {dt:g} s. Step at the model rate instead.')
-        Aj = np.linalg.matrix_power(self.A, j)
-        S = np.zeros_like(self.A)
-        P = np.eye(self.r)
-        for _ in range(j):
-            S += P
-            P = P @ self.A
-        return DiscreteSystem(Aj, S @ self.B, self.C, self.D, j * self.dt)
+        with np.errstate(all='ignore'):
+            Aj = np.linalg.matrix_power(self.A, j)
+            S = np.zeros_like(self.A)
+            P = np.eye(self.r)
+            for _ in range(j):
+                S += P
+                P = P @ self.A
+            sys_ = DiscreteSystem(Aj, S @ self.B, self.C, self.D, j * self.dt)
+        return _finite_system(sys_, f'{self.method} model')
+
+    @classmethod
+    def _from_file(cls, arrays: dict[str, Array], **common: Any) -> LinearROM:
+        return cls(*(arrays[name] for name in cls._matrix_names), **common)
 
 
-_CLASSES: dict[str, type[LinearROM]] = {
-    'SecondOrderModel': SecondOrderModel,
-    'DiscreteModel': DiscreteModel,
-}
-
-
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    """Hex SHA-256 of a file (reported by the predictor node as the model's identity)."""
-    h = hashlib.sha256()
-    with open(path, 'rb') as fh:
-        for block in iter(lambda: fh.read(1 << 20), b''):
-            h.update(block)
-    return h.hexdigest()
-
-
-def load_model(path: str | os.PathLike[str]) -> LinearROM:
-    """Load a model file written by :meth:`LinearROM.save`, without executing any code.
-
-    The archive is opened with ``allow_pickle=False``; object arrays, unknown keys, unknown
-    format versions, wrong shapes, non-float dtypes and NaN/Inf are refused with
-    :class:`~soft_rom.errors.ModelFileError` (a ``ValueError``). A missing file raises
-    ``FileNotFoundError``.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f'model file not found: {path}')
-    if not zipfile.is_zipfile(path):
-        raise ModelFileError(f'{path}: corrupt or not an .npz archive (no zip structure).')
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            names = list(npz.files)
-            if _META_KEY not in names:
-                raise ModelFileError(
-                    f'{path}: not a soft_rom model file (no {_META_KEY} entry); '
-                    'write models with LinearROM.save().')
-            raw: dict[str, np.ndarray] = {}
-            for name in names:
-                try:
-                    raw[name] = npz[name]
-                except ValueError as err:  # object arrays need pickle: refuse
-                    raise ModelFileError(
-                        f'{path}: entry {name!r} is an object array, which would need '
-                        'pickle to load; refusing it (model files hold numeric arrays '
-                        'only).') from err
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as err:
-        if isinstance(err, ModelFileError):
-            raise
-        raise ModelFileError(f'{path}: corrupt or not an .npz archive ({err}).') from err
-
-    meta_arr = raw.pop(_META_KEY)
-    if meta_arr.dtype != np.uint8 or meta_arr.ndim != 1:
-        raise ModelFileError(f'{path}: metadata entry must be a 1-D uint8 array.')
-    try:
-        header = json.loads(meta_arr.tobytes().decode('utf-8'))
-    except (UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise ModelFileError(f'{path}: metadata is not valid UTF-8 JSON ({err}).') from err
-    if not isinstance(header, dict) or header.get('format') != FORMAT_NAME:
-        raise ModelFileError(f'{path}: metadata does not declare format {FORMAT_NAME!r}.')
-    version = header.get('format_version')
-    if version != FORMAT_VERSION:
-        raise ModelFileError(
-            f'{path}: model file format version {version!r} is not supported by this soft_rom '
-            f'(it reads version {FORMAT_VERSION}); upgrade soft_rom or re-export the model.')
-    cls = _CLASSES.get(str(header.get('class')))
-    if cls is None:
-        raise ModelFileError(f'{path}: unknown model class {header.get("class")!r}.')
-    expected = set(cls._matrix_names) | {'y_ref'}
-    if set(raw) != expected:
-        raise ModelFileError(
-            f'{path}: {cls.__name__} needs arrays {sorted(expected)}; found {sorted(raw)}.')
-    for name, arr in raw.items():
-        if arr.dtype.kind != 'f':
-            raise ModelFileError(f'{path}: array {name!r} has dtype {arr.dtype}; expected float.')
-        if not np.all(np.isfinite(arr)):
-            raise ModelFileError(f'{path}: array {name!r} contains NaN or Inf.')
-    kwargs: dict[str, Any] = {}
-    for key in ('input_names', 'output_names', 'input_units', 'output_units'):
-        value = header.get(key)
-        if value is not None and (not isinstance(value, list)
-                                  or not all(isinstance(v, str) for v in value)):
-            raise ModelFileError(f'{path}: metadata {key!r} must be a list of strings.')
-        kwargs[key] = value
-    kwargs['metadata'] = header.get('metadata') or {}
-    try:
-        dt = float(header['dt'])
-        if cls is DiscreteModel:
-            model: LinearROM = DiscreteModel(raw['A'], raw['B'], raw['C'], raw['D'], dt=dt,
-                                             method=str(header.get('method', 'discrete')),
-                                             y_ref=raw['y_ref'], **kwargs)
-        else:
-            model = SecondOrderModel(raw['K'], raw['C'], raw['B'], raw['E'], dt=dt,
-                                     y_ref=raw['y_ref'], **kwargs)
-    except (KeyError, TypeError, ValueError) as err:
-        raise ModelFileError(f'{path}: inconsistent model file: {err}') from err
-    if header.get('r') is not None and header['r'] != model.r:
-        raise ModelFileError(f'{path}: metadata says r={header["r"]}, arrays give r={model.r}.')
-    return model
+register_model_class(SecondOrderModel)
+register_model_class(DiscreteModel)

@@ -39,6 +39,7 @@ __all__ = [
     'MARKER',
     'atomic_dir',
     'atomic_files',
+    'atomic_new_dir',
     'check_free_space',
     'check_output',
     'clean_stale',
@@ -225,6 +226,32 @@ def atomic_dir(dest: str | os.PathLike[str], *, overwrite: bool, kind: str, what
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
+
+
+@contextlib.contextmanager
+def atomic_new_dir(dest: str | os.PathLike[str], *, overwrite: bool, kind: str, what: str,
+                   kinds: Sequence[str] | None = None) -> Iterator[Path]:
+    """Like :func:`atomic_dir`, for writers that create their folder themselves.
+
+    Yields a staging path that does not exist yet (e.g. for a bag writer, which refuses
+    an existing folder); the caller creates the folder there. If it does not, nothing
+    changes at ``dest``.
+    """
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    clean_stale(dest.parent)
+    check_output(dest, overwrite=overwrite, what=what, kinds=kinds or (kind,))
+    parent = _stage_path(dest)
+    parent.mkdir()
+    stage = parent / dest.name  # same name as the output: writers name their files after it
+    try:
+        yield stage
+        if not stage.is_dir():
+            raise OutputExistsError(f'internal: the {what} was not written')
+        mark(stage, kind)
+        _swap_in(stage, dest)
+    finally:
+        shutil.rmtree(parent, ignore_errors=True)
 
 
 @contextlib.contextmanager

@@ -9,6 +9,7 @@ import pytest
 
 from soft_rom.bags import EpisodeBagWriter
 from soft_rom.cli import main
+from soft_rom.dataset import TrainingSet
 from soft_rom.models import DiscreteModel
 
 
@@ -49,8 +50,11 @@ def test_convert_cli_then_info_trainingset(bag, tmp_path, capsys):
     assert d['kind'] == 'trainingset' and d['n_states'] is None
     assert d['episodes']['ep1']['n_samples'] == 6
     assert d['episodes']['ep1']['dt_mean'] == pytest.approx(0.02, abs=1e-12)
+    t0 = d['episodes']['ep1']['t0_ns']
+    assert isinstance(t0, int) and t0 == TrainingSet.open(out).t0_ns('ep1')
     assert main(['info', str(out)]) == 0
-    assert 'inputs  (m = 6): p1 [Pa]' in capsys.readouterr().out
+    text = capsys.readouterr().out
+    assert 'inputs  (m = 6): p1 [Pa]' in text and f'from t0 = {t0} ns' in text
 
 
 def test_info_model_file(tmp_path, capsys):

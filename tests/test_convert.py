@@ -38,7 +38,8 @@ def test_round_trip_bit_exact(tmp_path, storage):
     assert ts.output_names[:2] == ['x1', 'x2'] and ts.output_names[20] == 'z1'
     assert len(ts.output_names) == 40 and ts.output_units == ['m'] * 40
     ep = ts['ep1']
-    np.testing.assert_allclose(ep.t, t, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(ep.t, t - t[0], rtol=0, atol=1e-15)     # from its own start
+    assert ts.t0_ns('ep1') == 1_000_000 and ep.t[0] == 0.0
     np.testing.assert_array_equal(ep.U, P.T)                           # bit-exact
     np.testing.assert_array_equal(ep.Y[:20], C[:, :, 0].T)
     np.testing.assert_array_equal(ep.Y[20:], C[:, :, 2].T)
@@ -136,10 +137,12 @@ def test_split_gap_and_resampling(tmp_path):
     np.testing.assert_allclose(np.diff(a.t), 0.0005, atol=1e-12)
     np.testing.assert_allclose(np.diff(b.t), 0.0005, atol=1e-12)
     assert a.n_samples == 59 and b.n_samples == 77
+    assert ts.t0_ns('g') == 1_000_000 and ts.t0_ns('g_2') == 1_000_000_000
     for ep in (a, b):     # Y and Q linear in time: interpolation is exact
-        np.testing.assert_allclose(ep.Y[0], ep.t, rtol=1e-12)
-        np.testing.assert_allclose(np.asarray(ep.Q[...])[2], 2 * ep.t, rtol=1e-12)
-        src = t[np.searchsorted(t, ep.t + 1e-12, side='right') - 1]
+        t_abs = ep.t + ep.metadata['t0_ns'] * 1e-9
+        np.testing.assert_allclose(ep.Y[0], t_abs, rtol=1e-12)
+        np.testing.assert_allclose(np.asarray(ep.Q[...])[2], 2 * t_abs, rtol=1e-12)
+        src = t[np.searchsorted(t, t_abs + 1e-12, side='right') - 1]
         np.testing.assert_allclose(ep.U[0], src, rtol=1e-12)   # inputs held, not interpolated
 
 
@@ -165,3 +168,19 @@ def test_custom_topics_multiple_bags_and_no_state(tmp_path):
     assert ts.episode_names == ['run0', 'run1'] and ts.q_ref is None
     assert all(ep.Q is None for ep in ts.episodes())
     assert isinstance(TrainingSet.open(tmp_path / 'o.zarr'), TrainingSet)
+
+
+def test_short_pieces_between_long_gaps_are_dropped_so_every_learner_fits(tmp_path):
+    bag = tmp_path / 'gappy'
+    # 100 samples, a 50 ms hole, 10 samples, another hole, 60 samples (1 kHz)
+    t = np.concatenate([0.001 * np.arange(100), 0.15 + 0.001 * np.arange(10),
+                        0.3 + 0.001 * np.arange(60)])
+    with EpisodeBagWriter(bag, storage='mcap', n_nodes=None) as w:
+        for tj in t:
+            w.write(tj + 0.001, np.full(6, tj), np.full((20, 3), tj))
+    ts, (rep,) = convert([bag], tmp_path / 'o.zarr', progress=False)
+    assert ts.episode_names == ['gappy', 'gappy_2']
+    assert [ts[n].n_samples for n in ts.episode_names] == [100, 60]
+    out = rep.topics['/soft_robot/centerline']
+    assert out.splits == 2
+    assert out.dropped == {'piece shorter than 32 grid points (between long gaps)': 10}

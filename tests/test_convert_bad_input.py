@@ -135,21 +135,26 @@ def test_nan_inf_dropped_and_reported(tmp_path):
     _write(bag, hook=bad)
     ts, (rep,) = convert([bag], tmp_path / 'o.zarr', progress=False)
     ep = ts['b']
-    kept = [j for j in range(K) if j not in (5, 7)]
-    np.testing.assert_allclose(ep.t, [_t(j) for j in kept], atol=1e-12)
-    np.testing.assert_array_equal(ep.Y[0], kept)
-    np.testing.assert_array_equal(np.asarray(ep.Q[0]), kept)
-    u0 = [2.0 if j == 3 else j for j in kept]           # chamber 1 held at t3
+    # samples 5 and 7 are dropped; their grid points are interpolated from the neighbours
+    # (one lost frame each), exactly here since the values are linear in j
+    np.testing.assert_allclose(ep.t, 0.001 * np.arange(K), atol=1e-15)
+    np.testing.assert_allclose(ep.Y[0], np.arange(K), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(ep.Q[0]), np.arange(K), rtol=1e-12)
+    u0 = [2.0 if j == 3 else j for j in range(K)]       # chamber 1 held at t3
     np.testing.assert_array_equal(ep.U[0], u0)
-    np.testing.assert_array_equal(ep.U[1], kept)
+    np.testing.assert_array_equal(ep.U[1], np.arange(K))
     r = rep.topics
     assert r['/soft_robot/pressure/chamber_1'].dropped == {'NaN/Inf': 1}
-    assert r['/soft_robot/pressure/chamber_1'].gaps_filled == 1
-    assert r['/soft_robot/centerline'].dropped == {'NaN/Inf': 1,
-                                                   'no state message at this stamp': 1}
-    assert r['/soft_robot/state'].dropped == {'NaN/Inf': 1, 'no output message at this stamp': 1}
-    assert 'NaN/Inf at t = 0.006000000 s' in r['/soft_robot/centerline'].examples
-    assert 'NaN/Inf at t = 0.004000000 s' in r['/soft_robot/pressure/chamber_1'].examples
+    assert r['/soft_robot/pressure/chamber_1'].held_over_gap == 1
+    miss = 'no state message within 0.45 output periods'
+    assert r['/soft_robot/centerline'].dropped == {'NaN/Inf': 1, miss: 1}
+    assert r['/soft_robot/state'].dropped == {
+        'NaN/Inf': 1, 'no output message within 0.45 output periods': 1}
+    assert r['/soft_robot/centerline'].grid_gap_interpolated == 2
+    assert r['/soft_robot/centerline'].grid_exact == K - 2
+    assert 'NaN/Inf at stamp 6000000 ns (t = 0.005000 s)' in r['/soft_robot/centerline'].examples
+    assert 'NaN/Inf at stamp 4000000 ns (t = 0.003000 s)' in \
+        r['/soft_robot/pressure/chamber_1'].examples
     assert ts.metadata('b')['conversion_report']['topics']['/soft_robot/state']['dropped']
 
 
@@ -170,12 +175,11 @@ def test_inconsistent_length_dropped_and_reported(tmp_path):
         return False
     _write(bag, hook=bad)
     ep, rep = read_episode(bag, include_state=True)
-    kept = [j for j in range(K) if j not in (4, 6)]
-    np.testing.assert_array_equal(ep.Y[5], kept)
-    assert ep.Q.shape == (12, len(kept))
+    np.testing.assert_allclose(ep.Y[5], np.arange(K), rtol=1e-12)   # 4 and 6 interpolated
+    assert ep.Q.shape == (12, K)
     assert rep.topics['/soft_robot/state'].dropped['9 values instead of 12'] == 1
     assert rep.topics['/soft_robot/centerline'].dropped['fewer than 20 points'] == 1
-    assert any('t = 0.005000000 s' in e for e in rep.topics['/soft_robot/state'].examples)
+    assert any('stamp 5000000 ns' in e for e in rep.topics['/soft_robot/state'].examples)
     assert 'fewer than 20 points' in rep.format() or '19 points' in rep.format()
 
 
@@ -193,7 +197,7 @@ def test_fewer_points_than_configured_dropped(tmp_path):
     assert ep.n_samples == K - 1 and ep.Y.shape == (4, K - 1)
     assert rep.topics['/soft_robot/centerline'].dropped == {'fewer than 20 points': 1}
     assert rep.topics['/soft_robot/centerline'].examples == [
-        'fewer than 20 points at t = 0.001000000 s']
+        'fewer than 20 points at stamp 1000000 ns (t = 0.000000 s)']
 
 
 def test_duplicated_and_backward_stamps_dropped(tmp_path):

@@ -9,7 +9,7 @@ import pytest
 
 from soft_rom.data import Episode
 from soft_rom.dataset import FORMAT, TrainingSet, TrainingSetWriter
-from soft_rom.errors import DatasetError, DimensionError
+from soft_rom.errors import DatasetError, DimensionError, OutputExistsError
 
 NAMES = dict(input_names=['p1', 'p2'], input_units=['Pa', 'Pa'],
              output_names=['x1', 'z1', 'x2'], output_units=['m', 'm', 'm'])
@@ -37,7 +37,8 @@ def test_streamed_round_trip_bit_exact_and_lazy(tmp_path):
     assert ts.input_names == ['p1', 'p2'] and ts.output_units == ['m'] * 3
     assert ts.attrs['format'] == FORMAT and ts.provenance == {'bags': ['a']}
     for ref, got in zip((e1, e2), ts.episodes()):
-        np.testing.assert_array_equal(got.t, ref.t)
+        np.testing.assert_array_equal(got.t, ref.t - ref.t[0])     # from the episode start
+        assert got.metadata['t0_ns'] == 1_000_000                  # the first time, in ns
         np.testing.assert_array_equal(got.U, ref.U)
         np.testing.assert_array_equal(got.Y, ref.Y)
         assert not isinstance(got.Q, np.ndarray)            # lazy zarr array
@@ -50,6 +51,16 @@ def test_streamed_round_trip_bit_exact_and_lazy(tmp_path):
     np.testing.assert_array_equal(ts.y_ref, e1.Y[:, 0])
     assert ts.n_states == 11
     assert not list(tmp_path.glob('.*'))                    # no temporary left
+
+
+def test_epoch_start_is_integer_nanoseconds(tmp_path):
+    t0_ns = 1_700_000_000_123_456_789
+    ep = Episode(t=0.001 * np.arange(100), U=np.zeros((2, 100)), Y=np.ones((3, 100)),
+                 metadata={'t0_ns': t0_ns})
+    ts = TrainingSet.from_episodes(tmp_path / 't.zarr', [ep], **NAMES)
+    assert ts.t0_ns('ep1') == t0_ns and isinstance(ts.t0_ns('ep1'), int)
+    assert ts['ep1'].is_uniform(rtol=1e-12) and ts['ep1'].t[0] == 0.0
+    assert ts.describe()['episodes']['ep1']['t0_ns'] == t0_ns
 
 
 def test_dask_reads_q(tmp_path):
@@ -82,7 +93,7 @@ def test_failure_leaves_nothing_and_overwrite_is_atomic(tmp_path):
             ew.append([0.05], np.zeros((2, 1)), np.zeros((3, 1)))   # goes back in time
     assert not path.exists() and list(tmp_path.iterdir()) == []
     TrainingSet.from_episodes(path, [_episode(5)], **NAMES)
-    with pytest.raises(DatasetError, match='exists already'):
+    with pytest.raises(OutputExistsError, match='exists already'):
         TrainingSetWriter(path, **NAMES)
     with pytest.raises(DimensionError, match='NaN'):
         with TrainingSetWriter(path, overwrite=True, **NAMES) as w:
@@ -92,6 +103,21 @@ def test_failure_leaves_nothing_and_overwrite_is_atomic(tmp_path):
     TrainingSet.from_episodes(path, [_episode(8)], overwrite=True, **NAMES)
     assert TrainingSet.open(path)['ep'].n_samples == 8
     assert [p.name for p in tmp_path.iterdir()] == ['t.zarr']
+    foreign = tmp_path / 'f.zarr'          # a zarr folder soft_rom did not write
+    foreign.mkdir()
+    (foreign / '.zgroup').write_text('{"zarr_format": 2}')
+    with pytest.raises(OutputExistsError, match='not written by soft_rom'):
+        TrainingSetWriter(foreign, overwrite=True, **NAMES)
+    assert sorted(p.name for p in foreign.iterdir()) == ['.zgroup']
+
+
+def test_legacy_unmarked_training_set_is_overwritable(tmp_path):
+    from soft_rom.outputs import MARKER
+    path = tmp_path / 't.zarr'
+    TrainingSet.from_episodes(path, [_episode(5)], **NAMES)
+    (path / MARKER).unlink()               # as written by soft_rom before the marker
+    TrainingSet.from_episodes(path, [_episode(8)], overwrite=True, **NAMES)
+    assert TrainingSet.open(path)['ep'].n_samples == 8
 
 
 def test_writer_argument_errors(tmp_path):
@@ -122,8 +148,9 @@ def test_open_refuses_missing_foreign_and_unknown_version(tmp_path):
     attrs_file = path / '.zattrs'
     attrs = json.loads(attrs_file.read_text())
     attrs['format_version'] = 99
+    attrs['provenance'] = {'bags': ['/rec/a', '/rec/b']}
     attrs_file.write_text(json.dumps(attrs))
-    with pytest.raises(DatasetError, match='version 99'):
+    with pytest.raises(DatasetError, match=r'version 99.*soft-rom convert /rec/a /rec/b -o '):
         TrainingSet.open(path)
     attrs['format_version'] = 1
     attrs['format'] = 'something.else'
@@ -136,18 +163,44 @@ def test_open_refuses_missing_foreign_and_unknown_version(tmp_path):
         TrainingSet.open(tmp_path / 'junk')
 
 
-def test_zarr_api_fallback_writes_the_same(tmp_path, monkeypatch):
-    from soft_rom import dataset
+def _as_v1(path, t_abs):
+    """Rewrite a set as format version 1 wrote it: absolute times, no t0_ns."""
+    import zarr
+    root = zarr.open_group(str(path), mode='r+')
+    root['episodes/ep/t'][...] = t_abs
+    meta = dict(root['episodes/ep'].attrs['metadata'])
+    meta.pop('t0_ns', None)
+    root['episodes/ep'].attrs['metadata'] = meta
+    attrs = json.loads((path / '.zattrs').read_text())
+    attrs.update(format_version=1, provenance={'bags': ['/rec/lab 1']})
+    (path / '.zattrs').write_text(json.dumps(attrs))
+
+
+def test_version_1_read_or_refused_with_the_command(tmp_path):
+    path = tmp_path / 'old.zarr'
+    TrainingSet.from_episodes(path, [_episode(20)], **NAMES)
+    _as_v1(path, 0.5 + 0.001 * np.arange(20))          # small stamps: exact, read
+    ts = TrainingSet.open(path)
+    np.testing.assert_allclose(ts['ep'].t, 0.001 * np.arange(20), atol=1e-15)
+    assert ts['ep'].is_uniform() and ts.t0_ns('ep') == 500_000_000
+    _as_v1(path, 1.7e9 + 0.001 * np.arange(20))        # epoch stamps: lost, refused
+    with pytest.raises(DatasetError, match=r"absolute times.*soft-rom convert '/rec/lab 1' "
+                                           r'-o .*old.zarr --overwrite'):
+        TrainingSet.open(path)
+
+
+def test_q_has_one_write_path_and_chunk_files_match_zarr(tmp_path):
+    import zarr
     ep = _episode(45, n=9)
-    direct = TrainingSet.from_episodes(tmp_path / 'a.zarr', [ep], q_chunks=(4, 8))
-    monkeypatch.setattr(dataset.EpisodeWriter, '_direct_writer', lambda self, n, chunks: None)
-    plain = TrainingSet.from_episodes(tmp_path / 'b.zarr', [ep], q_chunks=(4, 8))
-    for ts in (direct, plain):
-        np.testing.assert_array_equal(np.asarray(ts.q_array('ep')[...]), ep.Q)
-    a = sorted(p.name for p in (tmp_path / 'a.zarr/episodes/ep/Q').iterdir())
-    b = sorted(p.name for p in (tmp_path / 'b.zarr/episodes/ep/Q').iterdir())
-    assert a == b
-    for name in a:
-        if name != '.zarray':
-            assert (tmp_path / 'a.zarr/episodes/ep/Q' / name).read_bytes() == \
-                (tmp_path / 'b.zarr/episodes/ep/Q' / name).read_bytes()
+    ts = TrainingSet.from_episodes(tmp_path / 'a.zarr', [ep], q_chunks=(4, 8))
+    np.testing.assert_array_equal(np.asarray(ts.q_array('ep')[...]), ep.Q)
+    ref = zarr.open_array(str(tmp_path / 'z.zarr'), mode='w', shape=ep.Q.shape, chunks=(4, 8),
+                          dtype='f8', order='F', compressor=None, zarr_format=2, fill_value=0.0)
+    ref[...] = ep.Q
+    names = sorted(p.name for p in (tmp_path / 'a.zarr/episodes/ep/Q').iterdir()
+                   if p.name != '.zarray')
+    assert names == sorted(p.name for p in (tmp_path / 'z.zarr').iterdir()
+                           if p.name != '.zarray')
+    for name in names:
+        assert (tmp_path / 'a.zarr/episodes/ep/Q' / name).read_bytes() == \
+            (tmp_path / 'z.zarr' / name).read_bytes()

@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 
 from soft_rom.errors import DimensionError
-from soft_rom.metrics import output_errors, relative_deviation_error, relative_error
+from soft_rom.metrics import (
+    output_errors,
+    relative_deviation_error,
+    relative_error,
+    relative_error_from_squares,
+)
 
 
 def test_relative_errors_known_values() -> None:
@@ -22,3 +27,18 @@ def test_relative_errors_known_values() -> None:
 def test_shape_mismatch() -> None:
     with pytest.raises(DimensionError):
         relative_error(np.ones((2, 3)), np.ones((3, 2)))
+
+
+def test_zero_reference_and_pooled_squares() -> None:
+    zero = np.zeros((2, 3))
+    assert np.isnan(relative_error(zero, zero))
+    assert relative_error(zero, zero, if_zero=0.0) == 0.0
+    assert np.isnan(relative_error_from_squares(1.0, 0.0))
+    # Pooling two pieces by their squared norms equals the error of the concatenation.
+    rng = np.random.default_rng(0)
+    Y1, Y2 = rng.standard_normal((3, 5)), rng.standard_normal((3, 7))
+    E1, E2 = 0.1 * rng.standard_normal((3, 5)), 0.1 * rng.standard_normal((3, 7))
+    pooled = relative_error_from_squares(float(np.sum(E1 ** 2) + np.sum(E2 ** 2)),
+                                         float(np.sum(Y1 ** 2) + np.sum(Y2 ** 2)))
+    whole = relative_error(np.hstack([Y1, Y2]), np.hstack([Y1 + E1, Y2 + E2]))
+    assert pooled == pytest.approx(whole, rel=1e-12)

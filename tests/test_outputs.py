@@ -125,3 +125,24 @@ def test_free_space_refusal(tmp_path: Path) -> None:
     outputs.check_free_space(tmp_path, 1.0, 'tiny')
     with pytest.raises(ResourceError, match='GB'):
         outputs.check_free_space(tmp_path / 'not' / 'yet', 1e18, 'a huge grid')
+
+
+def test_atomic_new_dir_for_writers_that_create_their_folder(tmp_path: Path) -> None:
+    dest = tmp_path / 'bag'
+    with outputs.atomic_new_dir(dest, overwrite=False, kind='replay', what='bag') as stage:
+        assert not stage.exists()
+        _make(stage, 'one')
+    assert (dest / 'data.txt').read_text() == 'one' and outputs.is_marked(dest, ['replay'])
+    with pytest.raises(OutputExistsError, match='--overwrite'):
+        with outputs.atomic_new_dir(dest, overwrite=False, kind='replay', what='bag'):
+            pass
+    with pytest.raises(OutputExistsError, match='not written'):   # kind must match
+        with outputs.atomic_new_dir(dest, overwrite=True, kind='simulated', what='bag'):
+            pass
+    with pytest.raises(OutputExistsError, match='not written'):   # the writer wrote nothing
+        with outputs.atomic_new_dir(dest, overwrite=True, kind='replay', what='bag'):
+            pass
+    with outputs.atomic_new_dir(dest, overwrite=True, kind='replay', what='bag') as stage:
+        _make(stage, 'two')
+    assert (dest / 'data.txt').read_text() == 'two'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['bag']

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from soft_rom.data import Episode
+from soft_rom.errors import ModelFileError
 from soft_rom.models import DiscreteModel, SecondOrderModel
 from soft_rom.predictor import Level, Predictor, PredictorConfig, training_envelope
 from soft_rom.predictor.loop import LoopSettings, RuntimeLoop
@@ -541,3 +542,24 @@ def test_training_envelope_from_episodes() -> None:
     Y = np.array([[1.0, 1.5, 0.0]])
     env = training_envelope([Episode(t=np.arange(3) * DT, U=U, Y=Y)], y_ref=[1.0])
     assert env == {'u_min': [-2.0, 5.0], 'u_max': [1.0, 6.0], 'y_dev_max': 1.0, 'samples': 3}
+
+
+def test_untrusted_model_is_reported_and_refused_when_strict(tmp_path) -> None:
+    good = _discrete()
+    bad = DiscreteModel(1.05 * np.eye(2), np.ones((2, 6)), np.eye(2), dt=good.dt,
+                        y_ref=np.array([0.3, 0.1]))
+    assert bad.trust_issues() and not good.trust_issues()
+    pred = Predictor(bad)
+    assert pred.info['trust'] == bad.trust_issues()
+    h = pred.health(0)
+    assert h.level >= Level.WARN and 'not trusted' in h.message
+    path = tmp_path / 'unstable.npz'
+    bad.save(path)
+    strict = PredictorConfig(strict_model=True)
+    with pytest.raises(ModelFileError, match='not trusted'):
+        Predictor(path, strict)
+    running = Predictor(good, strict)
+    assert running.info['trust'] == []
+    with pytest.raises(ModelFileError, match='not trusted'):
+        running.reload(path)
+    assert running.model is good                       # the running model stays

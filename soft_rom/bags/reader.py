@@ -15,7 +15,8 @@ type                                value                       stamp
 ``sensor_msgs/msg/PointCloud2``     ``(N, 3)`` x, y, z fields   ``header.stamp``
 =================================== =========================== =======================
 
-Time stamps stay integer nanoseconds here; :mod:`soft_rom.convert` converts them to seconds.
+Time stamps stay integer nanoseconds here (and through :mod:`soft_rom.convert`, which turns
+them into seconds from each episode's start only when the episode is written).
 Multi-array data are returned as zero-copy views of the message buffer.
 """
 
@@ -105,9 +106,10 @@ def _pointcloud_xyz(msg: Any) -> NDArray[Any]:
     offs = [int(f.offset) for f in f0]
     if None in dts:
         raise BagError('PointCloud2 x/y/z fields have an unsupported datatype.')
-    if len(dts) == 1 and step % np.dtype(dts.copy().pop()).itemsize == 0 and int(
+    kinds = [d for d in dts if d is not None]
+    if len(kinds) == 1 and step % np.dtype(kinds[0]).itemsize == 0 and int(
             msg.row_step) == step * int(msg.width):
-        dt = np.dtype(end + dts.pop())
+        dt = np.dtype(end + kinds[0])
         isz = dt.itemsize
         if all(o % isz == 0 for o in offs):
             rows = raw[:n * step].view(dt).reshape(n, step // isz)

@@ -1,10 +1,42 @@
-"""Small helpers shared by the CLI verbs."""
+"""Helpers shared by the CLI verbs: one grammar for options, validated numbers, resources.
+
+Every verb spells the same thing the same way:
+
+* ``-o/--output PATH`` for what it writes (``--out`` is kept as a hidden alias for one
+  release), ``--overwrite`` to replace an output soft_rom wrote before;
+* ``--quiet`` to hide progress bars (``--no-progress`` is a hidden alias);
+* ``--json FILE`` to also write a machine-readable summary (``--summary-json`` is a
+  hidden alias where it existed);
+* ``--debug`` to show the traceback of an error (or ``SOFT_ROM_DEBUG=1``).
+
+Numbers are checked by the ``type=`` of their option (:func:`finite_float`,
+:func:`int_range`), so that a bad value is a usage error before any work starts.
+"""
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable, Sequence
+import errno
+import json
+import math
+import os
+from pathlib import Path
 
-__all__ = ['parse_r_list']
+__all__ = [
+    'add_json',
+    'add_output',
+    'add_quiet',
+    'available_memory',
+    'check_writable_folder',
+    'finite_float',
+    'int_range',
+    'is_model_file',
+    'is_summary_json',
+    'is_training_set',
+    'parse_r_list',
+    'write_text_output',
+]
 
 
 def parse_r_list(text: str) -> tuple[int, ...]:
@@ -16,6 +48,8 @@ def parse_r_list(text: str) -> tuple[int, ...]:
                 raise ValueError
             start, stop = parts[0], parts[1]
             step = parts[2] if len(parts) == 3 else 1
+            if step < 1 or stop - start > 100_000:
+                raise ValueError
             values = tuple(range(start, stop + 1, step))
         else:
             values = tuple(int(p) for p in text.split(',') if p.strip())
@@ -24,4 +58,192 @@ def parse_r_list(text: str) -> tuple[int, ...]:
             f'expected r as N, N,M,... or START:STOP[:STEP]; got {text!r}') from err
     if not values or min(values) < 1:
         raise argparse.ArgumentTypeError(f'r values must be positive integers; got {text!r}')
+    if max(values) > 10_000:
+        raise argparse.ArgumentTypeError(f'r values must be at most 10000; got {text!r}')
     return values
+
+
+def _range_text(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> str:
+    if lo is not None and hi is not None:
+        return f'in {"(" if lo_open else "["}{lo:g}, {hi:g}{")" if hi_open else "]"}'
+    if lo is not None:
+        return f'{">" if lo_open else ">="} {lo:g}'
+    if hi is not None:
+        return f'{"<" if hi_open else "<="} {hi:g}'
+    return 'finite'
+
+
+def finite_float(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+                 hi_open: bool = False) -> Callable[[str], float]:
+    """An argparse ``type`` accepting finite floats in a range (bounds inclusive by default)."""
+    want = _range_text(lo, hi, lo_open, hi_open)
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'expected a number; got {text!r}') from None
+        ok = math.isfinite(value)
+        if ok and lo is not None:
+            ok = value > lo if lo_open else value >= lo
+        if ok and hi is not None:
+            ok = value < hi if hi_open else value <= hi
+        if not ok:
+            raise argparse.ArgumentTypeError(f'must be a finite number {want}; got {text!r}')
+        return value
+
+    parse.__name__ = 'number'
+    return parse
+
+
+def int_range(lo: int | None = None, hi: int | None = None) -> Callable[[str], int]:
+    """An argparse ``type`` accepting integers in ``[lo, hi]``."""
+    want = _range_text(lo, hi, False, False).replace('finite', 'an integer')
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f'expected an integer; got {text!r}') from None
+        if (lo is not None and value < lo) or (hi is not None and value > hi):
+            raise argparse.ArgumentTypeError(f'must be an integer {want}; got {text!r}')
+        return value
+
+    parse.__name__ = 'integer'
+    return parse
+
+
+def add_output(parser: argparse.ArgumentParser, *, help: str, default: Path | None = None,
+               required: bool = False, metavar: str = 'PATH', old: bool = False) -> None:
+    """``-o/--output`` (and, with ``old``, the hidden alias ``--out``)."""
+    if default is not None:
+        help = f'{help} (default: {default})'
+    parser.add_argument('-o', '--output', type=Path, default=default, required=required,
+                        metavar=metavar, help=help)
+    if old:
+        parser.add_argument('--out', type=Path, dest='output', help=argparse.SUPPRESS)
+
+
+def add_quiet(parser: argparse.ArgumentParser, *, old: bool = False) -> None:
+    """``--quiet`` (and, with ``old``, the hidden alias ``--no-progress``)."""
+    parser.add_argument('--quiet', action='store_true', help='no progress bars')
+    if old:
+        parser.add_argument('--no-progress', action='store_true', dest='quiet',
+                            help=argparse.SUPPRESS)
+
+
+def add_json(parser: argparse.ArgumentParser, *, help: str, old: str | None = None) -> None:
+    """``--json FILE`` (and the hidden alias ``old``, e.g. ``--summary-json``)."""
+    parser.add_argument('--json', type=Path, default=None, metavar='FILE', help=help)
+    if old:
+        parser.add_argument(old, type=Path, dest='json', help=argparse.SUPPRESS)
+
+
+def available_memory() -> float:
+    """Bytes of memory this process may still use: MemAvailable, capped by a cgroup limit."""
+    avail = math.inf
+    try:
+        with open('/proc/meminfo', encoding='ascii') as fh:
+            for line in fh:
+                if line.startswith('MemAvailable:'):
+                    avail = float(line.split()[1]) * 1024
+                    break
+    except OSError:
+        pass
+    for limit_file, usage_file in (('/sys/fs/cgroup/memory.max', '/sys/fs/cgroup/memory.current'),
+                                   ('/sys/fs/cgroup/memory/memory.limit_in_bytes',
+                                    '/sys/fs/cgroup/memory/memory.usage_in_bytes')):
+        try:
+            limit_text = Path(limit_file).read_text().strip()
+            if limit_text == 'max':
+                continue
+            limit = float(limit_text)
+            if limit > 2**60:
+                continue
+            used = float(Path(usage_file).read_text().strip())
+            avail = min(avail, max(limit - used, 0.0))
+        except (OSError, ValueError):
+            continue
+    if not math.isfinite(avail):
+        try:
+            avail = float(os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_AVPHYS_PAGES'))
+        except (ValueError, OSError):
+            avail = math.inf
+    return avail
+
+
+def is_summary_json(keys: Sequence[str]) -> Callable[[Path], bool]:
+    """A check that a file is a ``--json`` summary soft_rom wrote.
+
+    The file holds rows (or one object) with all of ``keys``; for
+    :func:`soft_rom.outputs.check_output`.
+    """
+
+    def check(path: Path) -> bool:
+        try:
+            if path.stat().st_size > 64 * 2**20:
+                return False
+            data = json.loads(path.read_text(encoding='utf-8'))
+        except (OSError, ValueError, RecursionError):
+            return False
+        items = data if isinstance(data, list) else [data]
+        return bool(items) and all(isinstance(d, dict) and all(k in d for k in keys)
+                                   for d in items)
+    return check
+
+
+def is_model_file(path: Path) -> bool:
+    """Whether ``path`` is a model file soft_rom wrote (it loads)."""
+    from soft_rom.errors import ModelFileError
+    from soft_rom.models import load_model
+    try:
+        load_model(path)
+    except (ModelFileError, OSError):
+        return False
+    return True
+
+
+def check_writable_folder(folder: Path, what: str) -> None:
+    """Refuse early (before any work) an output folder that is a file or cannot be written."""
+    from soft_rom.errors import ConfigError
+
+    probe = folder
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise ConfigError(f'{probe} is not a folder; cannot write the {what} there')
+    if not os.access(probe, os.W_OK | os.X_OK):
+        raise PermissionError(errno.EACCES, f'cannot write the {what} here (permission denied)',
+                              str(probe))
+
+
+def write_text_output(path: Path, text: str, *, overwrite: bool, what: str,
+                      is_ours: Callable[[Path], bool]) -> None:
+    """Write one text output atomically, replacing only a file soft_rom wrote."""
+    from soft_rom.outputs import atomic_files
+
+    with atomic_files([path], overwrite=overwrite, what=what, is_ours=is_ours) as staged:
+        staged[path].write_text(text, encoding='utf-8')
+
+
+def is_training_set(path: Path) -> bool:
+    """Whether ``path`` is a training set soft_rom wrote (marker, or its zarr attributes)."""
+    from soft_rom.outputs import is_marked
+
+    if not path.is_dir() or path.is_symlink():
+        return False
+    if is_marked(path, ('training_set',)):
+        return True
+    for name, key in (('.zattrs', None), ('zarr.json', 'attributes')):
+        attrs_file = path / name
+        try:
+            if not attrs_file.is_file() or attrs_file.stat().st_size > 64 * 2**20:
+                continue
+            attrs = json.loads(attrs_file.read_text(encoding='utf-8'))
+        except (OSError, ValueError, RecursionError):
+            continue
+        if key is not None and isinstance(attrs, dict):
+            attrs = attrs.get(key)
+        if isinstance(attrs, dict) and attrs.get('format') == 'soft_rom.trainingset':
+            return True
+    return False

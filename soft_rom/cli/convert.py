@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from typing import Any
 
 __all__ = ['add_parser', 'run']
 
@@ -12,9 +13,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     """Register ``convert``."""
     parser = subparsers.add_parser(
         'convert', help='convert ROS 2 bags to a training set (zarr)',
-        description='Convert ROS 2 bags (sqlite3 or MCAP; one episode per bag) to a chunked '
-                    'training set. Inputs are zero-order held onto the output/state stamps; a '
-                    'report per topic says what was read, used, dropped (and why) and filled.')
+        description='Convert ROS 2 bags (sqlite3 or MCAP; one episode per bag, split at long '
+                    'gaps) to a chunked training set on a uniform time grid: outputs and '
+                    'states interpolated across short gaps, inputs zero-order held. A report '
+                    'per topic says what was read, used, dropped (and why), interpolated, '
+                    'held and split.')
     parser.add_argument('bags', nargs='+', metavar='BAG', help='bag directories (or files)')
     parser.add_argument('-o', '--output', required=True, metavar='OUT.zarr',
                         help='training set to write (atomically)')
@@ -23,11 +26,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                              'config/bag_mapping.yaml)')
     parser.add_argument('--storage', choices=('auto', 'mcap', 'sqlite3'), default='auto',
                         help='require a storage format (default: auto)')
+    parser.add_argument('--dt', type=float, metavar='SECONDS',
+                        help="grid step (default: the output's median period)")
+    parser.add_argument('--max-gap', type=float, metavar='PERIODS',
+                        help='longest stretch without output samples that is interpolated, in '
+                             'output periods (default 1.5); longer gaps split the episode')
     parser.add_argument('--split-gap', type=float, metavar='SECONDS',
-                        help='split a bag into episodes where samples are further apart')
-    parser.add_argument('--dt', type=float, help='resample to this uniform step (s)')
+                        help='split where samples are further apart (overrides --max-gap)')
     parser.add_argument('--no-state', action='store_true', help='do not store full states Q')
-    parser.add_argument('--overwrite', action='store_true', help='replace OUT if it exists')
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace OUT if it is a training set soft_rom wrote')
     parser.add_argument('--quiet', action='store_true', help='no progress bar, no report')
     parser.set_defaults(func=run)
     return parser
@@ -38,35 +46,18 @@ def run(args: argparse.Namespace) -> int:
     from soft_rom.convert import convert, load_mapping
 
     mapping = load_mapping(args.mapping)
-    changes = {}
-    if args.split_gap is not None:
-        changes['split_gap'] = args.split_gap
-    if args.dt is not None:
-        changes['dt'] = args.dt
+    changes: dict[str, Any] = {}
+    for key in ('dt', 'max_gap', 'split_gap'):
+        if getattr(args, key) is not None:
+            changes[key] = getattr(args, key)
     if changes:
-        mapping = mapping.replace(**changes)
-    mapping = type(mapping).from_dict(_as_yaml_dict(mapping)) if changes else mapping
+        mapping = mapping.replace(**changes)      # validated like the mapping file
     echo = None if args.quiet else (lambda text: print(text, file=sys.stderr))
     ts, reports = convert(args.bags, args.output, mapping, storage=args.storage,
                           include_state=False if args.no_state else None,
                           overwrite=args.overwrite, progress=not args.quiet, echo=echo)
     n = sum(r.n_samples for r in reports)
-    print(f'wrote {ts.path}: {len(ts)} episode(s), {n} samples, m = {len(ts.input_names)}, '
-          f'p = {len(ts.output_names)}, n = {ts.n_states}')
+    dt = reports[0].dt if reports else float('nan')
+    print(f'wrote {ts.path}: {len(ts)} episode(s), {n} samples at dt = {dt * 1e3:.6g} ms, '
+          f'm = {len(ts.input_names)}, p = {len(ts.output_names)}, n = {ts.n_states}')
     return 0
-
-
-def _as_yaml_dict(mapping: object) -> dict:
-    """Round trip through the YAML structure so option values are validated."""
-    d = mapping.to_dict()  # type: ignore[attr-defined]
-    inputs = {}
-    if d['inputs'] is not None:
-        inputs['sources'] = [{'topic': s['topic'], 'indices': s['indices']}
-                             for s in d['inputs']]
-    for key in ('input_names', 'input_units'):
-        if d[key] is not None:
-            inputs[key.split('_')[1]] = d[key]
-    inputs['scale'] = d['scale']
-    inputs['offset'] = d['offset']
-    return {'inputs': inputs, 'output': d['output'], 'state': d['state'],
-            'time': {k: d[k] for k in ('stamps', 'match_tolerance', 'dt', 'split_gap')}}

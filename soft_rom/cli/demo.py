@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 import time
 
-from soft_rom.cli.study import add_study_options
+from soft_rom.cli.study import add_study_options, prepare_study
 
 __all__ = ['add_parser', 'run']
 
@@ -21,20 +22,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description='Simulate the default eel mesh (6 episodes as bags), convert, fit the three '
                     'methods, evaluate both studies, replay a test bag through the predictor '
                     'core, and write a report.')
-    add_study_options(parser)
-    parser.set_defaults(func=run, out=None)
+    add_study_options(parser, default_output=Path('soft_rom_demo'))
+    parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from soft_rom.study.run import run_study, StudyConfig
-    out = args.out or Path('soft_rom_demo')
+
+    prepare_study(args)
+    out = Path(args.output)
     cfg = StudyConfig(resolution=args.resolution, n_episodes=args.episodes, seed=args.seed,
                       storage=args.storage, r_lopinf=DEMO_R_LOPINF, r_dmdc=DEMO_R_DMDC,
                       r_era=DEMO_R_ERA, jobs=args.jobs)
     t0 = time.perf_counter()
-    summary = run_study(out, cfg, progress=not args.no_progress, replay=True, bag_dir=args.bags)
+    summary = run_study(out, cfg, progress=not args.quiet, replay=True, bag_dir=args.bags)
     elapsed = time.perf_counter() - t0
     print(f'\nsoft-rom demo finished in {elapsed:.0f} s')
     print(f'report: {out / "report.md"} (figures beside it)')

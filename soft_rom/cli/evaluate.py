@@ -16,6 +16,13 @@ from typing import Any
 
 import numpy as np
 
+from soft_rom.cli._common import (
+    add_json,
+    add_quiet,
+    check_writable_folder,
+    finite_float,
+    is_summary_json,
+)
 from soft_rom.data import Episode
 from soft_rom.errors import DimensionError
 from soft_rom.evaluation import evaluate
@@ -38,17 +45,22 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help='training set (.zarr) holding the episodes')
     parser.add_argument('--episodes', default=None,
                         help='comma-separated episode names (default all)')
-    parser.add_argument('--t-split', type=float, default=None,
+    parser.add_argument('--t-split', type=finite_float(0.0, lo_open=True), default=None,
                         help='also report errors before/after this time (s from episode start)')
     parser.add_argument('--initial', choices=('reference', 'output'), default='reference',
                         help='initial state: the reference configuration (default) or fitted '
                              'to the first measured output')
-    parser.add_argument('--plots', default=None, metavar='DIR',
+    parser.add_argument('--plots', type=Path, default=None, metavar='DIR',
                         help='write PNG plots of output traces (measured vs predicted)')
     parser.add_argument('--outputs', default=None,
                         help='comma-separated output indices (0-based) or names to plot '
                              '(default: 2 spread over the vector)')
-    parser.add_argument('--json', default=None, metavar='FILE', help='write all rows as JSON')
+    add_json(parser, help='write all rows as JSON')
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace the --json file and --plots folder soft_rom wrote before')
+    parser.add_argument('--strict', action='store_true',
+                        help='refuse models that cannot be trusted (unstable, indefinite, ...)')
+    add_quiet(parser)
     parser.set_defaults(func=run)
     return parser
 
@@ -61,33 +73,60 @@ def _check_layout(model: LinearROM, path: str, ts: Any) -> None:
             f'the data have {m} inputs and {p} outputs; evaluate it on data of the same layout.')
 
 
+_EVAL_JSON = is_summary_json(('model', 'episode', 'segment'))
+
+
 def run(args: argparse.Namespace) -> int:
     """Execute ``soft-rom evaluate``."""
+    from soft_rom.outputs import atomic_dir, check_output
+
+    if args.json is not None:
+        check_writable_folder(args.json.parent, '--json file')
+        check_output(args.json, overwrite=args.overwrite, what='evaluation summary',
+                     is_ours=_EVAL_JSON)
+    if args.plots is not None:
+        check_writable_folder(args.plots.parent, 'plots')
+        check_output(args.plots, overwrite=args.overwrite, what='plots folder',
+                     kinds=('plots',))
     models = []
     for path in args.models:
-        models.append((path, load_model(path)))
+        model = load_model(path, strict=args.strict)
+        if args.plots is not None:
+            _output_indices(args.outputs, model)
+        models.append((path, model))
     ts = open_training_set(args.data)
     episodes = select_episodes(ts, args.episodes)
     for path, model in models:
         _check_layout(model, path, ts)
     rows: list[dict[str, Any]] = []
-    plots_dir = Path(args.plots) if args.plots else None
+    predictions: list[tuple[str, LinearROM, dict[str, np.ndarray]]] = []
     for path, model in models:
         ev = evaluate(model, episodes, t_split=args.t_split, initial=args.initial,
-                      return_predictions=plots_dir is not None)
+                      return_predictions=args.plots is not None)
         for row in ev.rows:
             rows.append({'model': Path(path).name, 'method': model.method, 'r': model.r,
-                         **row})
-        if plots_dir is not None:
-            for ep in episodes:
-                plot_outputs(ep, ev.predictions[ep.name], model,
-                             plots_dir / f'{Path(path).stem}__{ep.name}.png',
-                             outputs=args.outputs, t_split=args.t_split)
+                         'trusted': model.trusted, **row})
+        if args.plots is not None:
+            predictions.append((path, model, ev.predictions))
+    if args.plots is not None:
+        with atomic_dir(args.plots, overwrite=args.overwrite, kind='plots',
+                        what='plots folder') as stage:
+            for path, model, pred in predictions:
+                for ep in episodes:
+                    plot_outputs(ep, pred[ep.name], model,
+                                 stage / f'{Path(path).stem}__{ep.name}.png',
+                                 outputs=args.outputs, t_split=args.t_split)
+    if args.json is not None:
+        from soft_rom.cli._common import write_text_output
+        write_text_output(args.json, json.dumps(rows, indent=2) + '\n',
+                          overwrite=args.overwrite, what='evaluation summary',
+                          is_ours=_EVAL_JSON)
     print(format_table(rows))
-    if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=2) + '\n')
-    if plots_dir is not None:
-        print(f'plots written to {plots_dir}/', file=sys.stderr)
+    for path, model in models:
+        if not model.trusted:
+            print(f'  {Path(path).name}: NOT TRUSTED: {"; ".join(model.trust_issues())}')
+    if args.plots is not None and not args.quiet:
+        print(f'plots written to {args.plots}/', file=sys.stderr)
     return 0
 
 

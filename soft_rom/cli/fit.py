@@ -8,6 +8,10 @@ Examples::
 
 Several ``r`` values in one call reuse the expensive part: the POD basis and projections
 (LOpInf), the two SVDs (DMDc), the OKID Markov parameters (ERA).
+
+The model files (and the ``--json`` summary) appear all together or not at all: nothing is
+written until every method and r has been fitted, and existing files are replaced only
+with ``--overwrite`` and only if soft_rom wrote them.
 """
 
 from __future__ import annotations
@@ -17,7 +21,17 @@ import json
 from pathlib import Path
 from typing import Any
 
-from soft_rom.cli._common import parse_r_list
+from soft_rom.cli._common import (
+    add_json,
+    add_quiet,
+    check_writable_folder,
+    finite_float,
+    int_range,
+    is_model_file,
+    is_summary_json,
+    parse_r_list,
+)
+from soft_rom.errors import ConfigError
 from soft_rom.fitting import fit_models, fit_models_streaming, open_training_set, select_episodes
 
 __all__ = ['add_parser', 'run']
@@ -49,34 +63,47 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     size = parser.add_mutually_exclusive_group()
     size.add_argument('--r', type=parse_r_list, default=None, metavar='R',
                       help='reduced dimension(s): 16, 4,8,16 or START:STOP[:STEP] (inclusive)')
-    size.add_argument('--energy', type=float, default=None,
+    size.add_argument('--energy', type=finite_float(0.0, 1.0, lo_open=True), default=None,
                       help='choose r by POD energy fraction (default 0.95 when --r is not '
                            'given; ERA then uses its Hankel singular value rule)')
     parser.add_argument('--solver', choices=('fast', 'cvxpy'), default='fast',
                         help='LOpInf operator solver (default fast)')
+    parser.add_argument('--forces', choices=('linear', 'cubic'), default='linear',
+                        help='LOpInf restoring force: linear (K q) or cubic (gradient of a '
+                             'quartic potential, energy-consistent integrator; default linear)')
     parser.add_argument('--ddt-order', type=int, choices=(2, 4, 6, 8), default=8,
                         help='finite-difference order for LOpInf derivatives (default 8)')
+    parser.add_argument('--coordinates', choices=('state', 'outputs'), default=None,
+                        help='LOpInf/DMDc coordinates: full states Q, or the measured outputs '
+                             '(deviations from y_ref); default state when the set has Q, '
+                             'else outputs')
+    parser.add_argument('--ddt', default=None, metavar='ESTIMATOR',
+                        help='LOpInf derivatives: fd2, fd4, fd6, fd8, savgol, '
+                             'savgol:WINDOW[:POLYORDER] (default fd8 on states, savgol on '
+                             'outputs); overrides --ddt-order')
     parser.add_argument('--episodes', default=None,
                         help='comma-separated episode names to train on (default all)')
-    parser.add_argument('--t-max', type=float, default=None,
+    parser.add_argument('--t-max', type=finite_float(0.0, lo_open=True), default=None,
                         help='train on samples with t - t_start < T_MAX seconds of each episode')
-    parser.add_argument('--p', type=int, default=None, dest='dmdc_p',
+    parser.add_argument('--p', type=int_range(1), default=None, dest='dmdc_p',
                         help='DMDc truncation of the SVD of [Q; U] (default r + m)')
     era = parser.add_argument_group('ERA/OKID')
     era.add_argument('--era-episode', default=None,
                      help='the one episode ERA/OKID is fitted on (default the first selected)')
-    era.add_argument('--decimation', type=int, default=None,
+    era.add_argument('--decimation', type=int_range(1, 100_000), default=None,
                      help='fit at DECIMATION x the data sample time (default 5)')
-    era.add_argument('--n-markov', type=int, default=None,
+    era.add_argument('--n-markov', type=int_range(1, 1_000_000), default=None,
                      help='number of Markov parameters in the Hankel matrices (default 100)')
-    era.add_argument('--observer-order', type=int, default=None,
+    era.add_argument('--observer-order', type=int_range(1, 100_000), default=None,
                      help='OKID observer order (default: automatic, at most 10)')
-    era.add_argument('--output-rank', type=int, default=None,
+    era.add_argument('--output-rank', type=int_range(1), default=None,
                      help='identify on this many principal components of the outputs '
                           '(fewer OKID unknowns; e.g. 4 for a centerline)')
-    era.add_argument('--okid-rcond', type=float, default=None,
+    era.add_argument('--okid-rcond', type=finite_float(0.0, 1.0, lo_open=True, hi_open=True),
+                     default=None,
                      help='relative cut-off of the OKID least-squares solve')
-    era.add_argument('--hsv-tol', type=float, default=None,
+    era.add_argument('--hsv-tol', type=finite_float(0.0, 1.0, lo_open=True, hi_open=True),
+                     default=None,
                      help='relative Hankel singular value threshold when r is automatic')
     parser.add_argument('--streaming', action='store_true',
                         help='stream the snapshots from disk with bounded memory (streamed '
@@ -84,27 +111,69 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument('--dask', metavar='ADDRESS', default=None,
                         help='fit on a dask.distributed cluster (scheduler address, e.g. '
                              'tcp://host:8786); implies --streaming')
-    parser.add_argument('-o', '--output', required=True, metavar='OUTDIR',
+    parser.add_argument('-o', '--output', type=Path, required=True, metavar='OUTDIR',
                         help='directory for the model files (created if missing)')
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace model files (and the --json file) soft_rom wrote before')
     parser.add_argument('--prefix', default=None,
                         help='file-name prefix (default: the training set name, e.g. eel)')
-    parser.add_argument('--json', default=None, metavar='FILE',
-                        help='also write the summary table as JSON')
-    parser.add_argument('--no-progress', action='store_true', help='no progress bar')
+    add_json(parser, help='also write the summary table as JSON')
+    add_quiet(parser, old=True)
     parser.set_defaults(func=run)
     return parser
+
+
+_MODEL_FILE = is_model_file
+_FIT_JSON = is_summary_json(('method', 'r', 'path'))
+
+
+def _check_outputs_early(args: argparse.Namespace, outdir: Path, prefix: str) -> None:
+    """Refuse before fitting what would be refused when writing (exists, not ours, ...)."""
+    from soft_rom.outputs import check_output
+
+    check_writable_folder(outdir, 'model files')
+    if args.r is not None:
+        from soft_rom.models import MAX_STATES
+        for method in args.method:
+            states = 2 if method == 'lopinf' else 1
+            too_big = [r for r in args.r if states * r > MAX_STATES]
+            if too_big:
+                raise ConfigError(f'--r {too_big[0]} is too large for {method}: model files hold '
+                                  f'at most {MAX_STATES} states (r <= {MAX_STATES // states})')
+    if args.json is not None:
+        check_writable_folder(args.json.parent, '--json file')
+        if args.json.resolve().parent == outdir.resolve() and args.json.suffix == '.npz':
+            raise ConfigError('--json must not be a .npz path among the model files')
+        check_output(args.json, overwrite=args.overwrite, what='fit summary',
+                     is_ours=_FIT_JSON)
+    if args.r is not None:
+        for method in args.method:
+            for r in args.r:
+                check_output(outdir / f'{prefix}_{_label(method, args)}_r{r}.npz',
+                             overwrite=args.overwrite,
+                             what='model file', is_ours=_MODEL_FILE)
+
+
+def _label(method: str, args: argparse.Namespace) -> str:
+    """File-name label: ``lopinf_cubic`` for the cubic LOpInf models."""
+    return 'lopinf_cubic' if method == 'lopinf' and args.forces == 'cubic' else method
 
 
 def run(args: argparse.Namespace) -> int:
     """Execute ``soft-rom fit``."""
     from soft_rom.evaluation import evaluate
+    from soft_rom.outputs import atomic_files
 
+    outdir = Path(args.output)
+    prefix = args.prefix or Path(str(args.training_set).rstrip('/')).stem or 'model'
+    if '/' in prefix or prefix in ('.', '..'):
+        raise ConfigError(f'--prefix must be a file-name prefix, not a path; got {prefix!r}')
+    _check_outputs_early(args, outdir, prefix)
     ts = open_training_set(args.training_set)
     episodes = select_episodes(ts, args.episodes, args.t_max)
     streaming = args.streaming or args.dask is not None
-    outdir = Path(args.output)
-    outdir.mkdir(parents=True, exist_ok=True)
-    prefix = args.prefix or Path(str(args.training_set).rstrip('/')).stem or 'model'
+    if streaming and args.forces == 'cubic':
+        raise ConfigError('--forces cubic is fitted in memory; drop --streaming/--dask')
     provenance = {'training_set': str(Path(args.training_set).resolve()),
                   'episodes': [ep.name for ep in episodes], 't_max': args.t_max,
                   'source': ts.provenance if hasattr(ts, 'provenance') else {}}
@@ -117,33 +186,53 @@ def run(args: argparse.Namespace) -> int:
                    'hsv_tol': args.hsv_tol, 'output_rank': args.output_rank,
                    'okid_rcond': args.okid_rcond}
     rows: list[dict[str, Any]] = []
+    models: dict[Path, Any] = {}
     for method in args.method:
         if streaming:
             fitted = fit_models_streaming(
                 ts, method, r_values=args.r, energy=args.energy,
                 episodes=[ep.name for ep in episodes], t_max=args.t_max,
                 provenance=provenance, dmdc_p=args.dmdc_p, era_options=era_options,
-                client=args.dask, progress=not args.no_progress)
+                client=args.dask, progress=not args.quiet)
         else:
             fitted = fit_models(ts, method, r_values=args.r, energy=args.energy,
                                 episodes=episodes, provenance=provenance, solver=args.solver,
                                 ddt_order=args.ddt_order, dmdc_p=args.dmdc_p,
-                                era_options=era_options, progress=not args.no_progress)
+                                forces=args.forces,
+                                era_options=era_options, progress=not args.quiet,
+                                coordinates=args.coordinates, ddt=args.ddt)
         for model, seconds in fitted:
-            path = model.save(outdir / f'{prefix}_{method}_r{model.r}.npz')
+            path = outdir / f'{prefix}_{_label(method, args)}_r{model.r}.npz'
+            models[path] = model
             train_eps = episodes
             if method == 'era':
                 train_eps = [e for e in episodes
                              if e.name in model.metadata['training']['episodes']]
             ev = evaluate(model, train_eps).get()
-            rows.append({'method': method, 'r': model.r, 'dt': model.dt,
+            rows.append({'method': _label(method, args), 'r': model.r, 'dt': model.dt,
                          'train_relative_error': ev['relative_error'],
                          'train_relative_deviation_error': ev['relative_deviation_error'],
                          'stability_margin': model.stability_margin(),
+                         'trust': model.trust_issues(),
                          'seconds': seconds, 'path': str(path)})
+    outputs: list[Path] = list(models)
+    if args.json is not None:
+        outputs.append(args.json)
+
+    def ours(path: Path) -> bool:
+        return _FIT_JSON(path) if args.json is not None and path == args.json else \
+            _MODEL_FILE(path)
+
+    with atomic_files(outputs, overwrite=args.overwrite, what='fit output',
+                      is_ours=ours) as staged:
+        for path, model in models.items():
+            model.save(staged[path])
+        if args.json is not None:
+            staged[args.json].write_text(json.dumps(rows, indent=2) + '\n', encoding='utf-8')
     print(format_table(rows))
-    if args.json:
-        Path(args.json).write_text(json.dumps(rows, indent=2) + '\n')
+    untrusted = [r for r in rows if r['trust']]
+    for r in untrusted:
+        print(f'  {Path(r["path"]).name}: NOT TRUSTED: {"; ".join(r["trust"])}')
     return 0
 
 

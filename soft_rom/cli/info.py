@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from soft_rom.errors import SoftRomError
+from soft_rom.errors import ConfigError
 
 __all__ = ['add_parser', 'describe', 'run']
 
@@ -20,8 +20,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description='Describe a ROS 2 bag (topics, types, counts, rates, duration), a training '
                     'set (episodes, names, units, shapes) or a model file (method, r, dt, '
                     'names, units, stability margin, metadata).')
-    parser.add_argument('paths', nargs='+', metavar='PATH')
-    parser.add_argument('--json', action='store_true', help='print JSON instead of text')
+    parser.add_argument('paths', nargs='*', metavar='PATH')
+    parser.add_argument('--json', nargs='?', const='-', default=None, metavar='FILE',
+                        help='write JSON instead of text to FILE (default, or -: standard '
+                             'output)')
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace the --json FILE if soft-rom info wrote it')
+    parser.add_argument('--strict', action='store_true',
+                        help='exit 2 if a model file cannot be trusted')
     parser.set_defaults(func=run)
     return parser
 
@@ -36,14 +42,14 @@ def describe(path: str | Path) -> dict[str, Any]:
         model = load_model(p)
         head = model.header()
         head.pop('format', None)
-        return {'kind': 'model', 'path': str(p), **head}
+        return {'kind': 'model', 'path': str(p), **head, 'trust': model.trust_issues()}
     if p.is_dir() and ((p / '.zattrs').exists() or (p / 'zarr.json').exists()):
         from soft_rom.dataset import TrainingSet
         return {'kind': 'trainingset', **TrainingSet.open(p).describe()}
     from soft_rom.bags.reader import describe_bag, is_bag
     if is_bag(p):
         return {'kind': 'bag', **describe_bag(p)}
-    raise SoftRomError(f'{p} is neither a ROS 2 bag, a training set (.zarr) nor a model file '
+    raise ConfigError(f'{p} is neither a ROS 2 bag, a training set (.zarr) nor a model file '
                        '(.npz).')
 
 
@@ -52,6 +58,17 @@ def _fmt_names(names: list[str], units: list[str]) -> str:
     if len(items) > 8:
         items = items[:4] + ['...'] + items[-2:]
     return ', '.join(items)
+
+
+def _fmt_stamp(ns: int) -> str:
+    """An integer stamp in ns, with its UTC date when it looks like epoch time."""
+    import datetime
+
+    ns = int(ns)
+    if ns > 946_684_800 * 10 ** 9:                 # after 2000-01-01: an epoch stamp
+        when = datetime.datetime.fromtimestamp(ns // 10 ** 9, tz=datetime.timezone.utc)
+        return f"{ns} ns ({when.strftime('%Y-%m-%d %H:%M:%S')}.{ns % 10 ** 9:09d} UTC)"
+    return f'{ns} ns'
 
 
 def format_text(d: dict[str, Any]) -> str:
@@ -77,9 +94,9 @@ def format_text(d: dict[str, Any]) -> str:
         for name, ep in d['episodes'].items():
             q = 'no Q' if ep['Q'] is None else f"Q {ep['Q'][0]} x {ep['Q'][1]} " \
                 f"(chunks {ep['Q_chunks'][0]} x {ep['Q_chunks'][1]})"
-            lines.append(f"  {name}: {ep['n_samples']} samples, t = {ep['t_start']:.6f} .. "
-                         f"{ep['t_end']:.6f} s, dt = {ep['dt_mean'] * 1e3:.4g} ms, {q}"
-                         + (f", from {ep['source']}" if ep.get('source') else ''))
+            lines.append(f"  {name}: {ep['n_samples']} samples, {ep['duration_s']:.6f} s from "
+                         f"t0 = {_fmt_stamp(ep['t0_ns'])}, dt = {ep['dt_mean'] * 1e3:.6g} ms, "
+                         f'{q}' + (f", from {ep['source']}" if ep.get('source') else ''))
     else:
         lines.append(f"model {d['path']}: {d['class']} (method {d['method']}), r = {d['r']}, "
                      f"state dimension {d['n_states']}, dt = {d['dt']:g} s")
@@ -88,8 +105,18 @@ def format_text(d: dict[str, Any]) -> str:
         lines.append(f"  outputs (p = {len(d['output_names'])}): "
                      f"{_fmt_names(d['output_names'], d['output_units'])}")
         margin = d['stability_margin']
+        margin = float('nan') if margin is None else margin
         lines.append(f'  stability margin 1 - max|eig(A)| = {margin:.3e} '
                      f"({'stable' if margin > 0 else 'NOT asymptotically stable'})")
+        pot = d.get('potential')
+        if isinstance(pot, dict):          # cubic LOpInf: restoring force = grad of V(q)
+            n = pot.get('independent_entries', {})
+            lines.append(f"  forces: cubic, {pot.get('form')}; independent entries K "
+                         f"{n.get('K')}, G {n.get('G')}, H {n.get('H')}; |K| = "
+                         f"{pot.get('norm_K', 0):.3g}, |G| = {pot.get('norm_G', 0):.3g}, "
+                         f"|H| = {pot.get('norm_H', 0):.3g} (margin: linearization at q = 0)")
+        trust = d.get('trust') or []
+        lines.append('  trust: ' + ('ok' if not trust else 'NOT TRUSTED: ' + '; '.join(trust)))
         meta = d.get('metadata') or {}
         if meta:
             text = json.dumps(meta, sort_keys=True, default=str)
@@ -97,11 +124,29 @@ def format_text(d: dict[str, Any]) -> str:
     return '\n'.join(lines)
 
 
+_INFO_JSON_KEYS = ('kind',)
+
+
 def run(args: argparse.Namespace) -> int:
     """Run ``info``; returns the exit code."""
-    out = [describe(p) for p in args.paths]
-    if args.json:
-        print(json.dumps(out if len(out) > 1 else out[0], indent=2, default=str))
+    from soft_rom.cli._common import is_summary_json, write_text_output
+
+    paths = list(args.paths)
+    if not paths and args.json not in (None, '-'):
+        paths, args.json = [args.json], '-'   # ``info --json PATH`` (the old flag form)
+    if not paths:
+        raise ConfigError('give at least one PATH (bag, training set or model file)')
+    out = [describe(p) for p in paths]
+    if args.json is not None:
+        text = json.dumps(out if len(out) > 1 else out[0], indent=2, default=str)
+        if args.json == '-':
+            print(text)
+        else:
+            write_text_output(Path(args.json), text + '\n', overwrite=args.overwrite,
+                              what='info JSON', is_ours=is_summary_json(_INFO_JSON_KEYS))
     else:
         print('\n'.join(format_text(d) for d in out))
+    untrusted = [d['path'] for d in out if d.get('kind') == 'model' and d.get('trust')]
+    if args.strict and untrusted:
+        raise ConfigError(f'model file(s) cannot be trusted: {", ".join(untrusted)}')
     return 0

@@ -8,6 +8,11 @@ node runs is stepped over them, and the node's topics are written to ``OUT``
 With ``--stream`` the bag is fed message by message instead (each pressure and measured
 centerline with its own stamp, the publish timer emulated on the bag clock), configured by
 the node's parameter file: the node's behaviour on multi-rate recordings, offline.
+
+The output bag is written in a staging folder and swapped into place whole; it carries the
+soft_rom output marker, so a later ``--overwrite`` may replace it. A bag soft_rom did not
+write as a replay -- a recording, a simulated episode -- is never replaced, and the output
+may not be the input bag.
 """
 
 from __future__ import annotations
@@ -18,6 +23,14 @@ import math
 from pathlib import Path
 from typing import Any
 
+from soft_rom.cli._common import (
+    add_json,
+    add_quiet,
+    check_writable_folder,
+    finite_float,
+    is_summary_json,
+    write_text_output,
+)
 from soft_rom.errors import ConfigError
 
 __all__ = ['add_parser', 'run']
@@ -32,7 +45,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                     'centerline_marker, output, error, model_info and /diagnostics).')
     parser.add_argument('model', help='model file (.npz)')
     parser.add_argument('bag', help='input bag (sqlite3 or MCAP)')
-    parser.add_argument('-o', '--output', required=True, help='output bag directory')
+    parser.add_argument('-o', '--output', type=Path, required=True, metavar='OUT',
+                        help='output bag directory')
     parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap',
                         help='storage of the output bag (default mcap)')
     parser.add_argument('--mapping', default=None,
@@ -42,14 +56,17 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                              'layout); command-line options override it')
     parser.add_argument('--kalman', action='store_true', default=None,
                         help='correct the state with the steady-state Kalman filter')
-    parser.add_argument('--process-noise', type=float, default=None,
+    parser.add_argument('--process-noise', type=finite_float(0.0, lo_open=True), default=None,
                         help='Kalman process noise variance')
-    parser.add_argument('--measurement-noise', type=float, default=None,
+    parser.add_argument('--measurement-noise', type=finite_float(0.0, lo_open=True),
+                        default=None,
                         help='Kalman measurement noise variance')
-    parser.add_argument('--stepping', choices=('fixed', 'input'), default=None,
-                        help='fixed integration rate or stepping by input stamps')
-    parser.add_argument('--publish-rate', type=float, default=None,
-                        help='publish rate in Hz (default: the params file, else every step)')
+    parser.add_argument('--stepping', choices=('event', 'fixed', 'input'), default=None,
+                        help='event time (the newest time every input is known; default of the '
+                             'node), a fixed integration rate, or a step to each input stamp')
+    parser.add_argument('--publish-rate', type=finite_float(0.0, 1e6), default=None,
+                        help='publish rate in Hz, 0 = every step (default: the params file, '
+                             'else every step)')
     parser.add_argument('--components', default=None,
                         help='output layout, component-major (default xz)')
     parser.add_argument('--frame-id', default=None, help='frame of the centerline')
@@ -63,8 +80,12 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                              'otherwise), instead of the converted episode')
     parser.add_argument('--compare', action='store_true',
                         help='also report open-loop vs Kalman-corrected errors')
-    parser.add_argument('--overwrite', action='store_true', help='replace OUT if it exists')
-    parser.add_argument('--summary-json', default=None, help='also write the summary here')
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace OUT (and the --json file) if soft-rom replay wrote it')
+    parser.add_argument('--strict', action='store_true',
+                        help='refuse a model that cannot be trusted (unstable, indefinite, ...)')
+    add_json(parser, help='also write the summary as JSON', old='--summary-json')
+    add_quiet(parser)
     parser.set_defaults(func=run)
     return parser
 
@@ -81,14 +102,49 @@ def _read(bag: str, mapping_path: str | None) -> tuple[Any, Any, str]:
     return episode, report, ''.join(mapping.output.components)
 
 
+_REPLAY_JSON = is_summary_json(('output_bag',))
+
+
+def _check_paths(args: argparse.Namespace) -> None:
+    """Usage errors found before any work: output is the input, bad folders, files exist."""
+    from soft_rom.outputs import check_output
+
+    bag, out = Path(args.bag).resolve(), Path(args.output).resolve()
+    if out == bag or bag in out.parents or out in bag.parents:
+        raise ConfigError(f'the output {args.output} would replace or sit inside the input bag '
+                          f'{args.bag}; choose another -o')
+    if args.mapping is not None and not Path(args.mapping).is_file():
+        raise ConfigError(f'--mapping {args.mapping} is not a file')
+    if args.config is not None and not Path(args.config).is_file():
+        raise ConfigError(f'--config {args.config} is not a file')
+    check_writable_folder(Path(args.output).parent, 'output bag')
+    if args.json is not None:
+        check_writable_folder(args.json.parent, '--json file')
+        check_output(args.json, overwrite=args.overwrite, what='replay summary',
+                     is_ours=_REPLAY_JSON)
+    check_output(args.output, overwrite=args.overwrite, what='replay bag', kinds=('replay',))
+
+
+def _write_json(args: argparse.Namespace, summary: dict[str, Any]) -> None:
+    if args.json is not None:
+        write_text_output(args.json, json.dumps(summary, indent=2, default=str),
+                          overwrite=args.overwrite, what='replay summary', is_ours=_REPLAY_JSON)
+
+
 def run(args: argparse.Namespace) -> int:
     """Execute ``soft-rom replay``; returns the exit code."""
     from tqdm import tqdm
 
     from soft_rom.bags.replay_io import replay_to_bag
+    from soft_rom.models import load_model
+    from soft_rom.outputs import atomic_new_dir
     from soft_rom.predictor import kalman_vs_open_loop, Predictor
     from soft_rom.predictor.params import load_params_file, predictor_config
 
+    _check_paths(args)
+    if not Path(args.bag).exists():
+        raise FileNotFoundError(f'bag {args.bag} does not exist')
+    checked = load_model(args.model, strict=args.strict)
     values: dict[str, Any] = load_params_file(args.config) if args.config else {}
     overrides = {'kalman': args.kalman, 'process_noise': args.process_noise,
                  'measurement_noise': args.measurement_noise, 'stepping': args.stepping,
@@ -105,23 +161,30 @@ def run(args: argparse.Namespace) -> int:
     publish_rate = float(values.get('publish_rate_hz', 0.0) or 0.0)
     every = 1 if publish_rate <= 0 else max(1, int(round(1.0 / (publish_rate * model.dt))))
     measured = not args.no_measured and episode.Y.shape[0] > 0
-    with tqdm(total=episode.n_samples, desc='replay', unit='step', leave=False) as bar:
-        result = replay_to_bag(
-            predictor, episode, args.output, storage=args.storage, publish_every=every,
-            measured=measured, node_name=args.node_name,
-            frame_id=str(values.get('frame_id', 'world')),
-            components=str(values.get('output_components', 'xz')), overwrite=args.overwrite,
-            progress=lambda j: bar.update(1) if j % 100 == 0 and j else None)
+    with atomic_new_dir(args.output, overwrite=args.overwrite, kind='replay',
+                        what='replay bag') as stage:
+        with tqdm(total=episode.n_samples, desc='replay', unit='step', leave=False,
+                  disable=args.quiet) as bar:
+            result = replay_to_bag(
+                predictor, episode, stage, storage=args.storage, publish_every=every,
+                centerline_rate_hz=float(values.get('centerline_rate_hz', 30.0)),
+                measured=measured, node_name=args.node_name,
+                frame_id=str(values.get('frame_id', 'world')),
+                components=str(values.get('output_components', 'xz')), overwrite=False,
+                progress=lambda j: bar.update(1) if j % 100 == 0 and j else None)
     summary = dict(result.summary)
     summary['output_bag'] = str(Path(args.output))
     health = predictor.health()
     summary['final_status'] = health.level.name
     summary['final_message'] = health.message
+    summary['trust'] = checked.trust_issues()
     if args.compare and measured:
         summary['compare'] = kalman_vs_open_loop(model, episode, config=config)
     print(f'replayed {summary["samples"]} samples of {args.bag} through '
           f'{model.method} r={model.r} ({"Kalman" if config.kalman else "open loop"}) '
           f'-> {args.output}')
+    if not checked.trusted:
+        print(f'  model NOT TRUSTED: {"; ".join(checked.trust_issues())}')
     if measured and not math.isnan(summary['relative_error']):
         print(f'  relative error            {summary["relative_error"]:.4e}')
         print(f'  relative deviation error  {summary["relative_deviation_error"]:.4e}')
@@ -136,31 +199,33 @@ def run(args: argparse.Namespace) -> int:
                         'diverged') and v}
     print(f'  final status {health.level.name}: {health.message}'
           + (f'; dropped {dropped}' if dropped else ''))
-    if args.summary_json:
-        Path(args.summary_json).write_text(json.dumps(summary, indent=2, default=str),
-                                           encoding='utf-8')
+    _write_json(args, summary)
     return 0
 
 
 def _run_stream(args: argparse.Namespace, values: dict[str, Any], predictor: Any) -> int:
     """``replay --stream``: message by message, with the node's parameters."""
     from soft_rom.bags.replay_io import replay_stream_to_bag
+    from soft_rom.outputs import atomic_new_dir
     from soft_rom.predictor.params import PARAMS
 
     v = {p.name: p.default for p in PARAMS}
     v.update(values)
-    summary = replay_stream_to_bag(
-        predictor, args.bag, args.output, input_mode=str(v['input_mode']),
-        input_topics=list(v['input_topics']), array_topic=str(v['array_topic']),
-        input_scale=float(v['input_scale']), input_offset=float(v['input_offset']),
-        measured_topic='' if args.no_measured else str(v['measured_topic']),
-        components=str(v['output_components']), publish_rate_hz=float(v['publish_rate_hz']),
-        storage=args.storage, node_name=args.node_name, frame_id=str(v['frame_id']),
-        overwrite=args.overwrite)
+    with atomic_new_dir(args.output, overwrite=args.overwrite, kind='replay',
+                        what='replay bag') as stage:
+        summary = replay_stream_to_bag(
+            predictor, args.bag, stage, input_mode=str(v['input_mode']),
+            input_topics=list(v['input_topics']), array_topic=str(v['array_topic']),
+            input_scale=float(v['input_scale']), input_offset=float(v['input_offset']),
+            measured_topic='' if args.no_measured else str(v['measured_topic']),
+            components=str(v['output_components']),
+            publish_rate_hz=float(v['publish_rate_hz']),
+            centerline_rate_hz=float(v['centerline_rate_hz']), storage=args.storage,
+            node_name=args.node_name, frame_id=str(v['frame_id']), overwrite=False)
     model = predictor.model
     health = predictor.health()
     summary.update(output_bag=str(Path(args.output)), final_status=health.level.name,
-                   final_message=health.message)
+                   final_message=health.message, trust=model.trust_issues())
     n = summary['messages']
     print(f'replayed {n["inputs"]} input and {n["measured"]} measured messages of {args.bag} '
           f'through {model.method} r={model.r} '
@@ -172,7 +237,5 @@ def _run_stream(args: argparse.Namespace, values: dict[str, Any], predictor: Any
     else:
         print('  no measured outputs: errors not computed')
     print(f'  final status {health.level.name}: {health.message}')
-    if args.summary_json:
-        Path(args.summary_json).write_text(json.dumps(summary, indent=2, default=str),
-                                           encoding='utf-8')
+    _write_json(args, summary)
     return 0

@@ -5,26 +5,87 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from soft_rom.cli._common import parse_r_list
+from soft_rom.cli._common import (
+    add_output,
+    add_quiet,
+    available_memory,
+    check_writable_folder,
+    finite_float,
+    int_range,
+    parse_r_list,
+)
 
-__all__ = ['add_parser', 'run']
+__all__ = ['add_parser', 'add_study_options', 'prepare_study', 'run']
 
 
-def add_study_options(parser: argparse.ArgumentParser) -> None:
-    """Options shared by ``study`` and ``demo``."""
-    parser.add_argument('--out', type=Path, default=Path('soft_rom_study'),
-                        help='report folder (default: %(default)s)')
-    parser.add_argument('--resolution', type=int, default=1,
+def add_study_options(parser: argparse.ArgumentParser, *, default_output: Path) -> None:
+    """Options shared by ``study`` and ``demo`` (each with its own default folder)."""
+    from soft_rom.cli.simulate import MAX_RESOLUTION
+
+    add_output(parser, help='report folder', default=default_output, old=True)
+    parser.add_argument('--resolution', type=int_range(1, MAX_RESOLUTION), default=1,
                         help='eel mesh resolution (1 = fast default; 4 = paper size)')
-    parser.add_argument('--episodes', type=int, default=6, help='episodes to simulate (6)')
-    parser.add_argument('--seed', type=int, default=0, help='seed of the pressure sequences')
+    parser.add_argument('--episodes', type=int_range(2, 1000), default=6,
+                        help='episodes to simulate, at least 2, 6 for study 2 '
+                             '(default: %(default)s)')
+    parser.add_argument('--seed', type=int_range(0, 2**63 - 1), default=0,
+                        help='seed of the pressure sequences (default: %(default)s)')
     parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap',
                         help='bag storage format (default: %(default)s)')
     parser.add_argument('--bags', type=Path, default=None,
                         help='reuse (or write) the episode bags in this folder')
-    parser.add_argument('--jobs', type=int, default=2,
+    parser.add_argument('--jobs', type=int_range(1, 512), default=2,
                         help='processes for simulating episodes (default: %(default)s)')
-    parser.add_argument('--no-progress', action='store_true', help='hide progress bars')
+    add_quiet(parser, old=True)
+
+
+def _check_study_folder(out: Path) -> None:
+    """A study writes into its folder run after run; never into a folder that is not one.
+
+    Accepted: a new or empty folder, one marked as a soft_rom study, or one a study wrote
+    before the marker existed (``summary.json`` and ``report.md``).
+    """
+    from soft_rom.errors import OutputExistsError
+    from soft_rom.outputs import is_marked
+
+    if not out.exists() and not out.is_symlink():
+        return
+    if out.is_dir() and not out.is_symlink():
+        if is_marked(out, ('study',)) or not any(out.iterdir()):
+            return
+        if (out / 'summary.json').is_file() and (out / 'report.md').is_file():
+            return
+    raise OutputExistsError(f'{out} is not a soft_rom study folder (it holds other files); '
+                            'choose a new or empty -o folder')
+
+
+def prepare_study(args: argparse.Namespace) -> None:
+    """Check the folders and resources of a study before any work, then mark its folder.
+
+    Refused: an output folder that is not a study's, a simulation that cannot fit in
+    memory or on disk (with the estimate).
+    """
+    from soft_rom.cli.simulate import estimate_resources
+    from soft_rom.errors import ResourceError
+    from soft_rom.outputs import check_free_space
+
+    check_writable_folder(Path(args.output), 'report')
+    _check_study_folder(Path(args.output))
+    if args.bags is not None:
+        check_writable_folder(Path(args.bags), 'bags')
+    n_dof, memory, disk = estimate_resources(args.resolution, jobs=args.jobs,
+                                             episodes=args.episodes, steps=2000, state=True)
+    free = available_memory()
+    if memory > free:
+        raise ResourceError(
+            f'--resolution {args.resolution} ({n_dof:,} DOF) with {args.jobs} job(s) needs '
+            f'about {memory / 1e9:.3g} GB of memory; {free / 1e9:.3g} GB available. Use a '
+            'lower --resolution or fewer --jobs')
+    check_free_space(Path(args.bags or args.output), disk,
+                     f'the study bags at --resolution {args.resolution}')
+    Path(args.output).mkdir(parents=True, exist_ok=True)
+    from soft_rom.outputs import mark
+    mark(args.output, 'study')
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -33,7 +94,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         description="Simulate the eel FOM, record bags, convert, fit LOpInf / DMDc / ERA-OKID "
                     "over ranges of r, and write a Markdown report with the paper's figures "
                     "(errors vs r, output traces, test-error bars, centerline shapes).")
-    add_study_options(parser)
+    add_study_options(parser, default_output=Path('soft_rom_study'))
     parser.add_argument('--only', type=int, choices=(1, 2), default=None,
                         help='run only study 1 (time extrapolation) or 2 (unseen inputs)')
     parser.add_argument('--r-lopinf', type=parse_r_list, default=tuple(range(2, 23, 2)),
@@ -42,20 +103,24 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         help='r values for DMDc (default 2:22:2)')
     parser.add_argument('--r-era', type=parse_r_list, default=tuple(range(20, 43, 2)),
                         help='r values for ERA/OKID (default 20:42:2)')
-    parser.add_argument('--t-train', type=float, default=1.5,
-                        help='end of training in study 1, seconds (default 1.5)')
+    parser.add_argument('--t-train', type=finite_float(0.0, 1.999, lo_open=True), default=1.5,
+                        help='end of training in study 1, seconds, below the 2 s episodes '
+                             '(default 1.5)')
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     from soft_rom.study.run import run_study, StudyConfig
+
+    prepare_study(args)
     cfg = StudyConfig(resolution=args.resolution, n_episodes=args.episodes, seed=args.seed,
                       storage=args.storage, t_train=args.t_train, r_lopinf=args.r_lopinf,
                       r_dmdc=args.r_dmdc, r_era=args.r_era, jobs=args.jobs)
     studies = (args.only,) if args.only else (1, 2)
-    summary = run_study(args.out, cfg, progress=not args.no_progress, studies=studies,
+    out = Path(args.output)
+    summary = run_study(out, cfg, progress=not args.quiet, studies=studies,
                         bag_dir=args.bags)
-    print(f'report: {args.out / "report.md"}')
+    print(f'report: {out / "report.md"}')
     for line in summary.get('conclusions', []):
         print(f'  - {line}')
     return 0

@@ -76,6 +76,12 @@ class LOpInf:
         :data:`~soft_rom.learners.lopinf_solvers.DEFAULT_EPS`).
     scale : bool
         Scale states and inputs by their RMS before solving (unit invariance; keep True).
+    forces : {'linear', 'cubic'}
+        ``'cubic'``: restoring force the gradient of a quartic potential, model
+        :class:`~soft_rom.models_cubic.CubicSecondOrderModel` (see
+        :mod:`soft_rom.learners.lopinf_cubic`; ``solver`` is then its linear block's solver).
+    cubic_options : dict, optional
+        ``reg``, ``eps4`` of :func:`~soft_rom.learners.lopinf_cubic.fit_cubic`.
 
     Attributes
     ----------
@@ -102,7 +108,8 @@ class LOpInf:
     def __init__(self, r: int | None = None, energy: float = 0.95, *,
                  ddt: int | DerivativeEstimator = 8, solver: OperatorSolver | None = None,
                  basis: BasisBuilder | None = None, eps: float = DEFAULT_EPS,
-                 scale: bool = True) -> None:
+                 scale: bool = True, forces: str = 'linear',
+                 cubic_options: dict[str, Any] | None = None) -> None:
         self.r = r
         self.energy = energy
         self.ddt = ddt
@@ -110,6 +117,8 @@ class LOpInf:
         self.basis = basis
         self.eps = eps
         self.scale = scale
+        self.forces = forces
+        self.cubic_options = cubic_options
 
     def __repr__(self) -> str:
         return (f'LOpInf(r={self.r!r}, energy={self.energy!r}, ddt={self.ddt!r}, '
@@ -282,11 +291,20 @@ class LOpInf:
                                  f'estimator {estimator!r}; drop them or use a lower order.')
         Qs, Qd, Qdd, (Us,) = _episodes(estimator, [q / s_q for q in Qhat], dt,
                                        [[u / s_u[:, None] for u in U]])
-        sol = solver.solve(Qs, Qd, Qdd, Us, eps=self.eps)
+        self.nonlinear_: dict[str, Any] | None = None
+        if self.forces == 'cubic':
+            from soft_rom.learners.lopinf_cubic import fit_scaled
+            sol, self.nonlinear_ = fit_scaled(Qs, Qd, Qdd, Us, s_q, solver, self.eps,
+                                              self.cubic_options)
+        elif self.forces == 'linear':
+            sol = solver.solve(Qs, Qd, Qdd, Us, eps=self.eps)
+        else:
+            raise ConfigError(f"forces must be 'linear' or 'cubic'; got {self.forces!r}.")
         K = 0.5 * (sol.K + sol.K.T)
         C = 0.5 * (sol.C + sol.C.T)
         B = sol.B * s_q / s_u[None, :]
-        residual = float(np.linalg.norm(Qdd + C @ Qd + K @ Qs - sol.B @ Us))
+        residual = float(np.linalg.norm(Qdd + C @ Qd + K @ Qs - sol.B @ Us)) if \
+            self.nonlinear_ is None else float(sol.info['objective'])
         rel_residual = residual / max(float(np.linalg.norm(Qdd)), 1e-300)
 
         # Output operator: min ||(Y - y_ref) - E Qhat||_F over all samples.
@@ -357,15 +375,22 @@ class LOpInf:
         meta = {'provenance': self._provenance, 'diagnostics': diag}
         meta.update(self._extra_meta)
         kw = {k: v for k, v in self._names.items() if v is not None}
-        model = SecondOrderModel(self.K_, self.C_, self.B_, self.E_, dt=self.dt_,
-                                 y_ref=self.y_ref_, metadata=meta, **kw)
+        model = self._make_model(meta, kw)
         diag['stability_margin'] = model.stability_margin()
         ev = model.eigenvalues()
         diag['eigenvalues'] = [[float(z.real), float(z.imag)] for z in ev]
         meta['diagnostics'] = diag
         self.diagnostics_ = diag
-        self.model_ = SecondOrderModel(self.K_, self.C_, self.B_, self.E_, dt=self.dt_,
-                                       y_ref=self.y_ref_, metadata=meta, **kw)
+        self.model_ = self._make_model(meta, kw)
+
+    def _make_model(self, meta: dict[str, Any], kw: dict[str, Any]) -> Any:
+        nl = getattr(self, 'nonlinear_', None)
+        if nl is not None:
+            from soft_rom.models_cubic import CubicSecondOrderModel
+            return CubicSecondOrderModel(self.K_, self.C_, nl['G'], nl['H'], self.B_, self.E_,
+                                         dt=self.dt_, y_ref=self.y_ref_, metadata=meta, **kw)
+        return SecondOrderModel(self.K_, self.C_, self.B_, self.E_, dt=self.dt_,
+                                y_ref=self.y_ref_, metadata=meta, **kw)
 
     @staticmethod
     def _names_from(ep: Episode, given: dict[str, Any]) -> dict[str, Any]:

@@ -95,6 +95,10 @@ class PredictorConfig:
     auto_reset : bool
         On divergence reset the state to the reference (else it is kept; ``ERROR`` either
         way, counted ``diverged``).
+    strict_model : bool
+        Refuse a model that loads but cannot be trusted (``model.trust_issues()``: unstable,
+        indefinite K or C, absurd offsets) at start and on reload; ``False`` (default) runs
+        it and reports ``WARN`` with the reasons.
     """
 
     stepping: str = 'event'
@@ -119,6 +123,7 @@ class PredictorConfig:
     input_envelope_action: str = 'clip'
     output_envelope_factor: float = 100.0
     auto_reset: bool = True
+    strict_model: bool = False
 
     def __post_init__(self) -> None:
         def bad(name: str, expected: str) -> ConfigError:
@@ -149,7 +154,7 @@ class PredictorConfig:
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
                 raise bad(name, 'an integer >= 1')
-        for name in ('kalman', 'auto_reset'):
+        for name in ('kalman', 'auto_reset', 'strict_model'):
             if not isinstance(getattr(self, name), bool):
                 raise bad(name, 'true or false')
         lo, hi = self._bounds('input_min'), self._bounds('input_max')

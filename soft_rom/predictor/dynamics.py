@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 import scipy.linalg as sla
 
-from soft_rom.errors import ConfigError, SolverError
+from soft_rom.errors import ConfigError, ModelFileError, SolverError
 from soft_rom.models import DiscreteModel, file_sha256, LinearROM
 
 __all__ = ['Dynamics', 'is_linear', 'kalman_gain', 'model_info']
@@ -101,6 +101,7 @@ def model_info(model: Any, path: str | os.PathLike[str] | None = None,
     if sha256 is None and path is not None and Path(path).is_file():
         sha256 = file_sha256(path)
     margin = getattr(model, 'stability_margin', None)
+    trust = getattr(model, 'trust_issues', None)
     return {
         'method': model.method,
         'class': type(model).__name__,
@@ -115,6 +116,7 @@ def model_info(model: Any, path: str | os.PathLike[str] | None = None,
         'stability_margin': float(margin()) if callable(margin) else None,
         'path': None if path is None else str(path),
         'sha256': sha256,
+        'trust': list(trust()) if callable(trust) else [],
     }
 
 
@@ -181,6 +183,10 @@ class Dynamics:
         self.info = model_info(model, path, self.sha256)
         margin = self.info.get('stability_margin')
         self.unstable = isinstance(margin, float) and margin < 0
+        self.trust_issues: list[str] = list(self.info['trust'])
+        if config.strict_model and self.trust_issues:
+            raise ModelFileError(f'model not trusted (strict_model): '
+                                 f'{"; ".join(self.trust_issues)}')
 
     def matrices_for(self, dt_ns: int) -> tuple[Array, Array]:
         """``(A, B)`` for an exact step of ``dt_ns`` nanoseconds (continuous linear models)."""

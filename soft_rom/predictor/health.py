@@ -10,7 +10,8 @@ Reasons, worst first:
   (``error_window_s``);
 * ``WARN`` -- within the last ``alarm_hold_s``: a dropped message, an input clipped to its
   envelope, a measurement outside the output envelope, a clock stall or jump; the model
-  is unstable; the windowed error is above ``warn_threshold``.
+  is unstable or not trusted (``model.trust_issues()``); the windowed error is above
+  ``warn_threshold``.
 """
 
 from __future__ import annotations
@@ -49,7 +50,9 @@ def assess(pred: Any, now_ns: int | None, Level: Any, severity: dict[Any, int]) 
         if latched or (now_ns is None and early) or (
                 now_ns is not None and not early and now_ns - t_alarm <= hold):
             reasons.append((Level(_ALARM_LEVEL.get(key, 1)), why))
-    if pred._dyn.unstable:
+    if pred._dyn.trust_issues:
+        reasons.append((Level.WARN, 'model not trusted: ' + '; '.join(pred._dyn.trust_issues)))
+    elif pred._dyn.unstable:
         reasons.append((Level.WARN, f'model unstable (stability margin '
                                     f'{pred._dyn.info["stability_margin"]:.3g} < 0)'))
     e_abs, e_dev = pred.windowed_errors(now_ns)

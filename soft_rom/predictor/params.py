@@ -92,6 +92,9 @@ PARAMS: tuple[Param, ...] = (
           read_only=False, choices=('clip', 'drop')),
     Param('output_envelope_factor', 100.0, 'Divergence: max |y - y_ref| beyond this times '
           'the training max deviation (or max |y_ref|).', range=(1e-6, 1e12), read_only=False),
+    Param('strict_model', False, 'Refuse a model that loads but cannot be trusted '
+          '(unstable, indefinite K or C, absurd offsets); false = run it with a WARN.',
+          read_only=False),
     Param('auto_reset', True, 'Reset the state to the reference when the prediction '
           'diverges.', read_only=False),
     Param('error_window', 100, 'Measurements in the windowed relative error.',

@@ -14,10 +14,16 @@ Several models from one pass over the data::
 
     red = reduce_streaming('train.zarr', n_coords=60)
     models = [fit_reduced_model(red, 'lopinf', r) for r in (4, 8, 16)]
+
+Modules: :mod:`~soft_rom.scale.blocks` (snapshot sources, block plans, the local executor),
+:mod:`~soft_rom.scale.kernels` (what a pass computes on one block),
+:mod:`~soft_rom.scale.dask_backend` (the Dask executor), :mod:`~soft_rom.scale.pod` (the
+streaming POD) and :mod:`~soft_rom.scale.streaming` (reduce once, then fit).
 """
 
 from soft_rom.scale.blocks import LocalExecutor, SnapshotSet
-from soft_rom.scale.fit import (
+from soft_rom.scale.pod import StreamingPOD
+from soft_rom.scale.streaming import (
     fit_reduced_model,
     fit_streaming,
     open_training_data,
@@ -25,7 +31,6 @@ from soft_rom.scale.fit import (
     ReducedData,
     TrainingData,
 )
-from soft_rom.scale.pod import StreamingPOD
 
 __all__ = [
     'LocalExecutor',

@@ -35,7 +35,7 @@ Operator Inference*, section 2.2 (POD of the centred snapshots; ``r`` for 95 % e
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -233,6 +233,7 @@ class StreamingPOD:
         ex = self.executor if self.executor is not None else LocalExecutor(self.progress)
         n, K = snaps.n, snaps.n_total
         l = self._l(n, K)
+        W: Array | None
         if self.method == 'randomized':
             W, s, Z, total, passes = self._randomized(snaps, ex, l)
         else:
@@ -329,11 +330,3 @@ class StreamingPOD:
         self._check()
         return reconstruct(Qhat, self.basis_, self.q_ref_)
 
-
-def dense_reference(arrays: Sequence[ArrayLike], q_ref: ArrayLike) -> tuple[Array, Array]:
-    """Dense SVD of the centred snapshots (testing and benchmarks): ``(U, s)``, signs fixed."""
-    X = np.concatenate([np.asarray(a, dtype=np.float64) for a in arrays], axis=1)
-    X = X - np.asarray(q_ref, dtype=np.float64).reshape(-1, 1)
-    U, s, _ = np.linalg.svd(X, full_matrices=False)
-    U, _ = _fix_signs(U, np.zeros((U.shape[1], 1)))
-    return U, s

@@ -76,10 +76,11 @@ from soft_rom.sim.mesh import box_grid, cavity_faces, TetMesh, tetrahedralize
 __all__ = ['EelConfig', 'EelModel', 'Linearization', 'SimulationResult', 'StepCallback',
            'simulate_episode']
 
+Array = NDArray[np.float64]
+
 #: ``callback(j, t, u, centerline, positions)`` called for every recorded sample; ``positions``
 #: (n_nodes, 3) is a view of the solver's buffer, valid only during the call.
-StepCallback = Callable[[int, float, NDArray[np.float64], NDArray[np.float64],
-                         NDArray[np.float64]], None]
+StepCallback = Callable[[int, float, Array, Array, Array], None]
 
 
 @dataclass(frozen=True)
@@ -185,10 +186,10 @@ class Linearization:
     M: sp.spmatrix
     C: sp.spmatrix
     K: sp.spmatrix
-    B: NDArray[np.float64]
+    B: Array
     E: sp.spmatrix
-    q_ref: NDArray[np.float64]
-    y_ref: NDArray[np.float64]
+    q_ref: Array
+    y_ref: Array
     free: NDArray[np.bool_]
 
 
@@ -210,13 +211,13 @@ class SimulationResult:
         Wall time, DOF, solver statistics.
     """
 
-    t: NDArray[np.float64]
-    pressures: NDArray[np.float64]
-    centerline: NDArray[np.float64]
-    states: NDArray[np.float64] | None = None
+    t: Array
+    pressures: Array
+    centerline: Array
+    states: Array | None = None
     info: dict[str, Any] = field(default_factory=dict)
 
-    def outputs(self, components: str = 'xz') -> NDArray[np.float64]:
+    def outputs(self, components: str = 'xz') -> Array:
         """Output matrix ``Y``, shape (len(components) * N, k): component-major rows."""
         idx = ['xyz'.index(c) for c in components]
         return np.concatenate([self.centerline[:, i, :] for i in idx], axis=0)
@@ -304,13 +305,12 @@ class EelModel:
         self._factor: dict[float, tuple] = {}
 
     # ------------------------------------------------------------------ operators
-    def _triangle_forces(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+    def _triangle_forces(self, x: Array) -> Array:
         """Force per unit pressure on each corner of each wall triangle, shape (n_tri, 3)."""
         t = self.wall_triangles
         return np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]]) / 6.0
 
-    def pressure_force(self, x: NDArray[np.float64],
-                       u: NDArray[np.float64]) -> NDArray[np.float64]:
+    def pressure_force(self, x: Array, u: Array) -> Array:
         """Nodal pressure forces (n_nodes, 3) at positions ``x`` for pressures ``u`` (6,).
 
         Follower loads (``config.follower``): the wall area vectors of the current
@@ -335,11 +335,11 @@ class EelModel:
         return self.mesh.n_dof
 
     @property
-    def q_ref(self) -> NDArray[np.float64]:
+    def q_ref(self) -> Array:
         """Rest positions, node-major, shape (n_dof,)."""
         return self.mesh.nodes.ravel()
 
-    def _centerline_map(self, xs: NDArray[np.float64]) -> sp.csr_matrix:
+    def _centerline_map(self, xs: Array) -> sp.csr_matrix:
         cfg = self.config
         gi = self.mesh.grid_index[:, 0]
         counts = np.bincount(gi, minlength=len(xs))
@@ -393,7 +393,7 @@ class EelModel:
         return Linearization(M=M, C=C, K=K, B=B, E=E, q_ref=self.q_ref.copy(),
                              y_ref=E @ self.q_ref, free=self.free.copy())
 
-    def _rest_factor(self, dt: float) -> tuple[_SPDFactor, sp.csr_matrix, NDArray[np.float64]]:
+    def _rest_factor(self, dt: float) -> tuple[_SPDFactor, sp.csr_matrix, Array]:
         if dt not in self._factor:
             cfg = self.config
             K = self.stiffness()[self.free][:, self.free].tocsr()
@@ -468,13 +468,13 @@ class EelModel:
         alpha, beta = cfg.rayleigh_mass, cfg.rayleigh_stiffness
         h = dt
         W = self.centerline_map
-        t = np.arange(n_steps) * dt
+        t = np.arange(n_steps, dtype=np.float64) * dt
         centerline = np.empty((W.shape[0], 3, n_steps))
         states = np.empty((self.n_nodes, 3, n_steps)) if store_states else None
         cg_iters = 0
         cg_worst = 0.0
 
-        def apply_A(R: NDArray[np.float64], p_free: NDArray[np.float64]) -> NDArray[np.float64]:
+        def apply_A(R: list[Array], p_free: Array) -> Array:
             full = np.zeros(self.n_dof)
             full[free] = p_free
             kw = fem.warped_matvec(R, full.reshape(-1, 3)).ravel()[free]
@@ -496,7 +496,7 @@ class EelModel:
             else:
                 f = fem.elastic_force(x).ravel()[free]
                 R = None
-            if follower:
+            if BU is None:
                 fp = self.pressure_force(x, U[:, j]).ravel()[free]
             else:
                 fp = BU[:, j]
@@ -567,7 +567,7 @@ class _SPDFactor:
         self._lu = spla.splu(A.tocsc(), permc_spec='MMD_AT_PLUS_A', diag_pivot_thresh=0.0,
                              options={'SymmetricMode': True})
 
-    def solve(self, b: NDArray[np.float64]) -> NDArray[np.float64]:
+    def solve(self, b: Array) -> Array:
         """``A^{-1} b``."""
         if self.kind == 'superlu':
             return self._lu.solve(b)
@@ -575,8 +575,7 @@ class _SPDFactor:
 
 
 def _pcg(apply_A: Callable[[NDArray], NDArray], precond: Callable[[NDArray], NDArray],
-         b: NDArray[np.float64], x0: NDArray[np.float64], rtol: float,
-         maxiter: int) -> tuple[NDArray[np.float64], int, float]:
+         b: Array, x0: Array, rtol: float, maxiter: int) -> tuple[Array, int, float]:
     """Preconditioned CG from ``x0``; returns ``(x, iterations, relative residual)``."""
     x = x0.copy()
     r = b - apply_A(x)

@@ -29,11 +29,14 @@ References: Mueller & Gross, *Interactive virtual materials* (GI 2004); Nesme et
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 import scipy.sparse as sp
 
 from soft_rom.errors import ConfigError, DimensionError
+from soft_rom.sim.mesh import NodalDOFs
 
 __all__ = ['CorotationalFEM', 'lame', 'polar_rotation']
 
@@ -116,7 +119,7 @@ def _polar_soa(X: list, tol: float = 1e-15, max_iter: int = 40) -> list:
     return X
 
 
-class CorotationalFEM:
+class CorotationalFEM(NodalDOFs):
     """Corotational linear-elastic tetrahedra with lumped masses.
 
     Parameters
@@ -168,16 +171,6 @@ class CorotationalFEM:
         self._Dinv = [[np.ascontiguousarray(Dm_inv[:, r, c]) for c in range(3)]
                       for r in range(3)]
 
-    @property
-    def n_nodes(self) -> int:
-        """Number of nodes."""
-        return int(self.nodes.shape[0])
-
-    @property
-    def n_dof(self) -> int:
-        """Number of DOFs, ``3 * n_nodes`` (node-major: x0, y0, z0, x1, ...)."""
-        return 3 * self.n_nodes
-
     def deformation_gradient(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         """``F`` of every element for positions ``x`` (n_nodes, 3); shape (n_tets, 3, 3)."""
         xe = x[self.tets]                            # (e, 4, 3)
@@ -188,8 +181,8 @@ class CorotationalFEM:
         return polar_rotation(self.deformation_gradient(x))
 
     def _scatter(self, Pg: NDArray[np.float64]) -> NDArray[np.float64]:
-        return np.bincount(self._dof.ravel(), weights=Pg.ravel(),
-                           minlength=self.n_dof).reshape(-1, 3)
+        summed = np.bincount(self._dof.ravel(), weights=Pg.ravel(), minlength=self.n_dof)
+        return np.asarray(summed, dtype=np.float64).reshape(-1, 3)
 
     def elastic_force(self, x: ArrayLike, *, return_rotations: bool = False):
         """Internal elastic force ``-dU/dq`` at positions ``x``.
@@ -251,7 +244,7 @@ class CorotationalFEM:
         dev = np.einsum('eij,eij->e', F - R, F - R)
         return float(np.sum(self.volume * (self.mu * dev + 0.5 * self.lam * tr ** 2)))
 
-    def warped_matvec(self, R: NDArray[np.float64] | list,
+    def warped_matvec(self, R: NDArray[np.float64] | list[NDArray[np.float64]],
                       dx: NDArray[np.float64]) -> NDArray[np.float64]:
         """Product ``K_w dx`` with the warped stiffness ``sum_e R_e K_e R_e^T``.
 
@@ -274,7 +267,7 @@ class CorotationalFEM:
              for i in range(3) for j in range(3)]
         two_mu = 2.0 * self.volume * self.mu
         lam_tr = self.volume * self.lam * (G[0] + G[4] + G[8])
-        S = [None] * 9
+        S: list[Any] = [None] * 9
         for i in range(3):
             S[4 * i] = two_mu * G[4 * i] + lam_tr
             for j in range(i + 1, 3):
@@ -294,7 +287,7 @@ class CorotationalFEM:
         return self._scatter(out)
 
     @staticmethod
-    def rotation_entries(R: NDArray[np.float64]) -> list:
+    def rotation_entries(R: NDArray[np.float64]) -> list[NDArray[np.float64]]:
         """The nine entries ``[R00, R01, ..., R22]`` of a batch of rotations as 1-D arrays."""
         return [np.ascontiguousarray(R[:, i, j]) for i in range(3) for j in range(3)]
 

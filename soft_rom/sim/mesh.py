@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from soft_rom.errors import ConfigError
 
-__all__ = ['TetMesh', 'box_grid', 'cavity_faces', 'tetrahedralize']
+__all__ = ['NodalDOFs', 'TetMesh', 'box_grid', 'cavity_faces', 'tetrahedralize']
 
 # The six tetrahedra of the unit cube (Kuhn split): corner c = (i, j, k) has index
 # 4 i + 2 j + k; every tet follows one monotone path 000 -> 111 along the axes.
@@ -35,8 +35,24 @@ _KUHN = np.array([
 ], dtype=np.int64)
 
 
+class NodalDOFs:
+    """``n_nodes`` and ``n_dof`` of a body with nodal positions ``nodes`` (n_nodes, 3)."""
+
+    nodes: NDArray[np.float64]
+
+    @property
+    def n_nodes(self) -> int:
+        """Number of nodes."""
+        return int(self.nodes.shape[0])
+
+    @property
+    def n_dof(self) -> int:
+        """Number of degrees of freedom, ``3 * n_nodes`` (node-major: x0, y0, z0, x1, ...)."""
+        return 3 * self.n_nodes
+
+
 @dataclass(frozen=True)
-class TetMesh:
+class TetMesh(NodalDOFs):
     """A linear tetrahedral mesh.
 
     Parameters
@@ -59,16 +75,6 @@ class TetMesh:
     grid_index: NDArray[np.int64]
     spacing: tuple[float, float, float]
     info: dict = field(default_factory=dict)
-
-    @property
-    def n_nodes(self) -> int:
-        """Number of nodes."""
-        return int(self.nodes.shape[0])
-
-    @property
-    def n_dof(self) -> int:
-        """Number of degrees of freedom, ``3 * n_nodes``."""
-        return 3 * self.n_nodes
 
 
 def box_grid(length: float, width: float, height: float, nx: int, ny: int,

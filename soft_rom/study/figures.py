@@ -10,8 +10,10 @@ from numpy.typing import NDArray
 
 __all__ = ['COLORS', 'LABELS', 'centerline_shapes', 'error_bars', 'errors_vs_r', 'output_traces']
 
-COLORS = {'lopinf': 'tab:red', 'dmdc': 'tab:green', 'era': 'tab:blue', 'fom': 'black'}
-LABELS = {'lopinf': 'LOpInf', 'dmdc': 'DMDc', 'era': 'ERA/OKID', 'fom': 'FOM'}
+COLORS = {'lopinf': 'tab:red', 'dmdc': 'tab:green', 'era': 'tab:blue', 'fom': 'black',
+          'lopinf_cubic': 'tab:purple'}
+LABELS = {'lopinf': 'LOpInf', 'dmdc': 'DMDc', 'era': 'ERA/OKID', 'fom': 'FOM',
+          'lopinf_cubic': 'LOpInf cubic'}
 
 
 def _plt():
@@ -34,7 +36,7 @@ def errors_vs_r(path: Path, curves: Mapping[str, Mapping[str, Sequence[float]]],
         The paper's numbers in the same layout, drawn faintly for reference.
     """
     plt = _plt()
-    methods = [m for m in ('lopinf', 'dmdc', 'era') if m in curves]
+    methods = [m for m in ('lopinf', 'dmdc', 'era', 'lopinf_cubic') if m in curves]
     fig, axes = plt.subplots(1, len(methods), figsize=(4.2 * len(methods), 3.4), sharey=True,
                              squeeze=False)
     for ax, method in zip(axes[0], methods):
@@ -81,7 +83,7 @@ def output_traces(path: Path, t: NDArray[np.float64], fom: NDArray[np.float64],
                              squeeze=False)
     for ax, row, name in zip(axes[:, 0], rows, row_names):
         ax.plot(t, fom[row] * scale, color=COLORS['fom'], lw=2.0, label='FOM')
-        styles = {'lopinf': ':', 'dmdc': '-.', 'era': '--'}
+        styles = {'lopinf': ':', 'dmdc': '-.', 'era': '--', 'lopinf_cubic': '-'}
         for method, Y in roms.items():
             label = (rom_labels or {}).get(method, LABELS.get(method, method))
             ax.plot(t, Y[row] * scale, styles.get(method, '-'), color=COLORS.get(method),
@@ -113,7 +115,7 @@ def error_bars(path: Path, errors: Mapping[str, Mapping[str, float]], *,
         ``method -> {episode -> error}``.
     """
     plt = _plt()
-    methods = [m for m in ('lopinf', 'dmdc', 'era') if m in errors]
+    methods = [m for m in ('lopinf', 'dmdc', 'era', 'lopinf_cubic') if m in errors]
     episodes = list(next(iter(errors.values())).keys())
     x = np.arange(len(episodes))
     width = 0.8 / len(methods)
@@ -155,7 +157,7 @@ def centerline_shapes(path: Path, times: Sequence[float],
     plt = _plt()
     fig, axes = plt.subplots(len(times), 1, figsize=(7.5, 2.3 * len(times)), sharex=True,
                              squeeze=False)
-    markers = {'fom': '^-', 'lopinf': 'o:', 'dmdc': '*-.', 'era': '+--'}
+    markers = {'fom': '^-', 'lopinf': 'o:', 'dmdc': '*-.', 'era': '+--', 'lopinf_cubic': 's-'}
     for i, (ax, tt) in enumerate(zip(axes[:, 0], times)):
         for key, per_time in shapes.items():
             x, z = per_time[i]

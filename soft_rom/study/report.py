@@ -33,7 +33,7 @@ def _extrapolation_section(s1: Mapping[str, Any]) -> list[str]:
            "Relative output error `‖Y − Ŷ‖_F / ‖Y‖_F` (the paper's, absolute coordinates) and "
            'the same on deviations from `y_ref` ("dev."), for each reduced dimension. Paper: the '
            'numbers of its Fig. 2 for the same r.', '']
-    for method in ('lopinf', 'dmdc', 'era'):
+    for method in ('lopinf', 'dmdc', 'era', 'lopinf_cubic'):
         if method not in s1['curves']:
             continue
         c = s1['curves'][method]
@@ -77,8 +77,20 @@ def _unseen_section(s2: Mapping[str, Any]) -> list[str]:
     out += ['On deviations from `y_ref`:', '',
             markdown_table(['method', 'r'] + eps, rows), '',
             f'![centerline shapes]({s2["shapes_png"]})', '',
-            f'Centerline shapes (x–z, mm) of the FOM and the three ROMs for {s2["shape_episode"]} '
+            f'Centerline shapes (x–z, mm) of the FOM and the ROMs for {s2["shape_episode"]} '
             f'at t = {", ".join(f"{t:g}" for t in s2["shape_times"])} s.', '']
+    cub = s2.get('cubic_vs_linear')
+    if cub:
+        out += [f'Cubic vs linear LOpInf at the same r = {cub["r"]} (deviation errors; target: '
+                f'cubic <= 0.5 x linear on at least 3 of {len(cub["ratio"])} episodes, met on '
+                f'{cub["wins"]}):', '', markdown_table(
+                    ['episode', 'linear', 'cubic', 'cubic / linear'],
+                    [[e, cub['linear'][e], cub['cubic'][e], cub['ratio'][e]]
+                     for e in cub['ratio']]), '']
+    long = s2.get('long_inputs')
+    if long:
+        out += ['Inputs 10x longer than a training episode (test inputs chained): '
+                + '; '.join(f'{LABELS.get(m, m)}: {v}' for m, v in long.items()), '']
     return out
 
 

@@ -1,0 +1,398 @@
+"""Least squares for the structure-preserving cubic LOpInf model (potential coefficients).
+
+The model (:class:`~soft_rom.models_cubic.CubicSecondOrderModel`) is
+
+.. math::
+
+    \\ddot q + C \\dot q + \\nabla V(q) = B u, \\qquad
+    V(q) = \\tfrac12 K(q,q) + \\tfrac16 G(q,q,q) + \\tfrac1{24} H(q,q,q,q).
+
+The unknowns are the *independent* entries of the symmetric tensors ``K`` (``r(r+1)/2``),
+``G`` (``r(r+1)(r+2)/6``), ``H`` (``r(r+1)(r+2)(r+3)/24``) and ``C``, and ``B``. Every force
+component is linear in them: with the features ``z = [q, q_a q_b, q_a q_b q_c, q̇, u]``
+(unique monomials), ``∇V(q) + C q̇ - B u = Φ(θ) z`` where the sparse map ``θ → Φ`` puts each
+potential coefficient into every force row it differentiates into (a coefficient of
+``q_a q_b q_c`` enters rows ``a``, ``b`` and ``c``). So
+
+.. math:: \\min_\\theta \\sum_t \\|\\ddot q_t + \\Phi(\\theta) z_t\\|^2
+    + \\lambda (\\|G\\|_F^2 + \\|H\\|_F^2)
+
+is an ordinary linear least-squares problem. It is compressed with a thin QR of the feature
+matrix, ``Zᵀ = Q_z R_z``: ``Σ_t |q̈_t + Φ z_t|² = Σ_i |R_z φ_i + Q_zᵀ q̈_i|² + const`` with
+``φ_i`` the ``i``-th row of ``Φ``, so the dense problem has ``r · dim(z)`` rows whatever the
+number of samples.
+
+Constraints: ``K ⪰ eps``, ``C ⪰ eps`` and ``H(q,q,q,q) ≥ t |q|⁴`` with
+``t ≥ eps4 · λ_max(K)`` (a potential bounded below that grows at infinity, whatever ``G``).
+The least-squares solution is kept when it satisfies them: the quartic is certified by the
+smallest eigenvalue of the canonical Gram matrix of ``H`` on symmetric matrices, or by a
+sum-of-squares Gram matrix found by a small SDP (:func:`quartic_lower_bound`). Otherwise the
+conic problem is solved with cvxpy/Clarabel: the same objective, ``K, C ⪰ eps``, and
+``H(q⁴) = wᵀ X w`` with ``X ⪰ t I`` over the scaled quadratic monomials ``w`` (``|w|² = |q|⁴``),
+all unknowns at once (its size grows like ``r⁴``: seconds at ``r = 6``, minutes at ``r = 10``
+on two busy cores).
+
+When the data come from a model of this class with exact derivatives and the constraints
+are inactive, the least-squares solution is the truth.
+"""
+
+from __future__ import annotations
+
+from itertools import combinations_with_replacement
+import math
+import time
+from typing import Any, NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+import scipy.linalg as sla
+import scipy.sparse as sp
+
+from soft_rom.errors import ConfigError, SolverError
+from soft_rom.learners.lopinf_solvers import (
+    DEFAULT_EPS,
+    FastSPDSolver,
+    LOpInfSolution,
+    OperatorSolver,
+)
+from soft_rom.models_cubic import symmetric_from_entries, symmetric_index
+
+__all__ = ['CubicSolution', 'DEFAULT_EPS4', 'DEFAULT_REG', 'fit_cubic', 'fit_scaled',
+           'quartic_lower_bound', 'isotropic_quartic']
+
+Array = NDArray[np.float64]
+
+#: Tikhonov weight on ``||G||_F² + ||H||_F²`` per sample (scaled coordinates).
+DEFAULT_REG = 1e-4
+#: The quartic form must satisfy ``H(q⁴) ≥ eps4 · λ_max(K) · |q|⁴`` (scaled coordinates).
+DEFAULT_EPS4 = 1e-6
+_VERBOSE = False
+
+
+class CubicSolution(NamedTuple):
+    """Result of :func:`fit_cubic` (scaled coordinates of the data it was given)."""
+
+    K: Array
+    C: Array
+    G: Array
+    H: Array
+    B: Array
+    info: dict[str, Any]
+
+
+def _mult(beta: tuple[int, ...]) -> int:
+    """Number of distinct permutations of a multiset of indices."""
+    out = math.factorial(len(beta))
+    for v in set(beta):
+        out //= math.factorial(beta.count(v))
+    return out
+
+
+def _monomials(Q: Array, degree: int) -> Array:
+    """Unique monomials of ``degree`` of the rows of ``Q`` (order of ``symmetric_index``)."""
+    idx = symmetric_index(Q.shape[0], degree)
+    out = np.ones((len(idx), Q.shape[1]))
+    for row, beta in enumerate(idx):
+        for a in beta:
+            out[row] *= Q[a]
+    return out
+
+
+class _Layout:
+    """Indices of the features ``z`` and unknowns ``θ`` and the map ``θ → Φ`` per row."""
+
+    def __init__(self, r: int, m: int) -> None:
+        self.r, self.m = r, m
+        self.idx = {d: symmetric_index(r, d) for d in (1, 2, 3, 4)}
+        self.pos = {d: {b: j for j, b in enumerate(self.idx[d])} for d in (1, 2, 3)}
+        n1, n2, n3 = (len(self.idx[d]) for d in (1, 2, 3))
+        self.z_off = {'q1': 0, 'q2': n1, 'q3': n1 + n2, 'qd': n1 + n2 + n3,
+                      'u': n1 + n2 + n3 + r}
+        self.n_z = n1 + n2 + n3 + r + m
+        nK, nG, nH = (len(self.idx[d]) for d in (2, 3, 4))
+        self.t_off = {'K': 0, 'G': nK, 'H': nK + nG, 'C': nK + nG + nH,
+                      'B': nK + nG + nH + nK}
+        self.n_theta = nK + nG + nH + nK + r * m
+        rows: list[list[int]] = [[] for _ in range(r)]
+        cols: list[list[int]] = [[] for _ in range(r)]
+        vals: list[list[float]] = [[] for _ in range(r)]
+
+        def put(i: int, feat: int, theta: int, v: float) -> None:
+            rows[i].append(feat)
+            cols[i].append(theta)
+            vals[i].append(v)
+
+        for name, deg, zkey, scale in (('K', 2, 'q1', 1.0), ('G', 3, 'q2', 0.5),
+                                       ('H', 4, 'q3', 1.0 / 6.0)):
+            for j, alpha in enumerate(self.idx[deg]):
+                for i in sorted(set(alpha)):
+                    beta = list(alpha)
+                    beta.remove(i)
+                    rest = tuple(beta)
+                    put(i, self.z_off[zkey] + self.pos[deg - 1][rest], self.t_off[name] + j,
+                        scale * _mult(rest))
+        for j, pair in enumerate(self.idx[2]):          # C, symmetric
+            a, b = pair
+            put(a, self.z_off['qd'] + b, self.t_off['C'] + j, 1.0)
+            if a != b:
+                put(b, self.z_off['qd'] + a, self.t_off['C'] + j, 1.0)
+        for i in range(r):
+            for j in range(m):
+                put(i, self.z_off['u'] + j, self.t_off['B'] + i * m + j, -1.0)
+        self.L = [sp.csr_matrix((vals[i], (rows[i], cols[i])), shape=(self.n_z, self.n_theta))
+                  for i in range(r)]
+
+    def features(self, Q: Array, Qd: Array, U: Array) -> Array:
+        return np.vstack([Q, _monomials(Q, 2), _monomials(Q, 3), Qd, U])
+
+    def tensor_weights(self, name: str) -> Array:
+        """``mult(α)``: ``||T||_F² = Σ mult(α) θ_α²``."""
+        deg = {'K': 2, 'C': 2, 'G': 3, 'H': 4}[name]
+        return np.array([_mult(a) for a in self.idx[deg]], dtype=np.float64)
+
+    def unpack(self, theta: Array) -> tuple[Array, Array, Array, Array, Array]:
+        r, m, o = self.r, self.m, self.t_off
+        K = symmetric_from_entries(theta[o['K']:o['G']], r, 2)
+        G = symmetric_from_entries(theta[o['G']:o['H']], r, 3)
+        H = symmetric_from_entries(theta[o['H']:o['C']], r, 4)
+        C = symmetric_from_entries(theta[o['C']:o['B']], r, 2)
+        B = theta[o['B']:].reshape(r, m)
+        return K, C, G, H, B
+
+
+def isotropic_quartic(r: int) -> Array:
+    """The symmetric tensor ``S`` with ``S(q, q, q, q) = |q|⁴`` (``t·S`` is the quartic floor)."""
+    eye = np.eye(r)
+    return (np.einsum('ij,kl->ijkl', eye, eye) + np.einsum('ik,jl->ijkl', eye, eye)
+            + np.einsum('il,jk->ijkl', eye, eye)) / 3.0
+
+
+def _nl_force(Q: Array, G: Array, H: Array) -> Array:
+    """``½ G(q,q,·) + ⅙ H(q,q,q,·)`` for every column of ``Q``."""
+    return (0.5 * np.einsum('ijk,jt,kt->it', G, Q, Q)
+            + np.einsum('ijkl,jt,kt,lt->it', H, Q, Q, Q) / 6.0)
+
+
+def quartic_lower_bound(H: Array, *, target: float | None = None, sdp: bool = True
+                        ) -> tuple[float, str]:
+    """A certified ``t`` with ``H(q,q,q,q) ≥ t |q|⁴`` for all ``q``, and how it was found.
+
+    First the smallest eigenvalue of the canonical Gram matrix (``H`` as a quadratic form on
+    symmetric matrices ``q qᵀ``); if that is below ``target`` and ``sdp``, the best
+    sum-of-squares Gram matrix (``max t`` s.t. ``X - t I ⪰ 0``, ``wᵀ X w ≡ H(q⁴)``, ``w``
+    the scaled quadratic monomials), solved with cvxpy.
+    """
+    H = np.asarray(H, dtype=np.float64)
+    r = H.shape[0]
+    pairs = list(combinations_with_replacement(range(r), 2))
+    U = np.zeros((r * r, len(pairs)))
+    for j, (a, b) in enumerate(pairs):
+        if a == b:
+            U[a * r + a, j] = 1.0
+        else:
+            U[a * r + b, j] = U[b * r + a, j] = 1.0 / math.sqrt(2.0)
+    M = U.T @ H.reshape(r * r, r * r) @ U
+    t_gram = float(np.linalg.eigvalsh(0.5 * (M + M.T))[0])
+    if target is None or t_gram >= target or not sdp:
+        return t_gram, 'gram'
+    try:
+        import cvxpy as cp
+    except ImportError:                                 # pragma: no cover - declared dep
+        return t_gram, 'gram'
+    quads = symmetric_index(r, 4)
+    qpos = {b: j for j, b in enumerate(quads)}
+    ns = len(pairs)
+    c = np.array([1.0 if a == b else math.sqrt(2.0) for a, b in pairs])
+    rows, cols, vals = [], [], []
+    for p in range(ns):
+        for s in range(ns):
+            beta = tuple(sorted(pairs[p] + pairs[s]))
+            rows.append(qpos[beta])
+            cols.append(p * ns + s)
+            vals.append(c[p] * c[s])
+    Aeq = sp.csr_matrix((vals, (rows, cols)), shape=(len(quads), ns * ns))
+    h = np.array([_mult(b) * H[b] for b in quads])
+    scale = max(float(np.max(np.abs(h))), 1e-300)
+    X = cp.Variable((ns, ns), symmetric=True)
+    t = cp.Variable()
+    prob = cp.Problem(cp.Maximize(t), [Aeq @ cp.vec(X, order='C') == h / scale,
+                                       X - t * np.eye(ns) >> 0])
+    try:
+        prob.solve(solver='CLARABEL')
+    except Exception:                                   # a failed SDP certifies nothing
+        return t_gram, 'gram'
+    if prob.status not in ('optimal', 'optimal_inaccurate') or t.value is None:
+        return t_gram, 'gram'
+    # Certify: eigenvalues of the returned Gram matrix after removing the residual.
+    Xv = np.asarray(X.value) * scale
+    resid = float(np.max(np.abs(Aeq @ Xv.ravel() - h)))
+    t_sdp = float(np.linalg.eigvalsh(0.5 * (Xv + Xv.T))[0]) - resid * ns
+    return (t_sdp, 'sos') if t_sdp > t_gram else (t_gram, 'gram')
+
+
+def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT_EPS,
+              reg: float = DEFAULT_REG, eps4: float = DEFAULT_EPS4,
+              linear_solver: OperatorSolver | None = None) -> CubicSolution:
+    """Fit ``K, C, G, H, B`` to ``Q̈ + C Q̇ + ∇V(Q) = B U`` (columns are samples).
+
+    Parameters
+    ----------
+    Q, Qd, Qdd : ndarray, shape (r, k)
+    U : ndarray, shape (m, k)
+    eps : float
+        ``K, C ⪰ eps``.
+    reg : float
+        Tikhonov weight (per sample) on ``||G||_F² + ||H||_F²``.
+    eps4 : float
+        Relative floor of the quartic form (see module docstring).
+    linear_solver : OperatorSolver, optional
+        SPD solver of the linear block (default :class:`FastSPDSolver`).
+    """
+    t0 = time.perf_counter()
+    Q, Qd, Qdd, U = (np.asarray(a, dtype=np.float64) for a in (Q, Qd, Qdd, U))
+    r, k = Q.shape
+    m = U.shape[0]
+    lay = _Layout(r, m)
+    Z = lay.features(Q, Qd, U)
+    Qz, Rz = np.linalg.qr(Z.T)
+    A = np.vstack([(lay.L[i].T @ Rz.T).T for i in range(r)])
+    b = -np.concatenate([Qz.T @ Qdd[i] for i in range(r)])
+    norm_qdd = max(float(np.linalg.norm(Qdd)), 1e-300)
+    base = float(np.linalg.norm(Qdd) ** 2 - np.linalg.norm(b) ** 2)   # outside range(Z)
+    o = lay.t_off
+    nl = np.arange(o['G'], o['C'])
+    w_nl = np.concatenate([lay.tensor_weights('G'), lay.tensor_weights('H')])
+    lam = float(reg) * k
+    w_all = np.zeros(lay.n_theta)
+    w_all[nl] = w_nl
+
+    def solve_cols(cols: NDArray[np.intp], rhs: Array) -> Array:
+        """Least squares over the columns ``cols`` (regularized where they are nonlinear)."""
+        d = np.sqrt(lam * w_all[cols])
+        keep = d > 0
+        Aaug = np.vstack([A[:, cols], np.diag(d)[keep]])
+        baug = np.concatenate([rhs, np.zeros(int(np.count_nonzero(keep)))])
+        sol, *_ = sla.lstsq(Aaug, baug, lapack_driver='gelsy', check_finite=False)
+        return np.asarray(sol)
+
+    theta = solve_cols(np.arange(lay.n_theta), b)
+    K, C, G, H, B = lay.unpack(theta)
+    info: dict[str, Any] = {'solver': 'cubic-potential-least-squares', 'reg': float(reg),
+                            'eps': float(eps), 'eps4': float(eps4), 'n_unknowns': lay.n_theta,
+                            'n_features': lay.n_z}
+
+    def spd_ok(Km: Array, Cm: Array) -> bool:
+        return bool(np.linalg.eigvalsh(Km)[0] >= eps and np.linalg.eigvalsh(Cm)[0] >= eps)
+
+    def target_of(Km: Array) -> float:
+        return float(eps4) * max(float(np.linalg.eigvalsh(Km)[-1]), 1e-300)
+
+    target = target_of(K)
+    t_low, how = quartic_lower_bound(H, target=target) if spd_ok(K, C) else (-1.0, '')
+    if spd_ok(K, C) and t_low >= target:
+        info['method'] = 'least-squares (constraints inactive)'
+    else:
+        lin = FastSPDSolver() if linear_solver is None else linear_solver
+        K0 = lin.solve(Q, Qd, Qdd, U, eps=eps).K
+        target = target_of(K0)
+        K, C, G, H, B, sdp_info = _constrained(A, b, lay, lam * w_all, eps, target)
+        info.update(sdp_info)
+        info['method'] = 'conic (K, C ⪰ eps, sum-of-squares quartic)'
+        t_low, how = quartic_lower_bound(H, target=target)
+    info['quartic_certificate'] = how
+    if not (np.linalg.eigvalsh(K)[0] >= 0.999 * eps and np.linalg.eigvalsh(C)[0] >= 0.999 * eps
+            and t_low >= 0.99 * target):
+        raise SolverError('the cubic LOpInf fit could not satisfy K, C ⪰ eps and a '
+                          'positive quartic potential; try a larger reg.')
+    res = Qdd + C @ Qd + K @ Q + _nl_force(Q, G, H) - B @ U
+    info['quartic_lower_bound'] = float(t_low)
+    info['quartic_target'] = float(target)
+    info['objective'] = float(np.linalg.norm(res))
+    info['objective_relative'] = float(np.linalg.norm(res)) / norm_qdd
+    info['residual_outside_features'] = math.sqrt(max(base, 0.0)) / norm_qdd
+    info['time_s'] = time.perf_counter() - t0
+    return CubicSolution(K, C, G, H, B, info)
+
+
+def _sym_map(r: int) -> Array:
+    """``vec(S) = M θ`` for a symmetric ``S`` from its independent entries (row-major)."""
+    idx = symmetric_index(r, 2)
+    M = np.zeros((r * r, len(idx)))
+    for j, (a, b) in enumerate(idx):
+        M[a * r + b, j] = M[b * r + a, j] = 1.0
+    return M
+
+
+def _gram_map(r: int) -> tuple[sp.csr_matrix, int]:
+    """Map ``vec(X)`` (Gram matrix on scaled quadratic monomials) to the entries of ``H``."""
+    pairs = symmetric_index(r, 2)
+    quads = symmetric_index(r, 4)
+    qpos = {b: j for j, b in enumerate(quads)}
+    ns = len(pairs)
+    c = np.array([1.0 if a == b else math.sqrt(2.0) for a, b in pairs])
+    rows, cols, vals = [], [], []
+    for p in range(ns):
+        for q in range(ns):
+            beta = tuple(sorted(pairs[p] + pairs[q]))
+            rows.append(qpos[beta])
+            cols.append(p * ns + q)
+            vals.append(c[p] * c[q] / _mult(beta))
+    return sp.csr_matrix((vals, (rows, cols)), shape=(len(quads), ns * ns)), ns
+
+
+def _constrained(A: Array, b: Array, lay: _Layout, ridge: Array, eps: float, t4: float
+                 ) -> tuple[Array, Array, Array, Array, Array, dict[str, Any]]:
+    """``min |Aθ - b|² + Σ ridge θ²`` s.t. ``K, C ⪰ eps``, ``H = Gram(X)``, ``X ⪰ t4 I``."""
+    import cvxpy as cp
+    r, o = lay.r, lay.t_off
+    t0 = time.perf_counter()
+    N = A.T @ A + np.diag(ridge)
+    N += 1e-13 * float(np.trace(N)) / N.shape[0] * np.eye(N.shape[0])
+    Lc = np.linalg.cholesky(N)
+    c = sla.solve_triangular(Lc, A.T @ b, lower=True)
+    scale = max(float(np.linalg.norm(c)), 1e-300)
+    Tg, ns = _gram_map(r)
+    th_K = cp.Variable(o['G'] - o['K'])
+    th_G = cp.Variable(o['H'] - o['G'])
+    th_C = cp.Variable(o['B'] - o['C'])
+    th_B = cp.Variable(lay.n_theta - o['B'])
+    X = cp.Variable((ns, ns), symmetric=True)
+    th_H = Tg @ cp.vec(X, order='C')
+    theta = cp.hstack([th_K, th_G, th_H, th_C, th_B])
+    Ms = _sym_map(r)
+    Kx = cp.reshape(Ms @ th_K, (r, r), order='C')
+    Cx = cp.reshape(Ms @ th_C, (r, r), order='C')
+    cons = [0.5 * (Kx + Kx.T) - eps * np.eye(r) >> 0, 0.5 * (Cx + Cx.T) - eps * np.eye(r) >> 0,
+            X - t4 * np.eye(ns) >> 0]
+    prob = cp.Problem(cp.Minimize(cp.sum_squares(Lc.T @ theta - c) / scale ** 2), cons)
+    try:
+        prob.solve(solver='CLARABEL', verbose=_VERBOSE)
+    except Exception as err:
+        raise SolverError(f'the conic cubic LOpInf problem failed: {err}') from err
+    if prob.status not in ('optimal', 'optimal_inaccurate') or th_K.value is None:
+        raise SolverError(f'the conic cubic LOpInf problem ended {prob.status}.')
+    th = np.concatenate([np.asarray(v.value) for v in (th_K, th_G)]
+                        + [Tg @ np.asarray(X.value).ravel()]
+                        + [np.asarray(v.value) for v in (th_C, th_B)])
+    K, C, G, H, B = lay.unpack(th)
+    info = {'conic_status': str(prob.status), 'conic_seconds': time.perf_counter() - t0}
+    return K, C, G, H, B, info
+
+
+def fit_scaled(Q: Array, Qd: Array, Qdd: Array, U: Array, state_scale: float,
+               solver: OperatorSolver, eps: float, options: dict[str, Any] | None
+               ) -> tuple[LOpInfSolution, dict[str, Array]]:
+    """What :class:`~soft_rom.learners.lopinf.LOpInf` calls for ``forces='cubic'``.
+
+    ``Q`` are the reduced coordinates divided by ``state_scale``; the returned ``K, C, B``
+    are in those scaled units (as the linear solvers return them) and ``G, H`` already in
+    the original units (``G = G̃ / s``, ``H = H̃ / s²``).
+    """
+    opts = dict(options or {})
+    unknown = set(opts) - {'reg', 'eps4'}
+    if unknown:
+        raise ConfigError(f'unknown cubic option(s) {sorted(unknown)}; known: reg, eps4.')
+    sol = fit_cubic(Q, Qd, Qdd, U, eps=eps, linear_solver=solver, **opts)
+    s = float(state_scale)
+    return (LOpInfSolution(sol.K, sol.C, sol.B, sol.info),
+            {'G': sol.G / s, 'H': sol.H / s ** 2})
