@@ -25,20 +25,10 @@ from rclpy.parameter import Parameter
 from soft_rom.predictor import PredictorConfig
 from soft_rom.predictor.loop import LoopSettings
 from soft_rom.predictor.params import loop_settings as _loop_settings
-from soft_rom.predictor.params import Param, PARAMS, predictor_config
+from soft_rom.predictor.params import NODE_PARAMS, Param, PARAMS, predictor_config
 
 __all__ = ['NODE_PARAMS', 'NodeSettings', 'ParameterMixin']
 
-NODE_PARAMS: tuple[Param, ...] = (
-    Param('lifecycle', False, 'true: a managed (lifecycle) node, started by configure and '
-          'activate transitions; false: a plain node that starts at once.'),
-    Param('executor', 'events', 'rclpy executor: events (rclpy.experimental.EventsExecutor: '
-          'about half the CPU per message, what 1 kHz inputs need; falls back to '
-          'single_threaded where this rclpy lacks it) or single_threaded '
-          '(SingleThreadedExecutor).', choices=('events', 'single_threaded')),
-    Param('hardware_id', '', 'hardware_id of the /diagnostics statuses; empty = the node '
-          'name.'),
-)
 ALL_PARAMS = PARAMS + NODE_PARAMS
 _BY_NAME = {p.name: p for p in ALL_PARAMS}
 _DOUBLES = {p.name for p in ALL_PARAMS
