@@ -19,13 +19,14 @@ import yaml
 
 require_rclpy()
 
+from _bags import write_input_bag  # noqa: E402
 from builtin_interfaces.msg import Time  # noqa: E402
 from geometry_msgs.msg import Pose, PoseArray  # noqa: E402
 from rosgraph_msgs.msg import Clock  # noqa: E402
 from sensor_msgs.msg import FluidPressure  # noqa: E402
 from test_ros_node import episode, model, Outputs, params, RELIABLE, TOPICS  # noqa: E402
 
-from soft_rom.bags.replay_io import read_messages_ns, write_input_bag  # noqa: E402
+from soft_rom.bags.replay_io import read_messages_ns  # noqa: E402
 from soft_rom.predictor.conversions import data_to_array, ns_to_stamp  # noqa: E402
 
 T_SIM_NS = 12_000_000_000        # a simulator's clock: the recording starts at t = 12 s
