@@ -43,8 +43,8 @@ from __future__ import annotations
 from itertools import combinations_with_replacement
 import math
 import time
-import warnings
 from typing import Any, NamedTuple
+import warnings
 
 import numpy as np
 from numpy.typing import NDArray
@@ -349,7 +349,9 @@ def _gram_map(r: int) -> tuple[sp.csr_matrix, int]:
 
 def _constrained(N: Array, g: Array, lay: _Layout, eps: float, t4: float
                  ) -> tuple[Array, Array, Array, Array, Array, dict[str, Any]]:
-    """``min θᵀNθ - 2gᵀθ`` (``N = AᵀA + diag(ridge)``, ``g = Aᵀb``) s.t. ``K, C ⪰ eps``, ``H = Gram(X)``, ``X ⪰ t4 I``.
+    """``min θᵀNθ - 2gᵀθ`` s.t. ``K, C ⪰ eps``, ``H = Gram(X)``, ``X ⪰ t4 I``.
+
+    ``N = AᵀA + diag(ridge)`` and ``g = Aᵀb`` are the normal equations of the least squares.
 
     The problem handed to the conic solver is compressed first: the unconstrained unknowns
     (``G``, ``B``) are eliminated in closed form (Schur complement of the normal matrix), the
