@@ -178,16 +178,7 @@ def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: in
     theta = theta.T                                          # (p, n_unknowns)
     resid = Y[:, lo:] - theta @ Phi
     den = np.linalg.norm(Y[:, lo:])
-    D = theta[:, :m]
-    Y1 = [theta[:, m + (i - 1) * (m + p): m + (i - 1) * (m + p) + m] for i in range(1, lo + 1)]
-    Y2 = [theta[:, m + (i - 1) * (m + p) + m: m + i * (m + p)] for i in range(1, lo + 1)]
-    markov = np.zeros((nm + 1, p, m))
-    markov[0] = D
-    for k in range(1, nm + 1):
-        acc = Y1[k - 1].copy() if k <= lo else np.zeros((p, m))
-        for i in range(1, min(k, lo) + 1):
-            acc += Y2[i - 1] @ markov[k - i]
-        markov[k] = acc
+    markov = era_select.markov_from_observer(theta, m, p, lo, nm)
     info = {'residual': float(np.linalg.norm(resid) / den) if den > 0 else 0.0,
             'rank': int(rank), 'n_unknowns': int(n_unknowns)}
     return markov, info
@@ -406,15 +397,7 @@ class ERAOKID:
                                              output_names=output_names,
                                              input_units=input_units,
                                              output_units=output_units, metadata=metadata)
-        if not isinstance(episode, Episode):
-            eps = list(episode)
-            if len(eps) != 1:
-                raise DimensionError(
-                    f'ERA/OKID fits one episode at a time (one continuous record); got '
-                    f'{len(eps)} episodes. Fit one model per episode, e.g. '
-                    '--era-episode ep2 on the command line.')
-            episode = eps[0]
-        ep = episode
+        ep = _one_episode(episode)
         if not ep.is_uniform():
             raise DimensionError(f'episode {ep.name!r} is not uniformly sampled.')
         check_finite(f'U of episode {ep.name!r}', ep.U)
@@ -547,13 +530,7 @@ class ERAOKID:
                              y_ref: ArrayLike | None, **kw: Any) -> ERAOKID:
         """Fit at every decimation of the grid; keep the best held-out tail error."""
         import copy
-        eps = [episode] if isinstance(episode, Episode) else list(episode)
-        if len(eps) != 1:
-            raise DimensionError(
-                f'ERA/OKID fits one episode at a time (one continuous record); got '
-                f'{len(eps)} episodes. Fit one model per episode, e.g. '
-                '--era-episode ep2 on the command line.')
-        ep = eps[0]
+        ep = _one_episode(episode)
         best: ERAOKID | None = None
         tried: list[dict[str, Any]] = []
         for d in era_select.DECIMATION_GRID:
@@ -614,3 +591,14 @@ def _finite_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """JSON-safe copy of a selection table (``inf``/``nan`` become ``None``)."""
     return [{k: (None if isinstance(v, float) and not np.isfinite(v) else v)
              for k, v in row.items()} for row in rows]
+
+
+def _one_episode(episode: Episode | Sequence[Episode]) -> Episode:
+    """The one episode ERA/OKID fits (one continuous record)."""
+    eps = [episode] if isinstance(episode, Episode) else list(episode)
+    if len(eps) != 1:
+        raise DimensionError(
+            f'ERA/OKID fits one episode at a time (one continuous record); got '
+            f'{len(eps)} episodes. Fit one model per episode, e.g. '
+            '--era-episode ep2 on the command line.')
+    return eps[0]

@@ -207,19 +207,10 @@ def quartic_lower_bound(H: Array, *, target: float | None = None, sdp: bool = Tr
         import cvxpy as cp
     except ImportError:                                 # pragma: no cover - declared dep
         return t_gram, 'gram'
-    quads = symmetric_index(r, 4)
-    qpos = {b: j for j, b in enumerate(quads)}
-    ns = len(pairs)
-    c = np.array([1.0 if a == b else math.sqrt(2.0) for a, b in pairs])
-    rows, cols, vals = [], [], []
-    for p in range(ns):
-        for s in range(ns):
-            beta = tuple(sorted(pairs[p] + pairs[s]))
-            rows.append(qpos[beta])
-            cols.append(p * ns + s)
-            vals.append(c[p] * c[s])
-    Aeq = sp.csr_matrix((vals, (rows, cols)), shape=(len(quads), ns * ns))
-    h = np.array([_mult(b) * H[b] for b in quads])
+    G, ns = _gram_map(r)
+    mult = np.array([_mult(b) for b in symmetric_index(r, 4)])
+    Aeq = sp.diags(mult) @ G                        # rows in the coefficients' own scale
+    h = mult * np.array([H[b] for b in symmetric_index(r, 4)])
     scale = max(float(np.max(np.abs(h))), 1e-300)
     X = cp.Variable((ns, ns), symmetric=True)
     t = cp.Variable()
