@@ -82,6 +82,11 @@ class LOpInf:
         :mod:`soft_rom.learners.lopinf_cubic`; ``solver`` is then its linear block's solver).
     cubic_options : dict, optional
         ``reg``, ``eps4`` of :func:`~soft_rom.learners.lopinf_cubic.fit_cubic`.
+    mass : {'identity', 'learned'}
+        ``'learned'``: fit ``M q'' + C q' + K q = B u`` with an SPD mass ``M ⪰ I`` too
+        (:mod:`soft_rom.learners.lopinf_mass`; exact in any coordinates of a mechanical
+        system, e.g. measured outputs); the model is returned in ``z = Lᵀ q`` (``M = L Lᵀ``)
+        with identity mass, and ``mass_factor_`` is ``Lᵀ``. Linear forces only.
 
     Attributes
     ----------
@@ -109,7 +114,7 @@ class LOpInf:
                  ddt: int | DerivativeEstimator = 8, solver: OperatorSolver | None = None,
                  basis: BasisBuilder | None = None, eps: float = DEFAULT_EPS,
                  scale: bool = True, forces: str = 'linear',
-                 cubic_options: dict[str, Any] | None = None) -> None:
+                 cubic_options: dict[str, Any] | None = None, mass: str = 'identity') -> None:
         self.r = r
         self.energy = energy
         self.ddt = ddt
@@ -119,6 +124,7 @@ class LOpInf:
         self.scale = scale
         self.forces = forces
         self.cubic_options = cubic_options
+        self.mass = mass
 
     def __repr__(self) -> str:
         return (f'LOpInf(r={self.r!r}, energy={self.energy!r}, ddt={self.ddt!r}, '
@@ -292,7 +298,16 @@ class LOpInf:
         Qs, Qd, Qdd, (Us,) = _episodes(estimator, [q / s_q for q in Qhat], dt,
                                        [[u / s_u[:, None] for u in U]])
         self.nonlinear_: dict[str, Any] | None = None
-        if self.forces == 'cubic':
+        self.mass_factor_: Array | None = None
+        if self.mass not in ('identity', 'learned') or (self.mass == 'learned'
+                                                         and self.forces != 'linear'):
+            raise ConfigError(f"mass must be 'identity' or 'learned' (linear forces only); got "
+                              f'{self.mass!r} with forces={self.forces!r}.')
+        if self.mass == 'learned':
+            from soft_rom.learners.lopinf_mass import solve_learned_mass
+            sol, Lt = solve_learned_mass(Qs, Qd, Qdd, Us, eps=self.eps)
+            Qs, Qd, Qdd, all_q, self.mass_factor_ = Lt @ Qs, Lt @ Qd, Lt @ Qdd, Lt @ all_q, Lt
+        elif self.forces == 'cubic':
             from soft_rom.learners.lopinf_cubic import fit_scaled
             sol, self.nonlinear_ = fit_scaled(Qs, Qd, Qdd, Us, s_q, solver, self.eps,
                                               self.cubic_options)
@@ -332,6 +347,7 @@ class LOpInf:
             'eigenvalues_C': [float(x) for x in lam_c],
             'eps': float(self.eps),
             'ddt': repr(estimator),
+            'mass': self.mass,
             'solver': repr(solver),
             'solver_info': self.solver_info_,
             'state_scale': s_q,
@@ -351,6 +367,7 @@ class LOpInf:
                            input_units=input_units, output_units=output_units)
         self._extra_meta = dict(metadata or {})
         self._extra_meta.setdefault('envelope', training_envelope(zip(U, Y), y_ref))
+        self._extra_meta.setdefault('mass', self.mass)
         self._rebuild_model()
         return self
 
