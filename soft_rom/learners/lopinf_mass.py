@@ -56,7 +56,7 @@ Array = NDArray[np.float64]
 #: Values of the ``mass`` hyperparameter of :class:`~soft_rom.learners.lopinf.LOpInf`.
 MASS_CHOICES = ('identity', 'learned')
 
-_TRACE_CAP = 1e6
+_MASS_FLOOR = 1e-6
 
 
 def _sym_basis(r: int) -> list[tuple[int, int]]:
@@ -70,10 +70,9 @@ def _smat(v: Array, idx: list[tuple[int, int]], r: int) -> Array:
     return S
 
 
-def _homogeneous_candidate(D: Array, r: int) -> tuple[Array, Array, Array] | None:
-    """Smallest right singular vector of ``θ -> vec([C, K, M] D)``; ``None`` if not all PD."""
+def _phi(D: Array, r: int, W: Array) -> tuple[Array, list[tuple[int, int]]]:
+    """Matrix of the linear map ``θ = (svec C, svec K, svec M) -> vec(W [C, K, M] D)``."""
     idx = _sym_basis(r)
-    ns = len(idx)
     cols = []
     for block in range(3):
         rows = D[block * r:(block + 1) * r]            # (r, q)
@@ -82,30 +81,37 @@ def _homogeneous_candidate(D: Array, r: int) -> tuple[Array, Array, Array] | Non
             Y[i] += rows[j]
             if i != j:
                 Y[j] += rows[i]
-            cols.append(Y.ravel())
-    Phi = np.stack(cols, axis=1)                        # (r q, 3 ns)
-    if Phi.shape[0] < Phi.shape[1]:
-        Phi = np.vstack([Phi, np.zeros((Phi.shape[1] - Phi.shape[0], Phi.shape[1]))])
-    _, _, Vt = np.linalg.svd(Phi, full_matrices=False)
-    theta = Vt[-1]
+            cols.append((W @ Y).ravel())
+    return np.stack(cols, axis=1), idx
+
+
+def _trace_ls(D: Array, r: int, W: Array) -> tuple[Array, Array, Array]:
+    """``min ||W [C, K, M] D||_F`` over symmetric blocks with ``tr M = r`` (closed form).
+
+    Null-space method: ``θ = θ_p + N φ`` with ``aᵀ θ_p = r`` and ``aᵀ N = 0``.
+    """
+    Phi, idx = _phi(D, r, W)
+    ns = len(idx)
+    a = np.zeros(3 * ns)
+    a[2 * ns:] = [1.0 if i == j else 0.0 for i, j in idx]
+    theta_p = a * (r / float(a @ a))
+    Qa, _ = np.linalg.qr(np.column_stack([a, np.eye(3 * ns)[:, :3 * ns - 1]]))
+    N = Qa[:, 1:]
+    phi, *_ = np.linalg.lstsq(Phi @ N, -(Phi @ theta_p), rcond=None)
+    theta = theta_p + N @ phi
     C, K, M = (_smat(theta[b * ns:(b + 1) * ns], idx, r) for b in range(3))
-    if np.trace(M) < 0:
-        C, K, M = -C, -K, -M
-    lam = [float(np.linalg.eigvalsh(X)[0]) for X in (M, C, K)]
-    if min(lam) <= 0:
-        return None
-    s = 1.0 / lam[0]
-    return M * s, C * s, K * s
+    return M, C, K
 
 
-def _conic(D: Array, r: int, eps: float, solver: str) -> tuple[Array, Array, Array, str]:
+def _conic(D: Array, r: int, eps: float, solver: str, W: Array
+           ) -> tuple[Array, Array, Array, str]:
     import cvxpy as cp
     Mv = cp.Variable((r, r), symmetric=True)
     Cv = cp.Variable((r, r), symmetric=True)
     Kv = cp.Variable((r, r), symmetric=True)
     eye = np.eye(r)
-    cons = [Mv >> eye, Cv >> eps * eye, Kv >> eps * eye, cp.trace(Mv) <= _TRACE_CAP * r]
-    prob = cp.Problem(cp.Minimize(cp.norm(cp.hstack([Cv, Kv, Mv]) @ D, 'fro')), cons)
+    cons = [Mv >> _MASS_FLOOR * eye, Cv >> eps * eye, Kv >> eps * eye, cp.trace(Mv) == r]
+    prob = cp.Problem(cp.Minimize(cp.norm(W @ cp.hstack([Cv, Kv, Mv]) @ D, 'fro')), cons)
     try:
         prob.solve(solver=solver)
     except cp.error.SolverError as exc:
@@ -118,7 +124,8 @@ def _conic(D: Array, r: int, eps: float, solver: str) -> tuple[Array, Array, Arr
 
 
 def solve_learned_mass(Q: ArrayLike, Qd: ArrayLike, Qdd: ArrayLike, U: ArrayLike, *,
-                       eps: float = DEFAULT_EPS, solver: str = 'CLARABEL'
+                       eps: float = DEFAULT_EPS, solver: str = 'CLARABEL',
+                       max_iter: int = 20, tol: float = 1e-9
                        ) -> tuple[LOpInfSolution, Array]:
     """Fit ``M, C, K, B`` (module docstring) and return the identity-mass form.
 
@@ -152,36 +159,33 @@ def solve_learned_mass(Q: ArrayLike, Qd: ArrayLike, Qdd: ArrayLike, U: ArrayLike
         raise SolverError('the learned-mass LOpInf problem has no data (all zero).')
     Dn = D / scale
 
-    def obj(M: Array, C: Array, K: Array) -> float:
-        return float(np.linalg.norm(np.hstack([C, K, M]) @ Dn))
+    def obj(M: Array, C: Array, K: Array, W: Array) -> float:
+        return float(np.linalg.norm(W @ np.hstack([C, K, M]) @ Dn))
 
-    candidates: list[tuple[float, str, Array, Array, Array]] = []
-    homo = _homogeneous_candidate(Dn, r)
-    if homo is not None:
-        M, C, K = homo
-        if min(np.linalg.eigvalsh(C)[0], np.linalg.eigvalsh(K)[0]) >= eps:
-            candidates.append((obj(M, C, K), 'homogeneous-least-squares', M, C, K))
-    status = 'not run'
-    try:
-        M, C, K, status = _conic(Dn, r, eps, solver)
-        lam_m = float(np.linalg.eigvalsh(M)[0])
-        if lam_m > 0:
-            s = 1.0 / min(lam_m, 1.0)                    # into the cone if slightly outside
-            candidates.append((obj(M * s, C * s, K * s), f'cvxpy-{solver.lower()}',
-                               M * s, C * s, K * s))
-    except SolverError:
-        if not candidates:
-            raise
-    if not candidates:
-        raise SolverError('the learned-mass LOpInf problem gave no positive definite mass.')
-    best = min(candidates, key=lambda c: c[0])
-    val, method, M, C, K = best
+    W = np.eye(r)
+    status, method, history = 'not needed', '', []
+    M = np.eye(r)
+    for it in range(max_iter):
+        M_old = M
+        M, C, K = _trace_ls(Dn, r, W)
+        lam = [float(np.linalg.eigvalsh(X)[0]) for X in (M, C, K)]
+        if lam[0] >= _MASS_FLOOR and lam[1] >= eps and lam[2] >= eps:
+            method = 'trace-least-squares'
+        else:
+            M, C, K, status = _conic(Dn, r, eps, solver, W)
+            method = f'cvxpy-{solver.lower()}'
+        history.append(obj(M, C, K, np.linalg.inv(M)) * scale)
+        if it and np.linalg.norm(M - M_old) <= tol * np.linalg.norm(M):
+            break
+        W = np.linalg.inv(M)                            # acceleration-error weights
+        W = 0.5 * (W + W.T)
+    val = obj(M, C, K, np.eye(r))
     B = (M @ prob.Dv + np.hstack([C, K]) @ prob.Zv) @ prob.pinv_left
     Kp, Cp, Bp, Lt = to_identity_mass(M, C, K, B)
     info: dict[str, Any] = {
         'solver': 'learned-mass', 'method': method, 'conic_status': status,
         'objective': val * scale, 'eps': float(eps),
-        'candidates': {c[1]: c[0] * scale for c in candidates},
+        'acceleration_residuals': history, 'iterations': len(history),
         'eigenvalues_M': [float(x) for x in np.linalg.eigvalsh(M)],
         'rank_u': int(prob.rank_u),
     }
