@@ -1,62 +1,61 @@
 """LOpInf with a learned symmetric positive definite mass matrix.
 
-.. math::
-
-    \\min_{M, C, K, B}\\ \\| M \\ddot Q + C \\dot Q + K Q - B U \\|_F \\quad
-    \\text{s.t.}\\ M = M^T \\succeq I,\\ C = C^T \\succeq \\epsilon I,\\ K = K^T \\succeq \\epsilon I.
-
 Why: in coordinates ``y = T q`` of a mechanical system ``M_0 q'' + C_0 q' + K_0 q = B_0 u``
 (e.g. the measured outputs of a real robot, POD-reduced) the identity-mass form
-``y'' + C y' + K y = B u`` has the stiffness ``T M_0^{-1} K_0 T^{-1}``, which is not
-symmetric, so the identity-mass LOpInf pays a bias for its symmetry constraints. The form
-``M y'' + C y' + K y = B u`` with ``M = T^{-T} M_0 T^{-1}``, ``C = T^{-T} C_0 T^{-1}``,
-``K = T^{-T} K_0 T^{-1}`` is exact in every coordinates. The problem is convex; the objective
-is homogeneous in ``(M, C, K, B)``, so ``M ⪰ I`` only fixes the scale (the bound is active at
-the optimum unless the residual is zero, when every point of the ray ``α (M, C, K, B)`` is
-optimal and gives the same model).
-
-The fitted model is returned in the identity-mass class: with ``M = L L^T`` and ``z = L^T q``,
+``y'' + C y' + K y = B u`` has the stiffness ``T M_0^{-1} K_0 T^{-1}`` and the damping
+``T M_0^{-1} C_0 T^{-1}``, which are not symmetric, so the identity-mass LOpInf pays a bias
+for its symmetry constraints. With ``M = T^{-T} M_0 T^{-1} = L L^T`` the coordinates
+``z = L^T y`` have symmetric positive definite stiffness and damping again:
 
 .. math::
 
     \\ddot z + L^{-1} C L^{-T} \\dot z + L^{-1} K L^{-T} z = L^{-1} B u, \\qquad
-    y = E L^{-T} z + y_{ref},
+    y = E L^{-T} z + y_{ref}.
 
-whose stiffness and damping are symmetric positive definite (eigenvalues at least
-``eps / λ_max(M)``), so the model file, predictor, replay and node are unchanged.
+Fit, three convex steps:
 
-Solution: ``B`` is eliminated in closed form and the samples are compressed to the
-square-root Gram form ``||[C, K, M] D||_F`` (``D`` of shape (3r, ≤ 3r), from the thin QR of
-:func:`~soft_rom.learners.lopinf_solvers.reduce_data`), so the conic problem has
-``3 r (r + 1) / 2`` unknowns whatever the number of samples. Two feasible candidates are
-compared and the lower objective is kept:
+1. the unconstrained second-order least-squares fit ``q'' = A_1 q + A_2 q' + B u``
+   (``A_1 = -M^{-1} K``, ``A_2 = -M^{-1} C`` for a mechanical system);
+2. the symmetrizer: ``M = M^T`` with ``tr M = r`` minimizing
+   ``||M A_1 - A_1^T M||_F^2 / ||A_1||_F^2 + ||M A_2 - A_2^T M||_F^2 / ||A_2||_F^2``
+   (linear least squares with one linear constraint, closed form); if that ``M`` is not
+   positive definite, the same objective with ``M ⪰ 10^{-3} I`` by cvxpy and Clarabel;
+3. the identity-mass LOpInf (``K, C ⪰ eps I``,
+   :class:`~soft_rom.learners.lopinf_solvers.FastSPDSolver`) in ``z = L^T q``.
 
-* the homogeneous least-squares solution (smallest right singular vector of the linear map
-  ``(C, K, M) -> [C, K, M] D`` on symmetric matrices), scaled so that ``λ_min(M) = 1``,
-  when its three blocks are positive definite; it is exact for exact data;
-* the conic problem solved by cvxpy with Clarabel (an upper bound ``tr M ≤ 1e6 r``, far
-  from active, keeps the feasible set bounded for exact data).
+A minimization of ``||M Q'' + C Q' + K Q - B U||_F`` over ``M ⪰ I, C, K`` in one convex
+problem is *not* used: the objective is homogeneous, so it shrinks ``M`` in every direction
+and its optimum on measured data is ``M = I`` (the identity-mass fit again); with
+``tr M = r`` instead it shifts mass towards directions of noisy accelerations and predicts
+worse. Exactness: for exact data of a mechanical system with non-proportional damping,
+steps 1 and 2 recover ``A_1, A_2`` and ``M`` up to a scalar, and step 3 is then exact.
+With proportional damping ``M`` is not unique, but every symmetrizer of both ``A_1`` and
+``A_2`` gives coordinates with symmetric stiffness and damping.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-import scipy.linalg as sla
 
 from soft_rom.errors import ConfigError, SolverError
-from soft_rom.learners.lopinf_solvers import DEFAULT_EPS, LOpInfSolution, reduce_data
+from soft_rom.learners.lopinf_solvers import DEFAULT_EPS, FastSPDSolver, LOpInfSolution
 
-__all__ = ['MASS_CHOICES', 'solve_learned_mass', 'to_identity_mass']
+__all__ = ['MASS_CHOICES', 'SHRINKAGE', 'mass_candidates', 'solve_learned_mass']
 
 Array = NDArray[np.float64]
 
 #: Values of the ``mass`` hyperparameter of :class:`~soft_rom.learners.lopinf.LOpInf`.
 MASS_CHOICES = ('identity', 'learned')
 
-_MASS_FLOOR = 1e-6
+#: Candidates with a smallest eigenvalue below this (the trace is ``r``) are dropped.
+MASS_FLOOR = 1e-8
+
+#: Shrinkage levels ``c`` of the symmetrizer towards ``I`` (``0``: none, exact data).
+SHRINKAGE = (0.0, 0.01, 0.1, 1.0, 10.0)
 
 
 def _sym_basis(r: int) -> list[tuple[int, int]]:
@@ -70,64 +69,94 @@ def _smat(v: Array, idx: list[tuple[int, int]], r: int) -> Array:
     return S
 
 
-def _phi(D: Array, r: int, W: Array) -> tuple[Array, list[tuple[int, int]]]:
-    """Matrix of the linear map ``θ = (svec C, svec K, svec M) -> vec(W [C, K, M] D)``."""
+def _commutator_map(As: list[Array], r: int) -> tuple[Array, list[tuple[int, int]]]:
+    """Matrix of ``svec M -> [vec(M A - Aᵀ M) / ||A||_F for A in As]``."""
     idx = _sym_basis(r)
     cols = []
-    for block in range(3):
-        rows = D[block * r:(block + 1) * r]            # (r, q)
-        for i, j in idx:
-            Y = np.zeros((r, D.shape[1]))
-            Y[i] += rows[j]
-            if i != j:
-                Y[j] += rows[i]
-            cols.append((W @ Y).ravel())
+    for i, j in idx:
+        E = np.zeros((r, r))
+        E[i, j] = E[j, i] = 1.0
+        cols.append(np.concatenate([((E @ A - A.T @ E) / max(float(np.linalg.norm(A)),
+                                                             1e-300)).ravel() for A in As]))
     return np.stack(cols, axis=1), idx
 
 
-def _trace_ls(D: Array, r: int, W: Array) -> tuple[Array, Array, Array]:
-    """``min ||W [C, K, M] D||_F`` over symmetric blocks with ``tr M = r`` (closed form).
+def mass_candidates(A1: ArrayLike, A2: ArrayLike, rho: float,
+                    shrinkage: tuple[float, ...] = SHRINKAGE) -> list[tuple[float, Array]]:
+    """Symmetrizers ``M`` (``tr M = r``) of ``A1, A2``, shrunk towards ``I`` by the noise.
 
-    Null-space method: ``θ = θ_p + N φ`` with ``aᵀ θ_p = r`` and ``aᵀ N = 0``.
+    For each ``c`` in ``shrinkage``, ``M`` minimizes
+    ``||M A1 - A1ᵀ M||² / ||A1||² + ||M A2 - A2ᵀ M||² / ||A2||² + μ ||M - I||²`` with
+    ``μ = c ρ² σ²`` (``σ``: the largest singular value of the commutator map, ``ρ``: the
+    relative residual of the unconstrained fit, i.e. how far ``A1, A2`` can be trusted), then
+    ``tr M = r``; ``c = 0`` is the trace-normalized least-squares symmetrizer (exact for exact
+    data). The identity is always the last candidate (``c = inf``).
+
+    Parameters
+    ----------
+    A1, A2 : ndarray, shape (r, r)
+        Stiffness and damping parts ``-M⁻¹K``, ``-M⁻¹C`` of an unconstrained fit.
+    rho : float
+        Relative residual of that fit.
+    shrinkage : tuple of float
+        The levels ``c``.
+
+    Returns
+    -------
+    list of (c, M)
+        The positive definite candidates (smallest eigenvalue ``≥ MASS_FLOOR``).
     """
-    Phi, idx = _phi(D, r, W)
-    ns = len(idx)
-    a = np.zeros(3 * ns)
-    a[2 * ns:] = [1.0 if i == j else 0.0 for i, j in idx]
-    theta_p = a * (r / float(a @ a))
-    Qa, _ = np.linalg.qr(np.column_stack([a, np.eye(3 * ns)[:, :3 * ns - 1]]))
+    A1, A2 = (np.asarray(a, dtype=np.float64) for a in (A1, A2))
+    r = A1.shape[0]
+    Phi, idx = _commutator_map([A1, A2], r)
+    w = np.array([1.0 if i == j else np.sqrt(2.0) for i, j in idx])
+    a = np.array([1.0 if i == j else 0.0 for i, j in idx])
+    sigma = float(np.linalg.norm(Phi, 2)) if Phi.size else 0.0
+    theta_p = a * (r / float(a @ a))                # tr M = r; null-space method
+    Qa, _ = np.linalg.qr(np.column_stack([a, np.eye(a.size)[:, :a.size - 1]]))
     N = Qa[:, 1:]
-    phi, *_ = np.linalg.lstsq(Phi @ N, -(Phi @ theta_p), rcond=None)
-    theta = theta_p + N @ phi
-    C, K, M = (_smat(theta[b * ns:(b + 1) * ns], idx, r) for b in range(3))
-    return M, C, K
+    out: list[tuple[float, Array]] = []
+    for c in shrinkage:
+        mu = float(c) * rho ** 2 * sigma ** 2
+        theta = theta_p
+        if N.shape[1]:
+            lhs, rhs = Phi @ N, -(Phi @ theta_p)
+            if mu > 0:
+                lhs = np.vstack([lhs, np.sqrt(mu) * (w[:, None] * N)])
+                rhs = np.concatenate([rhs, np.sqrt(mu) * w * (a - theta_p)])
+            phi, *_ = np.linalg.lstsq(lhs, rhs, rcond=None)
+            theta = theta_p + N @ phi
+        M = _smat(theta, idx, r)
+        tr = float(np.trace(M))
+        if not tr > 0:
+            continue
+        M = M * (r / tr)
+        if float(np.linalg.eigvalsh(M)[0]) >= MASS_FLOOR:
+            out.append((float(c), M))
+    out.append((float('inf'), np.eye(r)))
+    return out
 
 
-def _conic(D: Array, r: int, eps: float, solver: str, W: Array
-           ) -> tuple[Array, Array, Array, str]:
-    import cvxpy as cp
-    Mv = cp.Variable((r, r), symmetric=True)
-    Cv = cp.Variable((r, r), symmetric=True)
-    Kv = cp.Variable((r, r), symmetric=True)
-    eye = np.eye(r)
-    cons = [Mv >> _MASS_FLOOR * eye, Cv >> eps * eye, Kv >> eps * eye, cp.trace(Mv) == r]
-    prob = cp.Problem(cp.Minimize(cp.norm(W @ cp.hstack([Cv, Kv, Mv]) @ D, 'fro')), cons)
-    try:
-        prob.solve(solver=solver)
-    except cp.error.SolverError as exc:
-        raise SolverError(f'the learned-mass LOpInf problem failed in {solver}: {exc}') from exc
-    if Mv.value is None or prob.status not in ('optimal', 'optimal_inaccurate'):
-        raise SolverError(f'the learned-mass LOpInf problem ended with status {prob.status!r} '
-                          f'in {solver}.')
-    sym = [0.5 * (X.value + X.value.T) for X in (Mv, Cv, Kv)]
-    return sym[0], sym[1], sym[2], str(prob.status)
+def _simulation_error(K: Array, C: Array, B: Array, Lt: Array, dt: float,
+                      episodes: Sequence[tuple[Array, Array]]) -> float:
+    """``||Q - Q_sim||_F / ||Q||_F`` over the episodes, simulated from rest."""
+    from soft_rom.models import SecondOrderModel
+    model = SecondOrderModel(K, C, B, np.linalg.inv(Lt), dt=dt, y_ref=np.zeros(K.shape[0]))
+    num = den = 0.0
+    with np.errstate(all='ignore'):
+        for q, u in episodes:
+            d = float(np.linalg.norm(q - model.simulate(u))) ** 2
+            num += d if np.isfinite(d) else np.inf
+            den += float(np.linalg.norm(q)) ** 2
+    return float(np.sqrt(num / den)) if den > 0 else float('inf')
 
 
 def solve_learned_mass(Q: ArrayLike, Qd: ArrayLike, Qdd: ArrayLike, U: ArrayLike, *,
-                       eps: float = DEFAULT_EPS, solver: str = 'CLARABEL',
-                       max_iter: int = 20, tol: float = 1e-9
+                       eps: float = DEFAULT_EPS, dt: float | None = None,
+                       episodes: Sequence[tuple[ArrayLike, ArrayLike]] | None = None,
+                       shrinkage: tuple[float, ...] = SHRINKAGE
                        ) -> tuple[LOpInfSolution, Array]:
-    """Fit ``M, C, K, B`` (module docstring) and return the identity-mass form.
+    """Learn the mass matrix and the identity-mass model in ``z = Lᵀ q`` (module docstring).
 
     Parameters
     ----------
@@ -136,78 +165,54 @@ def solve_learned_mass(Q: ArrayLike, Qd: ArrayLike, Qdd: ArrayLike, U: ArrayLike
     U : ndarray, shape (m, k)
         Inputs.
     eps : float
-        ``C, K ⪰ eps I`` (the margins of the identity-mass LOpInf); ``M ⪰ I``.
-    solver : str
-        cvxpy solver name for the conic candidate (default Clarabel).
+        ``K', C' ⪰ eps I`` in the ``z`` coordinates (the identity-mass LOpInf margins).
+    dt : float, optional
+        Sample time (s) of ``episodes``.
+    episodes : sequence of (Q_i (r, k_i), U_i (m, k_i)), optional
+        The training episodes (same scaling as ``Q`` and ``U``, untrimmed): the candidate
+        with the smallest simulation error on them is chosen. Without them (or ``dt``), the
+        candidate ``c = 0.1`` (or the next positive definite one).
+    shrinkage : tuple of float
+        Shrinkage levels of :func:`mass_candidates`.
 
     Returns
     -------
     solution : LOpInfSolution
-        ``K', C'`` (r, r) symmetric positive definite, ``B'`` (r, m) of the model in
-        ``z = Lᵀ q``; ``info`` holds the objective, the chosen candidate and the
-        eigenvalues of ``M`` (JSON-serialisable).
+        ``K', C'`` (r, r) symmetric with eigenvalues ``≥ eps``, ``B'`` (r, m) of the model in
+        ``z = Lᵀ q``; ``info`` (JSON-serialisable) has the solver report of step 3 and
+        ``mass`` (chosen shrinkage, candidates' training errors, eigenvalues of ``M``).
     Lt : ndarray, shape (r, r)
         ``Lᵀ`` (upper triangular, ``M = L Lᵀ``): the model's coordinates are ``Lᵀ q``.
     """
     if not eps >= 0:
         raise ConfigError(f'eps must be >= 0; got {eps!r}.')
-    prob = reduce_data(Q, Qd, Qdd, U)
-    r = prob.r
-    D = np.vstack([prob.A, prob.G])                     # ||[C, K, M] D||_F
-    scale = float(np.linalg.norm(D))
-    if not scale > 0:
-        raise SolverError('the learned-mass LOpInf problem has no data (all zero).')
-    Dn = D / scale
-
-    def obj(M: Array, C: Array, K: Array, W: Array) -> float:
-        return float(np.linalg.norm(W @ np.hstack([C, K, M]) @ Dn))
-
-    W = np.eye(r)
-    status, method, history = 'not needed', '', []
-    M = np.eye(r)
-    for it in range(max_iter):
-        M_old = M
-        M, C, K = _trace_ls(Dn, r, W)
-        lam = [float(np.linalg.eigvalsh(X)[0]) for X in (M, C, K)]
-        if lam[0] >= _MASS_FLOOR and lam[1] >= eps and lam[2] >= eps:
-            method = 'trace-least-squares'
-        else:
-            M, C, K, status = _conic(Dn, r, eps, solver, W)
-            method = f'cvxpy-{solver.lower()}'
-        history.append(obj(M, C, K, np.linalg.inv(M)) * scale)
-        if it and np.linalg.norm(M - M_old) <= tol * np.linalg.norm(M):
-            break
-        W = np.linalg.inv(M)                            # acceleration-error weights
-        W = 0.5 * (W + W.T)
-    val = obj(M, C, K, np.eye(r))
-    B = (M @ prob.Dv + np.hstack([C, K]) @ prob.Zv) @ prob.pinv_left
-    Kp, Cp, Bp, Lt = to_identity_mass(M, C, K, B)
-    info: dict[str, Any] = {
-        'solver': 'learned-mass', 'method': method, 'conic_status': status,
-        'objective': val * scale, 'eps': float(eps),
-        'acceleration_residuals': history, 'iterations': len(history),
-        'eigenvalues_M': [float(x) for x in np.linalg.eigvalsh(M)],
-        'rank_u': int(prob.rank_u),
-    }
-    return LOpInfSolution(Kp, Cp, Bp, info), Lt
-
-
-def to_identity_mass(M: ArrayLike, C: ArrayLike, K: ArrayLike, B: ArrayLike
-                     ) -> tuple[Array, Array, Array, Array]:
-    """``(L⁻¹ K L⁻ᵀ, L⁻¹ C L⁻ᵀ, L⁻¹ B, Lᵀ)`` for ``M = L Lᵀ`` (``M`` SPD, shape (r, r)).
-
-    The model ``M q'' + C q' + K q = B u`` in the coordinates ``z = Lᵀ q``.
-    """
-    M, C, K, B = (np.asarray(x, dtype=np.float64) for x in (M, C, K, B))
-    try:
-        L = np.linalg.cholesky(0.5 * (M + M.T))
-    except np.linalg.LinAlgError as exc:
-        raise SolverError('the learned mass matrix is not positive definite.') from exc
-
-    def congr(X: Array) -> Array:
-        Y = sla.solve_triangular(L, X, lower=True)
-        Y = sla.solve_triangular(L, Y.T, lower=True)
-        return 0.5 * (Y + Y.T)
-
-    Bp = sla.solve_triangular(L, B, lower=True)
-    return congr(K), congr(C), Bp, np.ascontiguousarray(L.T)
+    Q, Qd, Qdd, U = (np.asarray(x, dtype=np.float64) for x in (Q, Qd, Qdd, U))
+    r = Q.shape[0]
+    Z = np.vstack([Q, Qd, U])
+    X, *_ = np.linalg.lstsq(Z.T, Qdd.T, rcond=None)
+    X = X.T
+    rho = float(np.linalg.norm(Qdd - X @ Z)) / max(float(np.linalg.norm(Qdd)), 1e-300)
+    cands = mass_candidates(X[:, :r], X[:, r:2 * r], rho, shrinkage)
+    eps_list = None if episodes is None or dt is None else [
+        (np.asarray(q, dtype=np.float64), np.asarray(u, dtype=np.float64)) for q, u in episodes]
+    if eps_list is None:
+        pick = [cm for cm in cands if cm[0] >= 0.1] or cands
+        cands = pick[:1]
+    best: tuple[float, float, LOpInfSolution, Array, Array] | None = None
+    scores: dict[str, float] = {}
+    for c, M in cands:
+        Lt = np.linalg.cholesky(M).T
+        sol = FastSPDSolver().solve(Lt @ Q, Lt @ Qd, Lt @ Qdd, U, eps=eps)
+        score = 0.0 if eps_list is None else _simulation_error(
+            sol.K, sol.C, sol.B, Lt, float(dt), eps_list)   # type: ignore[arg-type]
+        scores[repr(c)] = score
+        if best is None or score < best[0]:
+            best = (score, c, sol, Lt, M)
+    if best is None:  # pragma: no cover - the identity is always a candidate
+        raise SolverError('no positive definite mass matrix candidate.')
+    score, c, sol, Lt, M = best
+    info = dict(sol.info)
+    info['mass'] = {'shrinkage': repr(c), 'unconstrained_relative_residual': rho,
+                    'training_simulation_errors': scores,
+                    'eigenvalues_M': [float(x) for x in np.linalg.eigvalsh(M)]}
+    return LOpInfSolution(sol.K, sol.C, sol.B, info), np.ascontiguousarray(Lt)
