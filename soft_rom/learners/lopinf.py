@@ -306,7 +306,7 @@ class LOpInf:
         if self.mass == 'learned':
             from soft_rom.learners.lopinf_mass import solve_learned_mass
             sol, Lt = solve_learned_mass(Qs, Qd, Qdd, Us, eps=self.eps, dt=dt, episodes=[
-                (q / s_q, u / s_u[:, None]) for q, u in zip(Qhat, U)])
+                (np.asarray(q) / s_q, np.asarray(u) / s_u[:, None]) for q, u in zip(Qhat, U)])
             Qs, Qd, Qdd, all_q, self.mass_factor_ = Lt @ Qs, Lt @ Qd, Lt @ Qdd, Lt @ all_q, Lt
         elif self.forces == 'cubic':
             from soft_rom.learners.lopinf_cubic import fit_scaled

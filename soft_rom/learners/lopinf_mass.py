@@ -36,7 +36,6 @@ With proportional damping ``M`` is not unique, but every symmetrizer of both ``A
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
