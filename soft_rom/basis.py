@@ -23,6 +23,7 @@ from typing import Any, Protocol, runtime_checkable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from soft_rom.data import all_finite
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
 
 __all__ = ['BasisBuilder', 'DEFAULT_BLOCK_COLUMNS', 'POD', 'project', 'reconstruct', 'select_rank']
@@ -211,7 +212,7 @@ class POD:
             for a in range(0, int(shape[1]), step):
                 blocks.append(np.asarray(Q[:, a:a + step], dtype=np.float64) - ref[:, None])
         X = np.concatenate(blocks, axis=1)
-        if not np.all(np.isfinite(X)):
+        if not all_finite(X):
             raise DimensionError('snapshots contain NaN or Inf; clean them before POD.')
         V, s, _ = np.linalg.svd(X, full_matrices=False)
         r = select_rank(s, r=self.r, energy=self.energy)

@@ -16,7 +16,6 @@ coordinates.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -159,8 +158,3 @@ class Episode:
         hi = self.t.size if t_stop is None else int(
             np.searchsorted(self.t, t_stop - 1e-12, 'left'))
         return self.slice(lo, hi)
-
-
-def stack_columns(parts: Sequence[NDArray[np.float64]]) -> NDArray[np.float64]:
-    """Concatenate ``(c, k_i)`` arrays along time."""
-    return np.concatenate([np.asarray(p, dtype=np.float64) for p in parts], axis=1)

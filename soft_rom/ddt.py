@@ -71,6 +71,24 @@ _SECOND: dict[int, list[F | int]] = {
 }
 
 
+def _states(Q: ArrayLike, need: int, what: str) -> Array:
+    """``Q`` as a 2-D ``(r, k)`` float array with at least ``need`` samples for ``what``."""
+    X = np.asarray(Q, dtype=np.float64)
+    if X.ndim == 1:
+        X = X[np.newaxis, :]
+    if X.ndim != 2:
+        raise DimensionError(f'states must be 2-D (r, k); got shape {X.shape}.')
+    if X.shape[1] < need:
+        raise DimensionError(f'{what} needs at least {need} samples per episode; got '
+                             f'{X.shape[1]}.')
+    return X
+
+
+def _check_dt(dt: float) -> None:
+    if not np.isfinite(dt) or dt <= 0:
+        raise DimensionError(f'dt must be a positive number of seconds; got {dt!r}.')
+
+
 @runtime_checkable
 class DerivativeEstimator(Protocol):
     """What the LOpInf learner needs from a derivative estimator."""
@@ -115,15 +133,7 @@ class FiniteDifference:
         return self.order // 2
 
     def _check(self, Q: ArrayLike) -> Array:
-        X = np.asarray(Q, dtype=np.float64)
-        if X.ndim == 1:
-            X = X[np.newaxis, :]
-        if X.ndim != 2:
-            raise DimensionError(f'states must be 2-D (r, k); got shape {X.shape}.')
-        if X.shape[1] < self.order + 1:
-            raise DimensionError(f'an order-{self.order} central difference needs at least '
-                                 f'{self.order + 1} samples per episode; got {X.shape[1]}.')
-        return X
+        return _states(Q, self.order + 1, f'an order-{self.order} central difference')
 
     def trim(self, X: ArrayLike) -> Array:
         """Columns ``h .. k-h-1`` of ``X`` (c, k): those that have derivatives."""
@@ -149,8 +159,7 @@ class FiniteDifference:
             First and second derivatives at those columns.
         """
         X = self._check(Q)
-        if not np.isfinite(dt) or dt <= 0:
-            raise DimensionError(f'dt must be a positive number of seconds; got {dt!r}.')
+        _check_dt(dt)
         h, k = self.half_width, X.shape[1]
         n = k - 2 * h
         d1 = np.zeros((X.shape[0], n))
@@ -182,16 +191,7 @@ class FiniteDifference:
         trimmed : list of ndarray
             One stacked, trimmed array per entry of ``others``.
         """
-        parts = [self.derivatives(Q, dt) for Q in Qs]
-        if not parts:
-            raise DimensionError('no episode given.')
-        stacked = [np.concatenate([p[j] for p in parts], axis=1) for j in range(3)]
-        trimmed = []
-        for signal in others:
-            if len(signal) != len(parts):
-                raise DimensionError('every signal in others needs one array per episode.')
-            trimmed.append(np.concatenate([self.trim(x) for x in signal], axis=1))
-        return stacked[0], stacked[1], stacked[2], trimmed
+        return _episodes(self, Qs, dt, others)
 
 
 class SavitzkyGolay:
@@ -225,15 +225,7 @@ class SavitzkyGolay:
         return self.window // 2
 
     def _check(self, Q: ArrayLike) -> Array:
-        X = np.asarray(Q, dtype=np.float64)
-        if X.ndim == 1:
-            X = X[np.newaxis, :]
-        if X.ndim != 2:
-            raise DimensionError(f'states must be 2-D (r, k); got shape {X.shape}.')
-        if X.shape[1] < self.window:
-            raise DimensionError(f'a Savitzky-Golay window of {self.window} needs at least '
-                                 f'{self.window} samples per episode; got {X.shape[1]}.')
-        return X
+        return _states(Q, self.window, f'a Savitzky-Golay window of {self.window}')
 
     def trim(self, X: ArrayLike) -> Array:
         """``X`` (c, k) filtered like the states, at the columns that have derivatives."""
@@ -264,24 +256,29 @@ class SavitzkyGolay:
         Q_mid, Qd, Qdd : ndarray, shape (r, k - 2 * (window // 2))
         """
         X = self._check(Q)
-        if not np.isfinite(dt) or dt <= 0:
-            raise DimensionError(f'dt must be a positive number of seconds; got {dt!r}.')
+        _check_dt(dt)
         return self._filter(X, 0, dt), self._filter(X, 1, dt), self._filter(X, 2, dt)
 
     def episodes(self, Qs: Sequence[ArrayLike], dt: float,
                  others: Sequence[Sequence[ArrayLike]] = ()
                  ) -> tuple[Array, Array, Array, list[Array]]:
         """Derivatives of several episodes, each on its own (as :class:`FiniteDifference`)."""
-        parts = [self.derivatives(Q, dt) for Q in Qs]
-        if not parts:
-            raise DimensionError('no episode given.')
-        stacked = [np.concatenate([p[j] for p in parts], axis=1) for j in range(3)]
-        trimmed = []
-        for signal in others:
-            if len(signal) != len(parts):
-                raise DimensionError('every signal in others needs one array per episode.')
-            trimmed.append(np.concatenate([self.trim(x) for x in signal], axis=1))
-        return stacked[0], stacked[1], stacked[2], trimmed
+        return _episodes(self, Qs, dt, others)
+
+
+def _episodes(est: FiniteDifference | SavitzkyGolay, Qs: Sequence[ArrayLike], dt: float,
+              others: Sequence[Sequence[ArrayLike]]) -> tuple[Array, Array, Array, list[Array]]:
+    """``est.episodes``: each episode differentiated on its own, then stacked along time."""
+    parts = [est.derivatives(Q, dt) for Q in Qs]
+    if not parts:
+        raise DimensionError('no episode given.')
+    stacked = [np.concatenate([p[j] for p in parts], axis=1) for j in range(3)]
+    trimmed = []
+    for signal in others:
+        if len(signal) != len(parts):
+            raise DimensionError('every signal in others needs one array per episode.')
+        trimmed.append(np.concatenate([est.trim(x) for x in signal], axis=1))
+    return stacked[0], stacked[1], stacked[2], trimmed
 
 
 def parse_estimator(text: str) -> DerivativeEstimator:

@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 from soft_rom.data import Episode
 from soft_rom.errors import ConfigError, DimensionError
 from soft_rom.metrics import relative_error_from_squares
-from soft_rom.models import DiscreteModel, LinearROM, SecondOrderModel
+from soft_rom.models import DiscreteModel, LinearROM, run_states, SecondOrderModel
 
 __all__ = ['Evaluation', 'evaluate', 'predict']
 
@@ -47,19 +47,6 @@ def _check_sizes(model: LinearROM, ep: Episode) -> None:
             f'episode {ep.name!r} has {ep.U.shape[0]} inputs and {ep.Y.shape[0]} outputs; '
             f'the {model.method} model expects {model.n_inputs} inputs and '
             f'{model.n_outputs} outputs. Evaluate on data of the same robot/layout.')
-
-
-def _run(A: Array, B: Array, x0: Array, U: Array) -> Array:
-    """States ``x_0 .. x_k`` (``k + 1`` columns) for inputs ``U (m, k)``."""
-    k = U.shape[1]
-    X = np.empty((A.shape[0], k + 1))
-    BU = B @ U
-    x = x0
-    for j in range(k):
-        X[:, j] = x
-        x = A @ x + BU[:, j]
-    X[:, k] = x
-    return X
 
 
 def predict(model: LinearROM, episode: Episode, *, initial: str = 'reference') -> Array:
@@ -95,12 +82,12 @@ def predict(model: LinearROM, episode: Episode, *, initial: str = 'reference') -
         return np.asarray(model.simulate(ep.U, x0, dt=h))  # type: ignore[call-arg]
     if isinstance(model, SecondOrderModel):
         sys_ = model.discretize(h)
-        X = _run(sys_.A, sys_.B, x0, ep.U[:, :-1])
+        X = run_states(sys_.A, sys_.B, x0, ep.U[:, :-1])
     else:
         ratio = h / model.dt
         if abs(ratio - round(ratio)) <= 1e-6 * max(ratio, 1.0) and round(ratio) >= 1:
             sys_ = model.discretize(round(ratio) * model.dt)
-            X = _run(sys_.A, sys_.B, x0, ep.U[:, :-1])
+            X = run_states(sys_.A, sys_.B, x0, ep.U[:, :-1])
         else:
             inv = model.dt / h
             d = int(round(inv))
@@ -114,7 +101,7 @@ def predict(model: LinearROM, episode: Episode, *, initial: str = 'reference') -
             pad = n_steps * d - k
             Upad = np.concatenate([ep.U, np.full((ep.U.shape[0], pad), np.nan)], axis=1)
             Ublk = np.nanmean(Upad.reshape(ep.U.shape[0], n_steps, d), axis=2)
-            Xm = _run(sys_.A, sys_.B, x0, Ublk)       # states at t_0 + j d h, j = 0..n_steps
+            Xm = run_states(sys_.A, sys_.B, x0, Ublk)   # states at t_0 + j d h, j = 0..n_steps
             pos = np.arange(k) / d                    # data times in model steps
             j = np.minimum(np.floor(pos).astype(int), n_steps - 1)
             w = pos - j

@@ -23,7 +23,6 @@ with cubic forces); said on stderr and recorded in ``metadata['mass']``.
 
 from __future__ import annotations
 
-from pathlib import Path
 import sys
 import time
 from typing import Any
@@ -36,20 +35,10 @@ from soft_rom.errors import ConfigError, DatasetError
 from soft_rom.models import LinearROM
 
 __all__ = ['COORDINATES', 'choose_coordinates', 'fit_models', 'fit_models_streaming',
-           'open_training_set', 'select_episodes']
+           'select_episodes']
 
 #: Choices of generalized coordinates for LOpInf and DMDc.
 COORDINATES = ('state', 'outputs')
-
-
-def open_training_set(path: str | Path) -> Any:
-    """Open a training set (:class:`soft_rom.dataset.TrainingSet`); clear error if missing."""
-    p = Path(path)
-    if not p.exists():
-        raise FileNotFoundError(f'training set {p} does not exist; create it with '
-                                '`soft-rom convert BAG... -o OUT.zarr`.')
-    from soft_rom.dataset import TrainingSet
-    return TrainingSet.open(p)
 
 
 def select_episodes(ts: Any, names: str | list[str] | None,
@@ -106,7 +95,9 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
                progress: bool = True, coordinates: str | None = None,
                ddt: str | None = None, forces: str = 'linear',
                cubic_options: dict[str, Any] | None = None,
-               mass: str | None = None) -> list[tuple[LinearROM, float]]:
+               mass: str | None = None,
+               lopinf_options: dict[str, Any] | None = None,
+               dmdc_options: dict[str, Any] | None = None) -> list[tuple[LinearROM, float]]:
     """Fit ``method`` for each r; returns ``[(model, seconds), ...]``.
 
     ``forces`` and ``cubic_options`` are passed to :class:`~soft_rom.learners.lopinf.LOpInf`.
@@ -172,7 +163,8 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
                 t1 = time.perf_counter()
                 slv = FastSPDSolver() if solver == 'fast' else CvxpySolver()
                 learner = LOpInf(r=r, ddt=estimator, solver=slv, forces=forces,
-                                 cubic_options=cubic_options, mass=mass)
+                                 cubic_options=cubic_options, mass=mass,
+                                 **(lopinf_options or {}))
                 learner.fit_reduced(
                     [q[:r] for q in Qhat], [ep.U for ep in episodes],
                     [ep.Y for ep in episodes], dt, y_ref, names=[ep.name for ep in episodes],
@@ -189,7 +181,8 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             _need_states(episodes, 'DMDc')
             t0 = time.perf_counter()
             r0 = r_values[0] if r_values else None
-            dmdc = DMDc(r=r0, p=dmdc_p, energy=0.95 if energy is None else energy).fit(
+            dmdc = DMDc(r=r0, p=dmdc_p, energy=0.95 if energy is None else energy,
+                        **(dmdc_options or {})).fit(
                 episodes, _q_ref(q_ref, episodes), y_ref,
                 metadata={'training': provenance, **extra}, **names)
             t_svd = time.perf_counter() - t0
@@ -231,7 +224,16 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             raise ConfigError(f'unknown method {method!r}.')
     finally:
         bar.close()
+    for fitted, _ in out:
+        _record_layout(fitted, ts)
     return out
+
+
+def _record_layout(model: LinearROM, ts: Any) -> None:
+    """Carry the training set's output layout into the model's metadata."""
+    layout = getattr(ts, 'output_layout', None)
+    if layout is not None:
+        model.metadata['output_layout'] = layout.to_dict()
 
 
 def _need_states(episodes: list[Episode], what: str) -> None:
@@ -274,7 +276,7 @@ def fit_models_streaming(ts: Any, method: str, *, r_values: tuple[int, ...] | No
                          ) -> list[tuple[LinearROM, float]]:
     """Like :func:`fit_models`, streaming the snapshots from disk (or on a Dask cluster).
 
-    One streamed POD pass (:func:`soft_rom.scale.fit.reduce_streaming`) serves every ``r``;
+    One streamed POD pass (:func:`soft_rom.scale.streaming.reduce_streaming`) serves every ``r``;
     ``client`` is a ``dask.distributed.Client`` or a scheduler address.
     """
     if method in ('lopinf', 'dmdc') and getattr(ts, 'q_ref', None) is None:
@@ -293,7 +295,7 @@ def fit_models_streaming(ts: Any, method: str, *, r_values: tuple[int, ...] | No
         client = connect(client)
     try:
         return _fit_streaming(ts, method, r_values, energy, episodes, t_max, provenance,
-                              dmdc_p, opts, era_episode, client, progress)
+                              dmdc_p, opts, era_episode, client)
     finally:
         if own_client:
             client.close()
@@ -302,9 +304,8 @@ def fit_models_streaming(ts: Any, method: str, *, r_values: tuple[int, ...] | No
 def _fit_streaming(ts: Any, method: str, r_values: tuple[int, ...] | None,
                    energy: float | None, episodes: list[str] | None, t_max: float | None,
                    provenance: dict[str, Any], dmdc_p: int | None, opts: dict[str, Any],
-                   era_episode: str | None, client: Any,
-                   progress: bool) -> list[tuple[LinearROM, float]]:
-    from soft_rom.scale.fit import fit_reduced_model, reduce_streaming
+                   era_episode: str | None, client: Any) -> list[tuple[LinearROM, float]]:
+    from soft_rom.scale.streaming import fit_reduced_model, reduce_streaming
     t0 = time.perf_counter()
     red = None
     if method in ('lopinf', 'dmdc'):
@@ -312,11 +313,9 @@ def _fit_streaming(ts: Any, method: str, r_values: tuple[int, ...] | None,
         n_coords = None
         if r_max is not None:
             n_coords = max(r_max, (dmdc_p or r_max + len(ts.input_names))) + 10
-        bar = _progress(1, f'stream POD ({method})', progress)
         red = reduce_streaming(ts, r=r_max, energy=0.95 if energy is None else energy,
                                n_coords=n_coords, client=client, episodes=episodes,
                                t_max=t_max)
-        bar.close()
     t_pass = time.perf_counter() - t0
     out: list[tuple[LinearROM, float]] = []
     envelope = training_envelope(select_episodes(ts, episodes, t_max), ts.y_ref)
@@ -335,5 +334,6 @@ def _fit_streaming(ts: Any, method: str, r_values: tuple[int, ...] | None,
             model = fit_reduced_model(red, method, r, **kw)
         model.metadata.setdefault('training', provenance)
         model.metadata.setdefault('envelope', envelope)
+        _record_layout(model, ts)
         out.append((model, t_pass / len(r_values or (1,)) + time.perf_counter() - t1))
     return out

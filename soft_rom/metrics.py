@@ -41,34 +41,40 @@ def relative_error(Y: ArrayLike, Y_hat: ArrayLike, *, if_zero: float = math.nan)
     return float(np.linalg.norm(Y - Y_hat) / den) if den > 0 else float(if_zero)
 
 
-def relative_error_from_squares(err_sq: float, ref_sq: float) -> float:
+def relative_error_from_squares(err_sq: float, ref_sq: float, *,
+                                if_zero: float = math.nan) -> float:
     """Relative error ``sqrt(err_sq / ref_sq)`` from squared Frobenius norms.
 
     For errors pooled over pieces (episodes, train/test segments): ``err_sq`` is the sum of
     :math:`\\|Y_i - \\hat Y_i\\|_F^2` and ``ref_sq`` that of :math:`\\|Y_i\\|_F^2` (or of the
-    deviations from ``y_ref``); NaN when ``ref_sq`` is 0.
+    deviations from ``y_ref``).
 
     Parameters
     ----------
     err_sq, ref_sq : float
         Squared norms (non-negative).
+    if_zero : float
+        Returned when ``ref_sq`` is 0 (default NaN), as in :func:`relative_error`.
     """
-    return float(np.sqrt(err_sq / ref_sq)) if ref_sq > 0 else float('nan')
+    return float(np.sqrt(err_sq / ref_sq)) if ref_sq > 0 else float(if_zero)
 
 
-def relative_deviation_error(Y: ArrayLike, Y_hat: ArrayLike, y_ref: ArrayLike) -> float:
+def relative_deviation_error(Y: ArrayLike, Y_hat: ArrayLike, y_ref: ArrayLike, *,
+                             if_zero: float = math.nan) -> float:
     """Relative error on deviations: ``||Y - Ŷ||_F / ||Y - y_ref 1ᵀ||_F``.
 
     Parameters
     ----------
     Y, Y_hat : ndarray, shape (p, k)
     y_ref : ndarray, shape (p,)
+    if_zero : float
+        Returned when the deviations are all zero (default NaN), as in :func:`relative_error`.
     """
     Y = as_signal('Y', Y)
     y_ref = np.asarray(y_ref, dtype=np.float64).reshape(-1, 1)
     if y_ref.shape[0] != Y.shape[0]:
         raise DimensionError(f'y_ref must have {Y.shape[0]} entries; got {y_ref.shape[0]}.')
-    return relative_error(Y - y_ref, as_signal('Y_hat', Y_hat) - y_ref)
+    return relative_error(Y - y_ref, as_signal('Y_hat', Y_hat) - y_ref, if_zero=if_zero)
 
 
 def output_errors(Y: ArrayLike, Y_hat: ArrayLike, y_ref: ArrayLike) -> dict[str, float]:

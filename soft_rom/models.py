@@ -17,7 +17,8 @@ Two families, one interface (:class:`LinearROM`):
 
 The file format (the bounded reader, :func:`load_model`, the class registry) lives in
 :mod:`soft_rom.model_io`; this module holds the models, their discretization and their
-trust checks (about 640 lines: two families sharing one interface).
+trust checks (about 660 lines: two families sharing one interface, and the one simulation loop
+:func:`run_states`).
 
 Models know nothing of how they were made (no training arrays); they carry matrices,
 offsets, names/units and JSON metadata. States are deviations from the reference
@@ -47,7 +48,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 import scipy.linalg as sla
 
-from soft_rom.data import as_signal
+from soft_rom.data import all_finite, as_signal
 from soft_rom.errors import DimensionError, ModelFileError
 from soft_rom.model_io import (
     _META_KEY,
@@ -71,6 +72,7 @@ __all__ = [
     'file_sha256',
     'load_model',
     'register_model_class',
+    'run_states',
 ]
 
 #: Relative tolerance of the trust checks (spectral radius, definiteness, symmetry).
@@ -105,14 +107,55 @@ class DiscreteSystem:
         return iter((self.A, self.B, self.C, self.D, self.dt))
 
 
+def run_states(A: Array, B: Array, x0: Array, U: Array) -> Array:
+    """States ``x_0 .. x_k`` of ``x_{j+1} = A x_j + B u_j`` for inputs ``U``: the one loop.
+
+    Parameters
+    ----------
+    A : ndarray, shape (n, n)
+    B : ndarray, shape (n, m)
+    x0 : ndarray, shape (n,)
+    U : ndarray, shape (m, k)
+
+    Returns
+    -------
+    X : ndarray, shape (n, k + 1)
+    """
+    k = U.shape[1]
+    X = np.empty((A.shape[0], k + 1))
+    BU = B @ U
+    x = x0
+    for j in range(k):
+        X[:, j] = x
+        x = A @ x + BU[:, j]
+    X[:, k] = x
+    return X
+
+
 def _arr(name: str, value: ArrayLike, shape: tuple[int, ...] | None = None) -> Array:
     a = np.array(value, dtype=np.float64, copy=True)
     if shape is not None and a.shape != shape:
         raise DimensionError(f'{name} must have shape {shape}; got {a.shape}.')
-    if not np.all(np.isfinite(a)):
+    if not all_finite(a):
         raise DimensionError(f'{name} contains NaN or Inf.')
     a.setflags(write=False)
     return a
+
+
+def _state_input_output(square: tuple[str, ArrayLike], inp: tuple[str, ArrayLike],
+                        out: tuple[str, ArrayLike]) -> tuple[Array, Array, Array, int]:
+    """The constructors' shape checks: ``square (r, r)``, ``inp (r, m)``, ``out (p, r)``."""
+    (sn, S), (bn, B), (on, O) = square, inp, out
+    S = np.asarray(S, dtype=np.float64)
+    if S.ndim != 2 or S.shape[0] != S.shape[1]:
+        raise DimensionError(f'{sn} must be square (r, r); got shape {S.shape}.')
+    r = S.shape[0]
+    B, O = np.asarray(B, dtype=np.float64), np.asarray(O, dtype=np.float64)
+    if B.ndim != 2 or B.shape[0] != r:
+        raise DimensionError(f'{bn} must have shape ({r}, m); got {B.shape}.')
+    if O.ndim != 2 or O.shape[1] != r:
+        raise DimensionError(f'{on} must have shape (p, {r}); got {O.shape}.')
+    return S, B, O, r
 
 
 def _eigvals(A: Array) -> NDArray[np.complex128]:
@@ -122,13 +165,13 @@ def _eigvals(A: Array) -> NDArray[np.complex128]:
             ev = np.linalg.eigvals(A)
     except (np.linalg.LinAlgError, ValueError) as err:
         raise DimensionError(f'eigenvalues cannot be computed ({err}).') from None
-    if not np.all(np.isfinite(ev)):
+    if not all_finite(ev):
         raise DimensionError('eigenvalues cannot be computed (overflow).')
     return np.asarray(ev, dtype=np.complex128)
 
 
 def _finite_system(sys_: DiscreteSystem, what: str) -> DiscreteSystem:
-    if not (np.all(np.isfinite(sys_.A)) and np.all(np.isfinite(sys_.B))):
+    if not (all_finite(sys_.A) and all_finite(sys_.B)):
         raise DimensionError(f'{what}: the discrete system at dt = {sys_.dt:g} s overflows '
                              '(entries are not finite); the model is unusable at that step.')
     return sys_
@@ -277,11 +320,7 @@ class LinearROM(ABC):
         A, B, C, D, _ = self.system
         k = U.shape[1]
         x = self.initial_state() if x0 is None else _arr('x0', x0, (self.n_states,)).copy()
-        X = np.empty((self.n_states, k))
-        BU = B @ U
-        for j in range(k):
-            X[:, j] = x
-            x = A @ x + BU[:, j]
+        X = run_states(A, B, x, U)[:, :k]
         Y = C @ X + D @ U + self.y_ref[:, None]
         return (Y, X) if return_states else Y
 
@@ -412,11 +451,6 @@ class LinearROM(ABC):
         common.pop('method', None)
         return cls(*(arrays[name] for name in cls._matrix_names), **common)
 
-    def _common_kwargs(self) -> dict[str, Any]:
-        return dict(dt=self.dt, y_ref=self.y_ref, input_names=self.input_names,
-                    output_names=self.output_names, input_units=self.input_units,
-                    output_units=self.output_units, metadata=self.metadata)
-
     def __repr__(self) -> str:
         return (f'{type(self).__name__}(method={self.method!r}, r={self.r}, m={self.n_inputs}, '
                 f'p={self.n_outputs}, dt={self.dt:g})')
@@ -470,16 +504,7 @@ class SecondOrderModel(LinearROM):
 
     def __init__(self, K: ArrayLike, C: ArrayLike, B: ArrayLike, E: ArrayLike, *, dt: float,
                  y_ref: ArrayLike | None = None, **kwargs: Any) -> None:
-        K = np.asarray(K, dtype=np.float64)
-        if K.ndim != 2 or K.shape[0] != K.shape[1]:
-            raise DimensionError(f'K must be square (r, r); got shape {K.shape}.')
-        r = K.shape[0]
-        B = np.asarray(B, dtype=np.float64)
-        E = np.asarray(E, dtype=np.float64)
-        if B.ndim != 2 or B.shape[0] != r:
-            raise DimensionError(f'B must have shape ({r}, m); got {B.shape}.')
-        if E.ndim != 2 or E.shape[1] != r:
-            raise DimensionError(f'E must have shape (p, {r}); got {E.shape}.')
+        K, B, E, r = _state_input_output(('K', K), ('B', B), ('E', E))
         super().__init__(dt=dt, y_ref=y_ref, n_inputs=B.shape[1], n_outputs=E.shape[0],
                          **kwargs)
         self.K = _arr('K', K, (r, r))
@@ -582,16 +607,7 @@ class DiscreteModel(LinearROM):
     def __init__(self, A: ArrayLike, B: ArrayLike, C: ArrayLike, D: ArrayLike | None = None, *,
                  dt: float, method: str = 'discrete', y_ref: ArrayLike | None = None,
                  **kwargs: Any) -> None:
-        A = np.asarray(A, dtype=np.float64)
-        if A.ndim != 2 or A.shape[0] != A.shape[1]:
-            raise DimensionError(f'A must be square (r, r); got shape {A.shape}.')
-        r = A.shape[0]
-        B = np.asarray(B, dtype=np.float64)
-        C = np.asarray(C, dtype=np.float64)
-        if B.ndim != 2 or B.shape[0] != r:
-            raise DimensionError(f'B must have shape ({r}, m); got {B.shape}.')
-        if C.ndim != 2 or C.shape[1] != r:
-            raise DimensionError(f'C must have shape (p, {r}); got {C.shape}.')
+        A, B, C, r = _state_input_output(('A', A), ('B', B), ('C', C))
         super().__init__(dt=dt, y_ref=y_ref, n_inputs=B.shape[1], n_outputs=C.shape[0],
                          **kwargs)
         self.method = str(method)  # type: ignore[misc]

@@ -204,6 +204,18 @@ def _swap_in(stage: Path, dest: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
+def _new_stage(dest: str | os.PathLike[str], overwrite: bool, kind: str, what: str,
+               kinds: Sequence[str] | None) -> tuple[Path, Path]:
+    """Check ``dest`` may be written; create and return ``(dest, an empty staging folder)``."""
+    dest = Path(dest)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    clean_stale(dest.parent)
+    check_output(dest, overwrite=overwrite, what=what, kinds=kinds or (kind,))
+    stage = _stage_path(dest)
+    stage.mkdir()
+    return dest, stage
+
+
 @contextlib.contextmanager
 def atomic_dir(dest: str | os.PathLike[str], *, overwrite: bool, kind: str, what: str,
                kinds: Sequence[str] | None = None) -> Iterator[Path]:
@@ -213,12 +225,7 @@ def atomic_dir(dest: str | os.PathLike[str], *, overwrite: bool, kind: str, what
     and ``dest`` is left as it was; on success the marker for ``kind`` is written and the
     folder replaces ``dest`` atomically (see the module docstring).
     """
-    dest = Path(dest)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    clean_stale(dest.parent)
-    check_output(dest, overwrite=overwrite, what=what, kinds=kinds or (kind,))
-    stage = _stage_path(dest)
-    stage.mkdir()
+    dest, stage = _new_stage(dest, overwrite, kind, what, kinds)
     try:
         yield stage
         mark(stage, kind)
@@ -237,12 +244,7 @@ def atomic_new_dir(dest: str | os.PathLike[str], *, overwrite: bool, kind: str, 
     an existing folder); the caller creates the folder there. If it does not, nothing
     changes at ``dest``.
     """
-    dest = Path(dest)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    clean_stale(dest.parent)
-    check_output(dest, overwrite=overwrite, what=what, kinds=kinds or (kind,))
-    parent = _stage_path(dest)
-    parent.mkdir()
+    dest, parent = _new_stage(dest, overwrite, kind, what, kinds)
     stage = parent / dest.name  # same name as the output: writers name their files after it
     try:
         yield stage

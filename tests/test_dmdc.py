@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from _systems import spring_chain_episodes
 import numpy as np
 import pytest
 
 from soft_rom.data import Episode
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
+from soft_rom.evaluation import predict
 from soft_rom.learners.dmdc import channel_scale, DMDc, dmdc_from_gram
+from soft_rom.metrics import relative_deviation_error
 from soft_rom.models import load_model
 
 
@@ -169,3 +172,44 @@ def test_errors():
     other = Episode(t=good.t, U=good.U[:2], Y=good.Y, Q=good.Q)
     with pytest.raises(DimensionError, match='first episode'):
         DMDc().fit([good, other])
+
+
+def test_clip_spectral_radius_moves_only_the_outside_eigenvalues():
+    from soft_rom.learners.dmdc import clip_spectral_radius
+    rng = np.random.default_rng(3)
+    lam = np.array([1.2, 0.5, -0.3])
+    pair = 1.05 * np.array([[np.cos(0.3), -np.sin(0.3)], [np.sin(0.3), np.cos(0.3)]])
+    T = np.zeros((5, 5))
+    T[:3, :3] = np.diag(lam)
+    T[3:, 3:] = pair
+    S = rng.standard_normal((5, 5))
+    A = S @ T @ np.linalg.inv(S)
+    Ac, moved = clip_spectral_radius(A, 1.0)
+    ev = np.sort_complex(np.linalg.eigvals(Ac))
+    assert moved == 3 and np.isrealobj(Ac)
+    expect = np.sort_complex(np.array([1.0, 0.5, -0.3, np.exp(0.3j), np.exp(-0.3j)]))
+    np.testing.assert_allclose(ev, expect, atol=1e-9)
+    same, none = clip_spectral_radius(0.5 * np.eye(3))
+    assert none == 0 and np.array_equal(same, 0.5 * np.eye(3))
+
+
+def test_stable_variant_on_a_linear_chain():
+    # Positions-only DMDc of a second-order chain is marginally unstable at larger r; the
+    # lagged variant is the exact ARX form of the sampled chain: exact at full rank, stable.
+    eps = spring_chain_episodes(n_dof=12, m=2, p=4, k=500, dt=2e-3, seed=0, stiffness=400.0,
+                                drive_nodes=(4, 8), input_gain=1e-3, amplitude=30e3, hold=25,
+                                q_span=1.0)
+    paper = DMDc(r=12).fit(eps[:1])
+    stable = DMDc(r=12, variant='stable').fit(eps[:1])
+    assert paper.model_.stability_margin() < 0            # the paper's DMDc diverges here
+    for r in (4, 8, 12):
+        model = stable.model_for(r)
+        assert 1.0 - model.stability_margin() <= 1.0
+        # The state is [x_k; x_{k-1}; u_{k-1}]: 2 r + m states for a rank-r basis.
+        assert model.metadata['variant'] == 'stable' and model.metadata['r'] == r
+        assert model.n_states == 2 * r + 2
+    Yh = predict(stable.model_, eps[1])
+    err = relative_deviation_error(eps[1].Y, Yh, stable.model_.y_ref)
+    assert err <= 1e-6
+    with pytest.raises(ConfigError, match='variant'):
+        DMDc(r=2, variant='lagged').fit(eps[:1])

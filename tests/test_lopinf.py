@@ -133,7 +133,7 @@ def test_constrained_fit_is_spd_and_matches_clarabel(rank_deficient):
               np.linalg.eigvalsh(0.5 * (W[:, r:2 * r] + W[:, r:2 * r].T))[0])
     assert lam < 0
     fast = FastSPDSolver().solve(Q, Qd, Qdd, U)
-    assert fast.info['method'] == 'log-barrier-newton'
+    assert fast.info['method'] == 'primal-dual-interior-point'
     for M in (fast.K, fast.C):
         np.testing.assert_array_equal(M, M.T)
         assert np.linalg.eigvalsh(M)[0] >= DEFAULT_EPS * (1 - 1e-9)
@@ -189,7 +189,7 @@ def test_unit_invariance_and_metadata(tmp_path):
     episodes = _chain_episodes(noise=3e-2)
     est = LOpInf(r=8).fit(episodes[:2])
     # Heavy noise makes the constraints active, so the barrier path is what is tested here.
-    assert est.solver_info_['method'] == 'log-barrier-newton'
+    assert est.solver_info_['method'] == 'primal-dual-interior-point'
     test = episodes[2]
     Y = est.predict(test.U)
     # Pa -> kPa for the inputs, m -> mm for the states and outputs.
@@ -245,8 +245,111 @@ def test_fast_solver_on_ill_conditioned_pod_data_matches_clarabel():
     tight = dict(tol_gap_abs=1e-10, tol_gap_rel=1e-10, tol_feas=1e-10)
     ref = CvxpySolver('CLARABEL', **tight).solve(Q, Qd, Qdd, U)
     fast = FastSPDSolver().solve(Q, Qd, Qdd, U)
-    assert fast.info['method'] == 'log-barrier-newton' and fast.info['rank_u'] == 2
+    assert fast.info['method'] == 'primal-dual-interior-point' and fast.info['rank_u'] == 2
     o_ref = objective(*ref[:3], Q, Qd, Qdd, U)
     o_fast = objective(*fast[:3], Q, Qd, Qdd, U)
     assert abs(o_fast - o_ref) / o_ref < 1e-6
     assert min(np.linalg.eigvalsh(fast.K)[0], np.linalg.eigvalsh(fast.C)[0]) >= DEFAULT_EPS
+
+
+def _random_problem(seed, r=6, k=400, m=2):
+    rng = np.random.default_rng(seed)
+    K, C = _spd(rng, r, -2.0, 10.0), _spd(rng, r, -1.0, 3.0)      # indefinite truth
+    B = rng.standard_normal((r, m))
+    Q, Qd, U = (rng.standard_normal((r, k)), rng.standard_normal((r, k)),
+                rng.standard_normal((m, k)))
+    Qdd = -C @ Qd - K @ Q + B @ U + 0.1 * rng.standard_normal((r, k))
+    return Q, Qd, Qdd, U
+
+
+@pytest.mark.parametrize('eps', [1e-6, (0.5, 1e-6), (1e-6, 3.0), (0.2, 2.0)])
+def test_interior_point_matches_clarabel_with_separate_margins(eps):
+    # Both constraints active (no K elimination) or only C's (K eliminated exactly).
+    Q, Qd, Qdd, U = _random_problem(11)
+    tight = dict(tol_gap_abs=1e-11, tol_gap_rel=1e-11, tol_feas=1e-11)
+    ref = CvxpySolver('CLARABEL', **tight).solve(Q, Qd, Qdd, U, eps=eps)
+    fast = FastSPDSolver().solve(Q, Qd, Qdd, U, eps=eps)
+    e_c, e_k = (eps, eps) if np.isscalar(eps) else eps
+    assert np.linalg.eigvalsh(fast.C)[0] >= e_c * (1 - 1e-9)
+    assert np.linalg.eigvalsh(fast.K)[0] >= e_k * (1 - 1e-9)
+    o_ref = objective(*ref[:3], Q, Qd, Qdd, U)
+    o_fast = objective(*fast[:3], Q, Qd, Qdd, U)
+    assert (o_fast - o_ref) / o_ref <= 1e-8
+    # The certified bound brackets the optimum.
+    assert fast.info['objective_lower_bound'] <= o_ref * (1 + 1e-9)
+    assert fast.info['gap_bound'] <= 1e-9
+
+
+def test_symmetric_kronecker_hessian_matches_the_quadratic_form():
+    from soft_rom.learners.lopinf_ipm import SymIndex
+    rng = np.random.default_rng(0)
+    for r in (1, 3, 7):
+        idx = SymIndex(r)
+        A = rng.standard_normal((2 * r, 3 * r))
+        M = A @ A.T
+        H = idx.hessian_quadratic(M)
+        np.testing.assert_allclose(H, idx._hessian_quadratic_reference(M), atol=1e-12)
+        th = rng.standard_normal(2 * idx.n)
+        C, K = idx.split(th)
+        W = np.hstack([C, K])
+        assert th @ H @ th == pytest.approx(np.trace(W @ M @ W.T), rel=1e-12)
+        Xi = _spd(rng, r, 0.5, 2.0)
+        D = idx.smat(th[:idx.n])
+        np.testing.assert_allclose(idx.skron(Xi) @ th[:idx.n], idx.svec(Xi @ D @ Xi),
+                                   atol=1e-12)
+
+
+def test_modal_table_of_known_oscillators():
+    from soft_rom.learners.lopinf_margins import least_damped_mode, modal_table
+    w = np.array([2.0, 30.0])
+    z = np.array([0.05, 0.3])
+    modes = modal_table(np.diag(w ** 2), np.diag(2 * z * w))
+    assert len(modes) == 2
+    for mode, wi, zi in zip(modes, w, z):
+        assert mode['frequency_hz'] == pytest.approx(wi / (2 * np.pi), rel=1e-12)
+        assert mode['damping_ratio'] == pytest.approx(zi, rel=1e-12)
+    assert least_damped_mode(np.diag(w ** 2), np.diag(2 * z * w))['damping_ratio'] == \
+        pytest.approx(0.05)
+
+
+def test_damping_margin_holds_for_every_mode():
+    # Noisy chain data at r = 8: the margin 0.3 is active; every mode has ζ >= 0.3, even
+    # though K and C do not commute; with ζ_min = 0 the absolute margin alone is used.
+    episodes = _chain_episodes(noise=3e-2, seeds=(6, 7))
+    est = LOpInf(r=8, min_damping_ratio=0.3).fit(episodes)
+    from soft_rom.learners.lopinf_margins import modal_table
+    zetas = [m['damping_ratio'] for m in modal_table(est.K_, est.C_)]
+    assert min(zetas) >= 0.3 * (1 - 1e-7)
+    diag = est.diagnostics_
+    assert diag['margin']['active'] and diag['margin']['min_damping_ratio'] == 0.3
+    assert diag['least_damped_mode']['damping_ratio'] == pytest.approx(min(zetas))
+    assert est.model_.metadata['diagnostics']['least_damped_mode'] == diag['least_damped_mode']
+    plain = LOpInf(r=8, min_damping_ratio=0.0).fit(episodes)
+    assert not plain.diagnostics_['margin']['active']
+    assert min(m['damping_ratio'] for m in modal_table(plain.K_, plain.C_)) < 0.3
+
+
+def test_tikhonov_columns_add_the_penalty_and_selection_is_reported():
+    from soft_rom.learners.lopinf_margins import augment_tikhonov
+    Q, Qd, Qdd, U = _random_problem(3)
+    Qa, Qda, Qdda, Ua, lam = augment_tikhonov(Q, Qd, Qdd, U, 1e-3)
+    rng = np.random.default_rng(1)
+    K, C, B = rng.standard_normal((6, 6)), rng.standard_normal((6, 6)), rng.standard_normal((6, 2))
+    lhs = objective(K, C, B, Qa, Qda, Qdda, Ua) ** 2
+    rhs = (objective(K, C, B, Q, Qd, Qdd, U) ** 2 + lam['C'] * np.sum(C ** 2)
+           + lam['K'] * np.sum(K ** 2) + lam['B'] * np.sum(B ** 2))
+    assert lhs == pytest.approx(rhs, rel=1e-12)
+    assert lam['K'] == pytest.approx(1e-3 * np.sum(Q ** 2) / 6)
+    episodes = _chain_episodes(noise=3e-2, seeds=(6, 7))
+    est = LOpInf(r=6, regularization='auto', reg_grid=(0.0, 1e-6, 1e-3, 1e3)).fit(episodes)
+    reg = est.diagnostics_['regularization']
+    table = reg['candidates']
+    assert reg['mode'] == 'auto' and [row['gamma'] for row in table] == [0.0, 1e-6, 1e-3, 1e3]
+    ok = [row for row in table if not row['rejected']]
+    assert reg['gamma'] == min(ok, key=lambda row: row['tail_error'])['gamma']
+    fixed = LOpInf(r=6, regularization=1e-3).fit(episodes)
+    assert fixed.diagnostics_['regularization'] == {'mode': 'fixed', 'gamma': 1e-3,
+                                                    'lambda': fixed.diagnostics_[
+                                                        'regularization']['lambda']}
+    with pytest.raises(Exception, match='regularization'):
+        LOpInf(r=6, regularization='sometimes').fit(episodes)

@@ -1,7 +1,7 @@
 """ROS 2 bags: the only part of soft_rom that imports rosbags.
 
 - :class:`EpisodeBagWriter` / :class:`BagTopics`: write episodes as bags (sqlite3 or MCAP)
-  laid out as a SOFA + ROS 2 recording (``SPEC.md``, bag contract).
+  laid out as a SOFA + ROS 2 recording (the bag contract, ``docs/bag_contract.md``).
 - :mod:`soft_rom.bags.reader`: open bags, describe them (``soft-rom info``) and stream
   decoded messages as numpy arrays for the converter (:mod:`soft_rom.convert`).
 """

@@ -77,11 +77,6 @@ class BagMessage:
     value: NDArray[Any]
     layout: tuple[tuple[str, int], ...] = ()
 
-    @property
-    def time_ns(self) -> int:
-        """Header stamp when there is one, else the bag log time."""
-        return self.log_ns if self.stamp_ns is None else self.stamp_ns
-
 
 def _stamp(msg: Any) -> int:
     st = msg.header.stamp

@@ -22,10 +22,8 @@ What is due when is decided by the node's own
 have published. :func:`replay_to_bag` runs the loop over an episode;
 :func:`replay_stream_to_bag` feeds a bag's messages one by one with their own stamps and
 the bag time as reception clock (what the node does under ``ros2 bag play --clock`` with
-``use_sim_time``); :func:`write_input_bag` writes an episode as the *inputs* of the bag
-contract (pressures per chamber or as one array, measured centerline), for tests and
-demos; :func:`read_messages` / :func:`read_messages_ns` read any bag back as deserialized
-messages.
+``use_sim_time``); :func:`read_messages` / :func:`read_messages_ns` read any bag back as
+deserialized messages.
 
 Both rosbag2 storage formats are supported: ``'sqlite3'`` and ``'mcap'`` (Jazzy's
 default). Times are int nanoseconds (exact at epoch stamps); the writer also takes float
@@ -49,12 +47,12 @@ from rosbags.typesys import get_typestore, Stores
 
 from soft_rom.data import Episode
 from soft_rom.errors import BagError
+from soft_rom.metrics import relative_error_from_squares
 from soft_rom.predictor import Predictor, replay_episode, ReplayResult
 from soft_rom.predictor.conversions import (
     check_components,
     model_info_json,
     ns_to_stamp,
-    outputs_to_points,
     poses_to_points,
     stamp_to_ns,
 )
@@ -80,7 +78,6 @@ __all__ = [
     'replay_stream_to_bag',
     'replay_to_bag',
     'storage_plugin',
-    'write_input_bag',
 ]
 
 DEFAULT_NODE_NAME = 'soft_rom_predictor'
@@ -145,7 +142,7 @@ def _pose_array(t: float | int, frame_id: str, points: Array) -> Any:
 
 def _marker(t: float | int, frame_id: str, points: Array, ns: str, marker_id: int,
             rgba: tuple[float, float, float, float], width: float) -> Any:
-    M = _T['visualization_msgs/msg/Marker']
+    M: Any = _T['visualization_msgs/msg/Marker']     # its constants are not in the stubs
     empty = np.zeros(0, dtype=np.uint8)
     return M(
         header=_header(t, frame_id), ns=ns, id=marker_id, type=M.LINE_STRIP, action=M.ADD,
@@ -312,25 +309,6 @@ class PredictionBagWriter:
             self._write_raw('marker', t, self._template('measured', measured.shape[0]).render(
                 t, measured))
 
-    def write_prediction(self, t: float | int, y: Array,
-                         measured: Array | None = None) -> None:
-        """Centerline, marker(s) and raw output for one published step at ``t``.
-
-        Messages are rendered from pre-serialized CDR templates (stamp and coordinates
-        patched in place), which is several times faster than serializing each message.
-        """
-        y = np.asarray(y, dtype=np.float64)
-        check_components(self.components, y.size)
-        pts = outputs_to_points(y, self.components, self.fill)
-        n = pts.shape[0]
-        self._write_raw('centerline', t, self._template('centerline', n).render(t, pts))
-        self._write_raw('marker', t, self._template('predicted', n).render(t, pts))
-        if measured is not None:
-            mpts = outputs_to_points(measured, self.components, self.fill)
-            self._write_raw('marker', t, self._template('measured', n).render(t, mpts))
-        self._write_raw('output', t, self._template('output', y.size).render(
-            t, y.reshape(-1, 1)))
-
     def write_error(self, t: float | int, error: float) -> None:
         """Windowed relative error (``std_msgs/Float64``)."""
         self._write('error', t, _T['std_msgs/msg/Float64'](data=float(error)))
@@ -421,56 +399,6 @@ def replay_to_bag(predictor: Predictor, episode: Episode, out: str | os.PathLike
         result = replay_episode(predictor, episode, measured=measured, t0_ns=t0_ns, loop=loop,
                                 publish=publish)
     return result
-
-
-def write_input_bag(path: str | os.PathLike[str], episode: Episode, *, storage: str = 'mcap',
-                    per_chamber: bool = True,
-                    chamber_topics: list[str] | None = None,
-                    array_topic: str = '/soft_robot/pressures',
-                    centerline_topic: str | None = '/soft_robot/centerline',
-                    components: str = 'xz', frame_id: str = 'world',
-                    overwrite: bool = False, t0_ns: int = 0) -> Path:
-    """Write an episode as the inputs of the bag contract (pressures, measured centerline).
-
-    Pressures go one ``sensor_msgs/FluidPressure`` per chamber (stamped) or one
-    ``std_msgs/Float64MultiArray`` per sample (bag time only); the outputs as a stamped
-    ``geometry_msgs/PoseArray`` (component-major layout ``components``). Stamps are
-    ``t0_ns + round(t * 1e9)`` (int ns; epoch stamps are exact).
-    """
-    m = episode.U.shape[0]
-    topics = chamber_topics or [f'/soft_robot/pressure/chamber_{i + 1}' for i in range(m)]
-    if per_chamber and len(topics) != m:
-        raise BagError(f'{m} inputs but {len(topics)} chamber topics.')
-    writer = _open_writer(path, storage, overwrite)
-    try:
-        FP = _T['sensor_msgs/msg/FluidPressure']
-        if per_chamber:
-            conns = [writer.add_connection(tp, FP.__msgtype__, typestore=_TS) for tp in topics]
-        else:
-            arr_conn = writer.add_connection(array_topic, 'std_msgs/msg/Float64MultiArray',
-                                             typestore=_TS)
-        c_conn = None
-        if centerline_topic:
-            check_components(components, episode.Y.shape[0])
-            c_conn = writer.add_connection(centerline_topic, 'geometry_msgs/msg/PoseArray',
-                                           typestore=_TS)
-        for j, t in enumerate(episode.t.tolist()):
-            ns = int(t0_ns) + int(round(t * 1e9))
-            if per_chamber:
-                for i, conn in enumerate(conns):
-                    msg = FP(header=_header(ns, ''), fluid_pressure=float(episode.U[i, j]),
-                             variance=0.0)
-                    writer.write(conn, ns, _TS.serialize_cdr(msg, FP.__msgtype__))
-            else:
-                msg = _float64_array(episode.U[:, j], 'chambers')
-                writer.write(arr_conn, ns, _TS.serialize_cdr(msg, msg.__msgtype__))
-            if c_conn is not None:
-                pts = outputs_to_points(episode.Y[:, j], components)
-                writer.write(c_conn, ns, _TS.serialize_cdr(_pose_array(ns, frame_id, pts),
-                                                           'geometry_msgs/msg/PoseArray'))
-    finally:
-        writer.close()
-    return Path(path)
 
 
 def read_messages(path: str | os.PathLike[str],
@@ -572,10 +500,11 @@ def replay_stream_to_bag(predictor: Predictor, bag: str | os.PathLike[str],
     counts['published'] = loop.counts['outputs']
     e2, y2, d2 = (a - b for a, b in zip(predictor.totals, totals_before))
     n_meas = predictor.counters['measurements']
-    tiny = np.finfo(float).tiny
     return {
-        'relative_error': math.sqrt(e2 / max(y2, tiny)) if n_meas else math.nan,
-        'relative_deviation_error': math.sqrt(e2 / max(d2, tiny)) if n_meas else math.nan,
+        'relative_error': relative_error_from_squares(e2, y2, if_zero=0.0) if n_meas
+        else math.nan,
+        'relative_deviation_error': relative_error_from_squares(e2, d2, if_zero=0.0) if n_meas
+        else math.nan,
         'messages': counts,
         'counters': dict(predictor.counters),
         'loop': dict(loop.counts),

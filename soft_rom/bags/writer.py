@@ -1,7 +1,7 @@
 """Streaming writer of episode bags, laid out exactly as a SOFA + ROS 2 recording.
 
 :class:`EpisodeBagWriter` writes one ROS 2 bag (sqlite3 or MCAP) per episode with the topics
-of the bag contract (``SPEC.md``):
+of the bag contract (``docs/bag_contract.md``):
 
 =================================== ================================= ======================
 topic                               type                              stamp
@@ -31,7 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 import shutil
 from types import TracebackType
-from typing import Any
+from typing import Any, Literal
 import uuid
 
 import numpy as np
@@ -47,7 +47,7 @@ __all__ = ['BagTopics', 'EpisodeBagWriter', 'STORAGES', 'typestore']
 #: Storage plugins accepted by ``storage=``.
 STORAGES = ('mcap', 'sqlite3')
 #: rosbag2 metadata version written (Jazzy writes 9).
-BAG_VERSION = 9
+BAG_VERSION: Literal[9] = 9
 
 _TYPESTORE = None
 
@@ -62,7 +62,7 @@ def typestore() -> Any:
 
 @dataclass(frozen=True)
 class BagTopics:
-    """Topic names of the bag contract; the defaults are those of ``SPEC.md``.
+    """Topic names of the bag contract; the defaults are those of ``docs/bag_contract.md``.
 
     Parameters
     ----------
@@ -163,7 +163,6 @@ class EpisodeBagWriter:
         self._writer: Writer | None = None
         self._tmp: Path | None = None
         self._conns: dict[str, Any] = {}
-        self.n_written = 0
         ts = typestore()
         self._ts = ts
         self._T = ts.types
@@ -254,7 +253,6 @@ class EpisodeBagWriter:
         conn = self._conn(topic, msgtype)
         data = self._ts.serialize_cdr(msg, msgtype)
         self._writer.write(conn, _to_ns(log_time), data)  # type: ignore[union-attr]
-        self.n_written += 1
 
     def message(self, msgtype: str, **fields: Any) -> Any:
         """Build a message of type ``msgtype`` (for hand-made or deliberately bad bags)."""

@@ -24,9 +24,10 @@ from soft_rom.cli._common import (
     is_summary_json,
 )
 from soft_rom.data import Episode
+from soft_rom.dataset import TrainingSet
 from soft_rom.errors import DimensionError
 from soft_rom.evaluation import evaluate
-from soft_rom.fitting import open_training_set, select_episodes
+from soft_rom.fitting import select_episodes
 from soft_rom.models import LinearROM, load_model
 
 __all__ = ['add_parser', 'plot_outputs', 'run']
@@ -94,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
         if args.plots is not None:
             _output_indices(args.outputs, model)
         models.append((path, model))
-    ts = open_training_set(args.data)
+    ts = TrainingSet.open(args.data)
     episodes = select_episodes(ts, args.episodes)
     for path, model in models:
         _check_layout(model, path, ts)

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -31,8 +32,9 @@ from soft_rom.cli._common import (
     is_summary_json,
     parse_r_list,
 )
+from soft_rom.dataset import TrainingSet
 from soft_rom.errors import ConfigError
-from soft_rom.fitting import fit_models, fit_models_streaming, open_training_set, select_episodes
+from soft_rom.fitting import fit_models, fit_models_streaming, select_episodes
 
 __all__ = ['add_parser', 'run']
 
@@ -94,11 +96,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     era.add_argument('--era-episode', default=None,
                      help='the one episode ERA/OKID is fitted on (default the first selected)')
     era.add_argument('--decimation', type=int_range(1, 100_000), default=None,
-                     help='fit at DECIMATION x the data sample time (default 5)')
+                     help='fit at DECIMATION x the data sample time (default: selected, 1 or 5)')
     era.add_argument('--n-markov', type=int_range(1, 1_000_000), default=None,
-                     help='number of Markov parameters in the Hankel matrices (default 100)')
+                     help='number of Markov parameters in the Hankel matrices (default: a '
+                          'third of the samples, at most 500)')
     era.add_argument('--observer-order', type=int_range(1, 100_000), default=None,
-                     help='OKID observer order (default: automatic, at most 10)')
+                     help='OKID observer order (default: selected on a held-out tail)')
     era.add_argument('--output-rank', type=int_range(1), default=None,
                      help='identify on this many principal components of the outputs '
                           '(fewer OKID unknowns; e.g. 4 for a centerline)')
@@ -108,6 +111,23 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     era.add_argument('--hsv-tol', type=finite_float(0.0, 1.0, lo_open=True, hi_open=True),
                      default=None,
                      help='relative Hankel singular value threshold when r is automatic')
+    era.add_argument('--era-preset', default=None, choices=('auto', 'eel', 'legacy'),
+                     help='named ERA/OKID settings (auto: data-driven defaults; eel: the '
+                          "study's hand-tuned settings; legacy: the former defaults); the "
+                          'options above override it')
+    era.add_argument('--okid-ridge', type=finite_float(0.0), default=None,
+                     help='relative ridge weight of OKID (default: selected on a held-out '
+                          'tail)')
+    variants = parser.add_argument_group('LOpInf / DMDc variants')
+    variants.add_argument('--regularization', default=None, metavar='GAMMA|auto',
+                          help="LOpInf Tikhonov weight (dimensionless), or 'auto' to select it "
+                               'on held-out episode tails (default none)')
+    variants.add_argument('--min-damping-ratio', type=finite_float(0.0, 1.0), default=None,
+                          help='LOpInf: every mode has at least this damping ratio (default '
+                               '0.01; 0 for the absolute margin only)')
+    variants.add_argument('--dmdc-variant', choices=('paper', 'stable'), default=None,
+                          help='DMDc formulation: paper (default) or stable (one lag, '
+                               'spectral radius <= 1)')
     parser.add_argument('--streaming', action='store_true',
                         help='stream the snapshots from disk with bounded memory (streamed '
                              'randomized POD; for training sets larger than RAM)')
@@ -172,7 +192,7 @@ def run(args: argparse.Namespace) -> int:
     if '/' in prefix or prefix in ('.', '..'):
         raise ConfigError(f'--prefix must be a file-name prefix, not a path; got {prefix!r}')
     _check_outputs_early(args, outdir, prefix)
-    ts = open_training_set(args.training_set)
+    ts = TrainingSet.open(args.training_set)
     episodes = select_episodes(ts, args.episodes, args.t_max)
     streaming = args.streaming or args.dask is not None
     if streaming and args.forces == 'cubic':
@@ -187,7 +207,26 @@ def run(args: argparse.Namespace) -> int:
     era_options = {'episode': args.era_episode, 'decimation': args.decimation,
                    'n_markov': args.n_markov, 'observer_order': args.observer_order,
                    'hsv_tol': args.hsv_tol, 'output_rank': args.output_rank,
-                   'okid_rcond': args.okid_rcond}
+                   'okid_rcond': args.okid_rcond, 'okid_ridge': args.okid_ridge}
+    if args.era_preset:
+        from soft_rom.learners.era import ERA_PRESETS
+        era_options = {**ERA_PRESETS[args.era_preset],
+                       **{k: v for k, v in era_options.items() if v is not None}}
+    lopinf_options: dict[str, Any] = {}
+    if args.regularization is not None:
+        reg = args.regularization
+        if reg != 'auto':
+            try:
+                reg = float(reg)
+                if not (math.isfinite(reg) and reg >= 0):
+                    raise ValueError(reg)
+            except ValueError:
+                raise ConfigError(f"--regularization must be a number >= 0 or 'auto'; got "
+                                  f'{args.regularization!r}.') from None
+        lopinf_options['regularization'] = reg
+    if args.min_damping_ratio is not None:
+        lopinf_options['min_damping_ratio'] = args.min_damping_ratio
+    dmdc_options = {} if args.dmdc_variant is None else {'variant': args.dmdc_variant}
     rows: list[dict[str, Any]] = []
     models: dict[Path, Any] = {}
     for method in args.method:
@@ -203,7 +242,8 @@ def run(args: argparse.Namespace) -> int:
                                 ddt_order=args.ddt_order, dmdc_p=args.dmdc_p,
                                 forces=args.forces,
                                 era_options=era_options, progress=not args.quiet,
-                                coordinates=args.coordinates, ddt=args.ddt, mass=args.mass)
+                                coordinates=args.coordinates, ddt=args.ddt, mass=args.mass,
+                                lopinf_options=lopinf_options, dmdc_options=dmdc_options)
         for model, seconds in fitted:
             path = outdir / f'{prefix}_{_label(method, args)}_r{model.r}.npz'
             models[path] = model

@@ -118,6 +118,11 @@ def format_text(d: dict[str, Any]) -> str:
         trust = d.get('trust') or []
         lines.append('  trust: ' + ('ok' if not trust else 'NOT TRUSTED: ' + '; '.join(trust)))
         meta = d.get('metadata') or {}
+        diag = meta.get('diagnostics') if isinstance(meta, dict) else None
+        mode = diag.get('least_damped_mode') if isinstance(diag, dict) else None
+        if isinstance(mode, dict) and 'damping_ratio' in mode:
+            lines.append(f"  least-damped mode: {mode.get('frequency_hz', float('nan')):.4g} Hz, "
+                         f"damping ratio {mode['damping_ratio']:.4g}")
         if meta:
             text = json.dumps(meta, sort_keys=True, default=str)
             lines.append('  metadata: ' + (text if len(text) <= 400 else text[:400] + ' ...'))

@@ -90,16 +90,18 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     return parser
 
 
-def _read(bag: str, mapping_path: str | None) -> tuple[Any, Any, str]:
-    """Episode, conversion report and output components (from the mapping) of ``bag``."""
-    from soft_rom.convert import load_mapping, read_episode
+def _read(bag: str, mapping_path: str | None, model: Any) -> tuple[Any, Any, str | None]:
+    """Episode, conversion report and output components of ``bag`` replayed by ``model``.
 
-    mapping = load_mapping(mapping_path)
-    if mapping.output.order != 'component_major':
-        raise ConfigError(f'replay needs a component-major output order; the mapping says '
-                          f'{mapping.output.order!r}.')
-    episode, report = read_episode(bag, mapping)
-    return episode, report, ''.join(mapping.output.components)
+    The components are the output layout stored in the model file, else the one the
+    converter stored with the episode (:func:`soft_rom.layout.replay_components`).
+    """
+    from soft_rom.convert import load_mapping, read_episode
+    from soft_rom.layout import layout_of, replay_components
+
+    episode, report = read_episode(bag, load_mapping(mapping_path))
+    return episode, report, replay_components(layout_of(model.metadata),
+                                              layout_of(episode.metadata))
 
 
 _REPLAY_JSON = is_summary_json(('output_bag',))
@@ -156,8 +158,9 @@ def run(args: argparse.Namespace) -> int:
     model = predictor.model
     if args.stream:
         return _run_stream(args, values, predictor)
-    episode, _report, components = _read(args.bag, args.mapping)
-    values.setdefault('output_components', components)
+    episode, _report, components = _read(args.bag, args.mapping, model)
+    if components is not None:
+        values.setdefault('output_components', components)
     publish_rate = float(values.get('publish_rate_hz', 0.0) or 0.0)
     every = 1 if publish_rate <= 0 else max(1, int(round(1.0 / (publish_rate * model.dt))))
     measured = not args.no_measured and episode.Y.shape[0] > 0
@@ -206,10 +209,14 @@ def run(args: argparse.Namespace) -> int:
 def _run_stream(args: argparse.Namespace, values: dict[str, Any], predictor: Any) -> int:
     """``replay --stream``: message by message, with the node's parameters."""
     from soft_rom.bags.replay_io import replay_stream_to_bag
+    from soft_rom.layout import layout_of, replay_components
     from soft_rom.outputs import atomic_new_dir
     from soft_rom.predictor.params import PARAMS
 
     v = {p.name: p.default for p in PARAMS}
+    components = replay_components(layout_of(predictor.model.metadata), None)
+    if components is not None:
+        v['output_components'] = components
     v.update(values)
     with atomic_new_dir(args.output, overwrite=args.overwrite, kind='replay',
                         what='replay bag') as stage:

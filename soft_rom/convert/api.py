@@ -207,14 +207,16 @@ def convert(bags: Sequence[str | Path], out: str | Path, mapping: BagMapping | N
     n = 0 if first.state is None else int(first.state.size or 0)
     _check_grid(plans, dt_ns, 1 + first.n_inputs + (first.output.size or 0) * 3 + n, out)
     names, units = input_names(m, first)
-    outs = m.output.names(first.output.size or 0)
+    layout = m.output.layout(first.output.size or 0)
+    outs = layout.names()
     provenance = {'bags': [str(p.resolve()) for p in paths], 'mapping': m.to_dict(),
                   'tool': 'soft-rom convert', 'dt_ns': dt_ns}
     reports: list[ConversionReport] = []
     names_taken: set[str] = set()
     with TrainingSetWriter(out, input_names=names, input_units=units, output_names=outs,
                            output_units=[m.output.units] * len(outs), overwrite=overwrite,
-                           attrs={'provenance': provenance}) as writer:
+                           attrs={'provenance': provenance,
+                                  'output_layout': layout.to_dict()}) as writer:
         sink = _TrainingSetSink(writer)
         for plan in plans:
             report = BagConverter(plan, m, dt_ns, sink, names_taken, progress).run()
@@ -256,6 +258,7 @@ def read_episode(bag_path: str | Path, mapping: BagMapping | None = None, *,
     meta = dict(ep.metadata)
     meta.update({'input_names': in_names, 'input_units': in_units,
                  'output_names': conv.output_names(),
+                 'output_layout': conv.output_layout().to_dict(),
                  'output_units': [m.output.units] * ep.Y.shape[0],
                  'conversion_report': report.to_dict()})
     return Episode(t=ep.t, U=ep.U, Y=ep.Y, Q=ep.Q, name=ep.name, metadata=meta), report

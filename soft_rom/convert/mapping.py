@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from soft_rom.errors import ConfigError
+from soft_rom.layout import COMPONENTS, ORDERS, OutputLayout
 
 __all__ = ['ARRAY_TYPES', 'BagMapping', 'InputSource', 'OUTPUT_TYPES', 'OutputMapping',
            'PRESSURE_TYPES', 'STATE_TYPES', 'StateMapping', 'load_mapping', 'per_input']
@@ -61,12 +62,14 @@ class OutputMapping:
     order: str = 'component_major'
     units: str = 'm'
 
+    def layout(self, n_points: int) -> OutputLayout:
+        """The output layout for a message of ``n_points`` points (stored with the data)."""
+        pts = tuple(self.points) if self.points is not None else tuple(range(n_points))
+        return OutputLayout(tuple(self.components), self.order, pts)
+
     def names(self, n_points: int) -> list[str]:
         """Output names for a message of ``n_points`` points."""
-        pts = list(self.points) if self.points is not None else list(range(n_points))
-        if self.order == 'component_major':
-            return [f'{c}{i + 1}' for c in self.components for i in pts]
-        return [f'{c}{i + 1}' for i in pts for c in self.components]
+        return self.layout(n_points).names()
 
 
 @dataclass(frozen=True)
@@ -157,10 +160,11 @@ class BagMapping:
         names = inp.get('names')
         units = inp.get('units', 'Pa')
         comps = tuple(str(c) for c in out.get('components', ('x', 'z')))
-        if not comps or any(c not in ('x', 'y', 'z') for c in comps):
-            raise ConfigError(f'output.components must be a list of x, y, z; got {comps}.')
+        if not comps or any(c not in COMPONENTS for c in comps) or len(set(comps)) < len(comps):
+            raise ConfigError(f'output.components must be a list of distinct x, y, z; got '
+                              f'{comps}.')
         order = str(out.get('order', 'component_major'))
-        if order not in ('component_major', 'point_major'):
+        if order not in ORDERS:
             raise ConfigError(f"output.order must be 'component_major' or 'point_major'; "
                               f'got {order!r}.')
         stamps = str(tm.get('stamps', 'header'))

@@ -40,6 +40,7 @@ from soft_rom.convert.probe import (
 from soft_rom.convert.report import ConversionReport, TopicReport
 from soft_rom.data import all_finite
 from soft_rom.errors import BagError, ConfigError
+from soft_rom.layout import OutputLayout
 
 __all__ = ['BagConverter', 'BagPlan', 'EpisodeSink', 'SegmentSink', 'input_names',
            'probe_bag']
@@ -477,9 +478,13 @@ class BagConverter:
         """Input names and units."""
         return input_names(self.mapping, self.plan)
 
+    def output_layout(self) -> OutputLayout:
+        """Which points and components form ``y``."""
+        return self.mapping.output.layout(self.n_points or 0)
+
     def output_names(self) -> list[str]:
         """Output names."""
-        return self.mapping.output.names(self.n_points or 0)
+        return self.output_layout().names()
 
 
 def input_names(mapping: BagMapping, plan: BagPlan) -> tuple[list[str], list[str]]:

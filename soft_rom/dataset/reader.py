@@ -22,6 +22,7 @@ from soft_rom.dataset._format import (
 )
 from soft_rom.dataset.writer import TrainingSetWriter
 from soft_rom.errors import DatasetError
+from soft_rom.layout import layout_of, OutputLayout
 
 __all__ = ['TrainingSet']
 
@@ -187,6 +188,19 @@ class TrainingSet:
     def output_units(self) -> list[str]:
         """Output units, length p."""
         return list(self.attrs['output_units'])
+
+    @property
+    def output_layout(self) -> OutputLayout | None:
+        """Which points and components form ``y``, or ``None``.
+
+        Stored by the converter; for sets from before it was, the layout the output names
+        spell.
+        """
+        layout = layout_of(self.attrs, self.output_names)
+        if layout is not None and layout.size != len(self.output_names):
+            raise DatasetError(f'{self.path}: the output layout has {layout.size} outputs, '
+                               f'the names {len(self.output_names)}.')
+        return layout
 
     @property
     def provenance(self) -> dict[str, Any]:

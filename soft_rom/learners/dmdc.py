@@ -61,7 +61,8 @@ from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
 from soft_rom.models import DiscreteModel
 
-__all__ = ['DMDc', 'channel_scale', 'dmdc_from_gram', 'dmdc_reduced_operators']
+__all__ = ['DMDc', 'channel_scale', 'clip_spectral_radius', 'dmdc_from_gram',
+           'dmdc_reduced_operators']
 
 Array = NDArray[np.float64]
 
@@ -114,6 +115,85 @@ def dmdc_reduced_operators(G: ArrayLike, s_omega: ArrayLike, U1_Uhat: ArrayLike,
         raise DimensionError('singular values of Omega must be positive (drop the zero ones).')
     GS = G / s[None, :]
     return GS @ np.asarray(U1_Uhat, dtype=np.float64), GS @ np.asarray(U2, dtype=np.float64).T
+
+
+def clip_spectral_radius(A: ArrayLike, rho: float = 1.0) -> tuple[Array, int]:
+    """``A`` with every eigenvalue of modulus ``> rho`` moved radially onto ``|z| = rho``.
+
+    Works on the real Schur form ``A = Z T Zᵀ``: each 1×1 or 2×2 diagonal block of ``T``
+    whose eigenvalue modulus exceeds ``rho`` is scaled by ``rho / |λ|`` (a 2×2 block scaled by
+    ``s`` has eigenvalues ``s λ``); the coupling above the diagonal is kept, so the other
+    eigenvalues do not move.
+
+    Returns
+    -------
+    A_clipped : ndarray, shape (r, r)
+    n_clipped : int
+        Number of eigenvalues moved.
+    """
+    import scipy.linalg as sla
+    A = np.asarray(A, dtype=np.float64)
+    if A.size == 0 or float(np.max(np.abs(np.linalg.eigvals(A)))) <= rho:
+        return A, 0
+    T, Z = sla.schur(A, output='real')
+    n = T.shape[0]
+    i = moved = 0
+    target = rho * (1.0 - 1e-12)
+    while i < n:
+        size = 2 if i + 1 < n and abs(T[i + 1, i]) > 0 else 1
+        blk = T[i:i + size, i:i + size]
+        mod = float(np.max(np.abs(np.linalg.eigvals(blk))))
+        if mod > target:
+            T[i:i + size, i:i + size] = blk * (target / mod)
+            moved += size
+        i += size
+    return Z @ T @ Z.T, moved
+
+
+def _lag_model(data: Sequence[tuple[Array, Array]], r: int, s_q: float, s_u: Array, rho: float,
+               rcond: float) -> tuple[Array, Array, int]:
+    """The ``'stable'`` variant: one lag of states and inputs, spectral radius ``<= rho``.
+
+    Least squares ``x̃_{k+1} = A₁ x̃_k + A₂ x̃_{k-1} + B₀ u_k + B₁ u_{k-1}`` (the exact form of a
+    sampled linear second-order system with held inputs), in the model
+    ``z = [x̃_k; x̃_{k-1}; u_{k-1}]``; eigenvalues outside ``|z| ≤ rho`` are then clipped
+    (:func:`clip_spectral_radius`) and ``B₀, B₁`` refitted for the clipped ``A₁, A₂``.
+    """
+    tgt, reg_x, reg_u = [], [], []
+    for Xr, U in data:
+        if Xr.shape[1] < 3:
+            continue
+        x = Xr[:r] / s_q
+        u = U / s_u[:, None]
+        tgt.append(x[:, 2:])
+        reg_x.append(np.vstack([x[:, 1:-1], x[:, :-2]]))
+        reg_u.append(np.vstack([u[:, 1:-1], u[:, :-2]]))
+    if not tgt:
+        raise DimensionError("DMDc variant 'stable' needs episodes of at least 3 samples.")
+    T, Rx, Ru = (np.concatenate(a, axis=1) for a in (tgt, reg_x, reg_u))
+    m = Ru.shape[0] // 2
+    theta = np.linalg.lstsq(np.vstack([Rx, Ru]).T, T.T, rcond=rcond)[0].T
+    A12, B01 = theta[:, :2 * r], theta[:, 2 * r:]
+    n = 2 * r + m
+    Az = np.zeros((n, n))
+    Az[r:2 * r, :r] = np.eye(r)
+    Az[:r, :2 * r] = A12
+    Ax = Az[:2 * r, :2 * r]
+    Ax_c, clipped = clip_spectral_radius(Ax, rho)
+    if clipped:
+        A12 = Ax_c[:r]
+        B01 = np.linalg.lstsq(Ru.T, (T - A12 @ Rx).T, rcond=rcond)[0].T
+        Az[:r, :2 * r] = A12
+        Az[r:2 * r, :2 * r] = Ax_c[r:]
+    Az[:r, 2 * r:] = B01[:, m:]
+    Bz = np.zeros((n, m))
+    Bz[:r] = B01[:, :m]
+    Bz[2 * r:] = np.eye(m)
+    # Back to physical units: z_phys = D z_scaled with D = diag(s_q, s_q, s_u).
+    dz = np.concatenate([np.full(2 * r, s_q), s_u])
+    A = Az * dz[:, None] / dz[None, :]
+    B = Bz * dz[:, None] / s_u[None, :]
+    return A, B, clipped
 
 
 def _eig_desc(G: Array) -> tuple[Array, Array]:
@@ -213,6 +293,21 @@ class DMDc:
         How the output operator is fitted (module docstring).
     rcond : float
         Relative threshold below which singular values count as zero.
+    variant : {'paper', 'stable'}
+        ``'paper'`` (default): the formulation above, unchanged. ``'stable'``: one lag of
+        states and inputs, ``x̃_{k+1} = A₁ x̃_k + A₂ x̃_{k-1} + B₀ u_k + B₁ u_{k-1}`` by least
+        squares on the same POD coordinates (the exact form of a sampled linear second-order
+        system with held inputs, which positions alone cannot represent: DMDc on positions
+        of a second-order body is marginally unstable at most ``r``), then every eigenvalue
+        of the companion matrix outside ``|z| ≤ max_spectral_radius`` pulled radially onto
+        that circle (:func:`clip_spectral_radius`) and ``B₀, B₁`` refitted. The model state
+        is ``[x̃_k; x̃_{k-1}; u_{k-1}]`` (``2 r + m`` states, ``C = [Ẽ, 0, 0]``);
+        ``metadata['r']`` is the basis size ``r``.
+    max_spectral_radius : float, optional
+        Bound of the ``'stable'`` variant; default ``exp(-dt / (10 T))`` with ``T`` the
+        longest training episode: no mode of the ROM has a decay time longer than ten times
+        the time the data cover (such a mode is not identified by the data; on a nonlinear
+        body the lagged regression otherwise puts modes on or outside the unit circle).
 
     Attributes
     ----------
@@ -239,8 +334,11 @@ class DMDc:
     """
 
     def __init__(self, r: int | None = None, p: int | None = None, *, energy: float = 0.95,
-                 output_fit: str = 'reduced', rcond: float = 1e-10) -> None:
+                 output_fit: str = 'reduced', rcond: float = 1e-10, variant: str = 'paper',
+                 max_spectral_radius: float | None = None) -> None:
         self.r = r
+        self.variant = variant
+        self.max_spectral_radius = max_spectral_radius
         self.p = p
         self.energy = energy
         self.output_fit = output_fit
@@ -274,6 +372,13 @@ class DMDc:
         t0 = time.perf_counter()
         if self.output_fit not in ('reduced', 'paper'):
             raise ConfigError(f"output_fit must be 'reduced' or 'paper'; got {self.output_fit!r}.")
+        if self.variant not in ('paper', 'stable'):
+            raise ConfigError(f"variant must be 'paper' or 'stable'; got {self.variant!r}.")
+        if self.max_spectral_radius is not None:
+            rho = float(self.max_spectral_radius)
+            if not (np.isfinite(rho) and rho > 0):
+                raise ConfigError(f'max_spectral_radius must be > 0; got '
+                                  f'{self.max_spectral_radius!r}.')
         eps = _as_episodes(episodes)
         n = int(eps[0].Q.shape[0])
         m = eps[0].U.shape[0]
@@ -334,6 +439,12 @@ class DMDc:
         self._G = sh[:rank_h, None] * (Vht[:rank_h] @ Vtt[:rank_t].T)    # ÛᵀQ'Ṽ  (ph, pt)
         self._Xr = Uh[:, :rank_h].T @ Q_all                             # ÛᵀQ    (ph, K)
         self._Yd = Y_all
+        if self.variant == 'stable':
+            self._lagdata = [(Uh[:, :rank_h].T @ q, ep.U) for q, ep in zip(Qc, eps)]
+            t_long = max(q.shape[1] for q in Qc) * dt
+            self.rho_max_ = (float(np.exp(-dt / (10.0 * t_long)))
+                             if self.max_spectral_radius is None
+                             else float(self.max_spectral_radius))
         self._Q_all = Q_all if self.output_fit == 'paper' else None
         self._model_kwargs = dict(input_names=input_names, output_names=output_names,
                                   input_units=input_units, output_units=output_units)
@@ -382,8 +493,13 @@ class DMDc:
         # A = A_s / s_q and B = B_s diag(1/s_u). The states stay in physical units.
         A = A / self.state_scale_
         B = Bs / self.input_scale_[None, :]
+        clipped = 0
+        if self.variant == 'stable':
+            A, B, clipped = _lag_model(self._lagdata, r, self.state_scale_, self.input_scale_,
+                                       self.rho_max_, self.rcond)
         if self.output_fit == 'paper':
             # E_approx Û = Yd Q⁺ Û with Q⁺Û the minimum-norm solution of Q Z = Û.
+            assert self._Q_all is not None
             Z = np.linalg.lstsq(self._Q_all, self._Uh[:, :r], rcond=None)[0]
             E = self._Yd @ Z
         else:
@@ -396,6 +512,9 @@ class DMDc:
             'learner': 'DMDc',
             'r': r, 'p': p_used, 'p_requested': p_req,
             'output_fit': self.output_fit,
+            'variant': self.variant,
+            'max_spectral_radius': self.rho_max_ if self.variant == 'stable' else None,
+            'eigenvalues_clipped': int(clipped),
             'rcond': self.rcond,
             'episodes': self._episodes,
             'n_pairs': self.n_pairs_,
@@ -410,7 +529,9 @@ class DMDc:
             'stability_margin': float(1.0 - np.max(np.abs(ev))),
             'fit_time_s': float(self.fit_time_ + time.perf_counter() - t0),
         })
-        model = DiscreteModel(A, B, E, None, dt=self.dt_, method='dmdc', y_ref=self.y_ref_,
+        Cout = E if self.variant == 'paper' else np.hstack([E, np.zeros((E.shape[0],
+                                                                         A.shape[0] - r))])
+        model = DiscreteModel(A, B, Cout, None, dt=self.dt_, method='dmdc', y_ref=self.y_ref_,
                               metadata=meta, **self._model_kwargs)
         self.basis_ = self._Uh[:, :r]
         return model

@@ -30,17 +30,18 @@ The model is :math:`x_{k+1} = A x_k + B u_k`, :math:`y_k = C x_k + D u_k + y_{re
 The horizon problem and its knobs. With ``p = 40`` outputs the observer regression has
 ``m + l (m + p)`` unknowns per output row, so ``K`` samples allow an observer of order
 ``l < K / (m + p + 1)`` (a few dozen samples at 1 kHz), while the slow modes of a soft body
-last seconds. Three knobs, with defaults chosen by trying them on a lightly damped
-second-order system with 40 outputs at 1 kHz (see :class:`ERAOKID`):
+last seconds. The knobs:
 
-* ``observer_order`` (``l``): with many outputs a low order already makes the observer
-  dead-beat (``l p >= n``), and the recursion above then extends the Markov sequence as far
-  as wanted;
+* ``observer_order`` (``l``) and the ridge weight of the (well-posed) OKID solve;
 * ``n_markov``: how many system Markov parameters feed the Hankel matrices (their time span
   ``n_markov · dt_model`` should cover the slow modes);
-* ``decimation``: fit at ``dt_model = decimation · dt_data``: outputs are sampled every
+* ``decimation``: fit at ``dt_fit = decimation · dt_data``: outputs are sampled every
   ``decimation`` samples and inputs averaged over each block (the input held over one model
-  step); :func:`soft_rom.evaluation.predict` uses the same rule.
+  step); the model is then resampled to the data step when possible.
+
+:class:`ERAOKID` chooses them from the data by the error on a held-out tail of the episode
+(:mod:`soft_rom.learners.era_select`, which also explains why the ridge solve is needed);
+named presets (:data:`ERA_PRESETS`) give the hand-tuned settings.
 
 Unit invariance: inputs and outputs are divided by their per-channel RMS before OKID/ERA
 and the realization is scaled back (``B = B_s diag(1/s_u)``, ``C = diag(s_y) C_s``,
@@ -59,10 +60,29 @@ from numpy.typing import ArrayLike, NDArray
 from soft_rom.data import as_signal, check_finite, Episode
 from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
+from soft_rom.learners import era_select
 from soft_rom.learners.dmdc import channel_scale
 from soft_rom.models import DiscreteModel
 
-__all__ = ['ERAOKID', 'decimate', 'era', 'hankel_rank', 'okid_markov']
+__all__ = ['ERA_EEL_OPTIONS', 'ERA_PRESETS', 'ERAOKID', 'decimate', 'era', 'hankel_rank',
+           'okid_markov']
+
+#: The hand-tuned settings of the eel study (1 kHz, 40 outputs, slow lightly damped modes):
+#: identify on the 4 leading output principal components at the full rate with a 36-step
+#: observer and 500 Markov parameters (0.5 s), plain least squares (no ridge, no selection).
+ERA_EEL_OPTIONS: dict[str, Any] = {'decimation': 1, 'output_rank': 4, 'observer_order': 36,
+                                   'n_markov': 500, 'selection': 'none'}
+
+#: Named settings for :meth:`ERAOKID.from_preset` (and ``soft-rom fit --era-preset``):
+#: ``'auto'`` the data-driven defaults; ``'eel'`` the study's hand-tuned settings;
+#: ``'legacy'`` the former defaults (decimation 5, 100 Markov parameters, automatic
+#: observer order capped at 10, Hankel singular value rule for r).
+ERA_PRESETS: dict[str, dict[str, Any]] = {
+    'auto': {},
+    'eel': ERA_EEL_OPTIONS,
+    'legacy': {'decimation': 5, 'n_markov': 100, 'max_observer_order': 10,
+               'output_rank': None, 'selection': 'none'},
+}
 
 Array = NDArray[np.float64]
 
@@ -97,7 +117,8 @@ def decimate(U: ArrayLike, Y: ArrayLike, factor: int) -> tuple[Array, Array]:
 
 
 def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: int,
-                rcond: float | None = None) -> tuple[Array, dict[str, Any]]:
+                rcond: float | None = None, ridge: float | None = None
+                ) -> tuple[Array, dict[str, Any]]:
     """System Markov parameters from arbitrary input/output data by OKID.
 
     Parameters
@@ -113,6 +134,10 @@ def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: in
         Number of Markov parameters ``Y_1 .. Y_n_markov`` to return besides ``Y_0 = D``.
     rcond : float, optional
         Cut-off for the least-squares solve (``numpy.linalg.lstsq``).
+    ridge : float, optional
+        Relative Tikhonov weight ``ρ`` (``λ = ρ σ_1(Φ)²``;
+        :mod:`soft_rom.learners.era_select`): the well-posed solve. ``None``: plain least
+        squares (exact data only).
 
     Returns
     -------
@@ -139,6 +164,10 @@ def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: in
             f'OKID with observer_order={lo} has {n_unknowns} unknowns per output but only '
             f'{rows} equations ({K} samples): use observer_order <= {max(kmax, 0)}, more data, '
             'or less decimation.')
+    if ridge is not None:
+        markov, info = era_select.ridge_markov(U, Y, lo, nm, (float(ridge),))[0]
+        info['rank'] = info['effective_rank']
+        return markov, info
     V = np.concatenate([U, Y], axis=0)                       # (m + p, K)
     Phi = np.empty((n_unknowns, rows))
     Phi[:m] = U[:, lo:]
@@ -225,10 +254,11 @@ def era(markov: ArrayLike, r: int | None = None, *, n_block_rows: int | None = N
         # largest attainable rank).
         n_block_rows = min(max(int(round(N * m / (m + p))), 1), N - 1)
         n_block_cols = N - n_block_rows
-    elif n_block_rows is None:
+    elif n_block_rows is None and n_block_cols is not None:
         n_block_rows = N - int(n_block_cols)
-    elif n_block_cols is None:
+    elif n_block_cols is None and n_block_rows is not None:
         n_block_cols = N - int(n_block_rows)
+    assert n_block_rows is not None and n_block_cols is not None
     a, b = int(n_block_rows), int(n_block_cols)
     if a < 1 or b < 1 or a + b > N:
         raise ConfigError(f'Hankel blocks ({a} rows, {b} columns) need 1 <= rows, cols and '
@@ -250,67 +280,57 @@ def era(markov: ArrayLike, r: int | None = None, *, n_block_rows: int | None = N
 class ERAOKID:
     """ERA/OKID learner: a discrete ROM from the inputs and outputs of one episode.
 
+    Defaults (``selection='holdout'``): well-posed ridge OKID (module
+    :mod:`soft_rom.learners.era_select`), with the observer order ``l``, the ridge weight
+    ``ρ`` and the order ``r`` chosen together by the error of the ERA model on a held-out tail
+    of the episode (fit on the first 80 %), then refitted on the whole episode; the Markov
+    horizon is a third of the samples (at most 500); the data rate is kept (``decimation=1``)
+    and outputs are identified on their leading principal components. Any of ``r``,
+    ``observer_order``, ``okid_ridge`` given by hand is kept fixed in the search.
+
     Parameters
     ----------
     r : int, optional
-        Order of the ROM; ``None``: the number of Hankel singular values above
-        ``hsv_tol · σ_1`` (:func:`hankel_rank`).
-    n_markov : int
+        Order of the ROM; ``None``: selected (``selection='holdout'``) or the Hankel
+        singular value rule (``selection='none'``).
+    n_markov : int, optional
         System Markov parameters used in the Hankel matrices (their span is
-        ``n_markov · decimation · dt``).
+        ``n_markov · decimation · dt``); ``None``: ``min(K // 3, 500)``.
     observer_order : int, optional
-        OKID observer order ``l``; ``None``: the largest order with at least two equations per
-        unknown (``K / 2 >= m + l (m + p)``, ``K`` samples after decimation), capped at
-        ``max_observer_order``.
-    decimation : int
-        Fit at ``decimation`` times the data sample time (module docstring).
+        OKID observer order ``l``; ``None``: selected, or (``selection='none'``) the largest
+        order with two equations per unknown, capped at ``max_observer_order``.
+    decimation : int or 'auto'
+        Fit at ``decimation`` times the data sample time; ``'auto'`` (default): the factor of
+        :data:`~soft_rom.learners.era_select.DECIMATION_GRID` with the lowest held-out tail
+        error. A model fitted at ``d > 1`` is resampled to the data step
+        (:func:`~soft_rom.learners.era_select.to_data_rate`: exact ``d``-th root), so it
+        predicts on the data grid without interpolation; the metadata state ``decimation``,
+        ``dt_fit``, ``dt_model`` and ``resampled_to_data_rate``. If no real root exists the
+        model keeps ``dt = d · dt_data`` (printed by ``soft-rom fit``).
     n_block_rows, n_block_cols : int, optional
-        Hankel block sizes (default: half of ``n_markov`` each).
+        Hankel block sizes (default: ``H_0`` about square).
     hsv_tol : float
-        Threshold of the default order rule.
+        Threshold of the Hankel singular value rule.
     max_observer_order : int
-        Cap for the automatic observer order.
-    output_rank : int, optional
+        Cap of the equation-count observer order (``selection='none'``).
+    output_rank : int, 'auto' or None
         Identify on the leading ``output_rank`` principal components of the scaled outputs
-        (``Y_s ≈ P Z``, ``P`` orthonormal ``(p, q)``) and lift ``C = P C_Z``, ``D = P D_Z``.
-        With strongly correlated outputs (the 20 centerline points of a soft body) this cuts
-        the OKID unknowns from ``m + l (m + p)`` to ``m + l (m + q)``, so a much longer
-        observer fits in the same data. ``None``: all ``p`` outputs.
+        (``Y_s ≈ P Z``) and lift ``C = P C_Z``, ``D = P D_Z``; ``'auto'`` (default): the
+        components holding 99 % of the energy, at least ``min(p, 4)``; ``None``: all ``p``.
     okid_rcond : float, optional
-        Relative singular-value cut-off of the OKID least-squares solve (regularisation).
+        Relative singular-value cut-off of the plain least-squares OKID solve (only when
+        ``okid_ridge`` is ``None`` and ``selection='none'``).
+    okid_ridge : float, optional
+        Relative ridge weight ``ρ`` of OKID; ``None``: selected from
+        :data:`~soft_rom.learners.era_select.RIDGE_GRID` (``selection='holdout'``) or plain
+        least squares (``selection='none'``).
+    selection : {'holdout', 'none'}
+        Data-driven settings (default) or the given ones as they are.
+    holdout : float
+        Fraction of the episode held out for the selection.
 
-    How the defaults were chosen (``decimation=5``, ``n_markov=100``, automatic observer
-    order): a lightly damped second-order system (12 modes, 1.5 to 60 Hz, damping 2 to 5 %),
-    6 antagonistic pressure inputs (random steps with 20 ms ramps), 40 outputs at 1 kHz with
-    0.1 % noise; fit on 1.5 s, errors on deviations (train ``t < 1.5 s`` / test ``1.5-2 s`` /
-    an unseen input sequence), r from 24 to 40:
-
-    ============  ========  ========  =====================================================
-    decimation    n_markov  observer  result
-    ============  ========  ========  =====================================================
-    1             50-200    2-10      unstable or > 20 % train error: the Hankel span
-                                      (0.05-0.2 s) is far shorter than the slow modes
-    1             400       5-10      3 % / 6-15 % / --, 0.4 s span, but slow (8000-row SVD)
-    2             100-200   2-10      unreliable (errors 6 % to > 100 %, often unstable)
-    2             400       5-10      0.3-1 % / 1-4 %, slow
-    **5**         **100**   **3**     **0.7-1.4 % / 3-3.7 % / 1.9-2.6 %**, stable, 0.5 s
-    5             200       2-5       0.3-1 % / 2-6 % / 1.3-3.7 %, stable
-    5             100-200   6         unstable: 282 unknowns for 294 equations fit noise
-    5             any       1         ~96 %: a one-step observer is not dead-beat with noise
-    10            any       1-3       fails: 150 samples leave no room for an observer
-    ============  ========  ========  =====================================================
-
-    The rule kept: at least two equations per OKID unknown (automatic observer order), a
-    Hankel span ``n_markov · decimation · dt`` of about 0.5 s, and decimation so that the
-    1.5-2 s episode still has a few hundred samples.
-
-    Noise-free simulations of the embedded (geometrically nonlinear) eel, 5,145 DOF, are
-    harder: with all 40 outputs every setting above gave unstable realizations (the OKID
-    recursion amplifies the near-exact, over-parameterised observer). What worked there was
-    ``output_rank=4, decimation=1, observer_order=36, n_markov=500``: 11-14 % training error
-    on deviations for r = 24-32 on either episode (LOpInf: 13 %), stability margin within
-    1e-4 of zero; ``decimation=2, observer_order=18, n_markov=250`` works on one episode but
-    not on the other. Treat ERA/OKID on such data as fragile and check the stability margin.
+    Presets: :meth:`from_preset` with a name of :data:`ERA_PRESETS` (``'eel'``: the study's
+    hand-tuned settings :data:`ERA_EEL_OPTIONS`).
 
     Attributes
     ----------
@@ -320,6 +340,9 @@ class ERAOKID:
     markov_ : ndarray, shape (n_markov + 1, p, m)
         Markov parameters of the scaled data.
     observer_order_ : int
+    okid_ridge_ : float or None
+    selection_ : dict or None
+        The search table (``selection='holdout'``).
     okid_residual_ : float
         Relative residual of the observer fit.
     output_basis_ : ndarray, shape (p, q) or None
@@ -328,11 +351,13 @@ class ERAOKID:
     input_scale_, output_scale_ : ndarray
     """
 
-    def __init__(self, r: int | None = None, *, n_markov: int = 100,
-                 observer_order: int | None = None, decimation: int = 5,
+    def __init__(self, r: int | None = None, *, n_markov: int | None = None,
+                 observer_order: int | None = None, decimation: int | str = 'auto',
                  n_block_rows: int | None = None, n_block_cols: int | None = None,
                  hsv_tol: float = 1e-3, max_observer_order: int = 10,
-                 output_rank: int | None = None, okid_rcond: float | None = None) -> None:
+                 output_rank: int | str | None = 'auto', okid_rcond: float | None = None,
+                 okid_ridge: float | None = None, selection: str = 'holdout',
+                 holdout: float = 0.2) -> None:
         self.r = r
         self.n_markov = n_markov
         self.observer_order = observer_order
@@ -343,6 +368,17 @@ class ERAOKID:
         self.max_observer_order = max_observer_order
         self.output_rank = output_rank
         self.okid_rcond = okid_rcond
+        self.okid_ridge = okid_ridge
+        self.selection = selection
+        self.holdout = holdout
+
+    @classmethod
+    def from_preset(cls, name: str, **overrides: Any) -> ERAOKID:
+        """A learner with the settings of :data:`ERA_PRESETS` ``[name]`` (then ``overrides``)."""
+        if name not in ERA_PRESETS:
+            raise ConfigError(f'unknown ERA preset {name!r}; choose one of '
+                              f'{sorted(ERA_PRESETS)}.')
+        return cls(**{**ERA_PRESETS[name], **overrides})
 
     def fit(self, episode: Episode | Sequence[Episode], y_ref: ArrayLike | None = None, *,
             input_names: Sequence[str] | None = None,
@@ -365,6 +401,11 @@ class ERAOKID:
         self
         """
         t0 = time.perf_counter()
+        if self.decimation == 'auto':
+            return self._fit_auto_decimation(episode, y_ref, input_names=input_names,
+                                             output_names=output_names,
+                                             input_units=input_units,
+                                             output_units=output_units, metadata=metadata)
         if not isinstance(episode, Episode):
             eps = list(episode)
             if len(eps) != 1:
@@ -386,18 +427,43 @@ class ERAOKID:
         s_u = channel_scale(Ud)
         s_y = channel_scale(Yd)
         Us, Ys = Ud / s_u[:, None], Yd / s_y[:, None]
+        if self.selection not in ('holdout', 'none'):
+            raise ConfigError(f"selection must be 'holdout' or 'none'; got {self.selection!r}.")
         P = None
-        if self.output_rank is not None:
-            q = int(self.output_rank)
+        q = self.output_rank
+        if q == 'auto':
+            sv = np.linalg.svd(Ys, compute_uv=False)
+            cum = np.cumsum(sv ** 2) / max(float(np.sum(sv ** 2)), 1e-300)
+            q = min(p, max(4, int(np.searchsorted(cum, 0.99) + 1)))
+        elif isinstance(q, str):
+            raise ConfigError(f"output_rank must be an integer, 'auto' or None; got {q!r}.")
+        if q is not None and int(q) < p:
+            q = int(q)
             if not 1 <= q <= p:
                 raise ConfigError(f'output_rank must be between 1 and p = {p}; got {q}.')
             P = np.linalg.svd(Ys, full_matrices=False)[0][:, :q]     # (p, q), orthonormal
             Ys = P.T @ Ys
+        elif q is not None and not 1 <= int(q) <= p:
+            raise ConfigError(f'output_rank must be between 1 and p = {p}; got {q}.')
         p_id = Ys.shape[0]
         K = Us.shape[1]
-        if self.observer_order is None:
+        nm = era_select.default_n_markov(K) if self.n_markov is None else int(self.n_markov)
+        r_sel = self.r
+        ridge = self.okid_ridge
+        sel = None
+        if self.selection == 'holdout':
+            sel = era_select.select_okid(
+                Us, Ys, holdout=float(self.holdout),
+                observer_orders=None if self.observer_order is None else (
+                    int(self.observer_order),),
+                rhos=era_select.RIDGE_GRID if ridge is None else (float(ridge),),
+                n_markov=None if self.n_markov is None else nm,
+                r_values=None if self.r is None else (int(self.r),))
+            lo, ridge = sel['observer_order'], sel['ridge']
+            r_sel = sel['r'] if self.r is None else self.r
+        elif self.observer_order is None:
             # Keep at least 2 equations per unknown: near-square regressions fit the noise
-            # and give unstable Markov sequences (see the sweep in the class docstring).
+            # and give unstable Markov sequences.
             lo = min(int(self.max_observer_order), (K // 2 - m) // (m + p_id))
             if lo < 1:
                 raise DimensionError(
@@ -406,22 +472,41 @@ class ERAOKID:
                     'decimation or a longer episode.')
         else:
             lo = int(self.observer_order)
-        markov, info = okid_markov(Us, Ys, observer_order=lo, n_markov=int(self.n_markov),
-                                   rcond=self.okid_rcond)
-        A, Bs, Cs, Ds, hsv = era(markov, self.r, n_block_rows=self.n_block_rows,
+        markov, info = okid_markov(Us, Ys, observer_order=lo, n_markov=nm,
+                                   rcond=self.okid_rcond, ridge=ridge)
+        A, Bs, Cs, Ds, hsv = era(markov, r_sel, n_block_rows=self.n_block_rows,
                                  n_block_cols=self.n_block_cols, tol=self.hsv_tol)
+        if sel is not None and np.max(np.abs(np.linalg.eigvals(A))) >= 1:
+            # The refit on the whole episode can move a lightly damped pole out of the unit
+            # circle: keep the model validated on the held-out tail (fitted on the head).
+            cut = int(sel['cut'])
+            markov, info = okid_markov(Us[:, :cut], Ys[:, :cut], observer_order=lo,
+                                       n_markov=nm, ridge=ridge)
+            A, Bs, Cs, Ds, hsv = era(markov, r_sel, n_block_rows=self.n_block_rows,
+                                     n_block_cols=self.n_block_cols, tol=self.hsv_tol)
+            sel['refit'] = 'head (the whole-episode refit was unstable)'
+        elif sel is not None:
+            sel['refit'] = 'whole episode'
         if P is not None:
             Cs, Ds = P @ Cs, P @ Ds
         self.output_basis_ = P
         B = Bs / s_u[None, :]
         C = s_y[:, None] * Cs
         D = s_y[:, None] * Ds / s_u[None, :]
-        ev = np.linalg.eigvals(A)
         r = A.shape[0]
         dt = d * ep.dt
+        self.dt_fit_ = dt
+        resampled = era_select.to_data_rate(A, B, d) if d > 1 else None
+        if resampled is not None:
+            A, B = resampled
+            dt = ep.dt
+        self.resampled_ = resampled is not None
+        ev = np.linalg.eigvals(A)
         self.markov_ = markov
         self.hankel_singular_values_ = hsv
         self.observer_order_ = lo
+        self.okid_ridge_ = ridge
+        self.selection_ = sel
         self.okid_residual_ = info['residual']
         self.y_ref_ = y_ref
         self.input_scale_ = s_u
@@ -431,11 +516,16 @@ class ERAOKID:
         meta.setdefault('envelope', training_envelope([ep], y_ref))
         meta.update({
             'learner': 'ERAOKID', 'r': r, 'episode': ep.name,
-            'decimation': d, 'dt_data': ep.dt, 'n_markov': int(self.n_markov),
+            'decimation': d, 'dt_data': ep.dt, 'dt_fit': d * ep.dt, 'dt_model': dt,
+            'resampled_to_data_rate': self.resampled_, 'n_markov': nm,
+            'okid_ridge': ridge, 'selection': self.selection,
+            'selection_table': None if sel is None else _finite_rows(sel['table']),
+            'selection_tail_error': None if sel is None else sel['tail_error'],
+            'selection_refit': None if sel is None else sel.get('refit'),
             'observer_order': lo, 'okid_residual': info['residual'],
             'okid_rank': info['rank'], 'okid_unknowns': info['n_unknowns'],
             'n_block_rows': self.n_block_rows, 'n_block_cols': self.n_block_cols,
-            'hsv_tol': self.hsv_tol, 'output_rank': self.output_rank,
+            'hsv_tol': self.hsv_tol, 'output_rank': None if P is None else int(P.shape[1]),
             'okid_rcond': self.okid_rcond,
             'hankel_singular_values': hsv[:200].tolist(),
             'input_scale': s_u.tolist(), 'output_scale': s_y.tolist(),
@@ -449,6 +539,43 @@ class ERAOKID:
                                     metadata=meta)
         return self
 
+    def _fit_auto_decimation(self, episode: Episode | Sequence[Episode],
+                             y_ref: ArrayLike | None, **kw: Any) -> ERAOKID:
+        """Fit at every decimation of the grid; keep the best held-out tail error."""
+        import copy
+        eps = [episode] if isinstance(episode, Episode) else list(episode)
+        if len(eps) != 1:
+            raise DimensionError(
+                f'ERA/OKID fits one episode at a time (one continuous record); got '
+                f'{len(eps)} episodes. Fit one model per episode, e.g. '
+                '--era-episode ep2 on the command line.')
+        ep = eps[0]
+        best: ERAOKID | None = None
+        tried: list[dict[str, Any]] = []
+        for d in era_select.DECIMATION_GRID:
+            if ep.n_samples // d < 200 and d > 1:
+                continue
+            trial = copy.copy(self)
+            trial.decimation = d
+            if trial.selection == 'none':
+                trial.selection = 'holdout'
+            try:
+                trial.fit(episode, y_ref, **kw)
+            except (ConfigError, DimensionError) as err:
+                tried.append({'decimation': d, 'tail_error': None, 'error': str(err)})
+                continue
+            err_d = float((trial.selection_ or {}).get('tail_error', np.inf))
+            tried.append({'decimation': d, 'tail_error': err_d})
+            if best is None or err_d < float((best.selection_ or {}).get('tail_error', np.inf)):
+                best = trial
+        if best is None:
+            raise DimensionError(f'ERA/OKID found no usable setting for episode {ep.name!r} '
+                                 f'({ep.n_samples} samples): {tried[0]["error"] if tried else ""}')
+        self.__dict__.update({k: v for k, v in best.__dict__.items() if k.endswith('_')})
+        self.decimation_ = best.decimation
+        self.model_.metadata['decimation_search'] = tried
+        return self
+
     def model_for(self, r: int) -> DiscreteModel:
         """The ROM of order ``r`` from the stored Markov parameters (no new OKID solve)."""
         if not hasattr(self, 'markov_'):
@@ -459,13 +586,27 @@ class ERAOKID:
             Cs, Ds = self.output_basis_ @ Cs, self.output_basis_ @ Ds
         s_u, s_y = self.input_scale_, self.output_scale_
         old = self.model_
+        Bp = Bs / s_u[None, :]
+        if getattr(self, 'resampled_', False):
+            d = int(round(self.dt_fit_ / old.dt))
+            res = era_select.to_data_rate(A, Bp, d)
+            if res is None:
+                raise ConfigError(f'the order-{r} realization has no real {d}-th root; fit '
+                                  'with decimation=1.')
+            A, Bp = res
         ev = np.linalg.eigvals(A)
         meta = dict(old.metadata)
         meta.update({'r': int(r), 'eigenvalues_real': ev.real.tolist(),
                      'eigenvalues_imag': ev.imag.tolist(),
                      'stability_margin': float(1.0 - np.max(np.abs(ev)))})
-        return DiscreteModel(A, Bs / s_u[None, :], s_y[:, None] * Cs,
+        return DiscreteModel(A, Bp, s_y[:, None] * Cs,
                              s_y[:, None] * Ds / s_u[None, :], dt=old.dt, method='era',
                              y_ref=self.y_ref_, input_names=old.input_names,
                              output_names=old.output_names, input_units=old.input_units,
                              output_units=old.output_units, metadata=meta)
+
+
+def _finite_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """JSON-safe copy of a selection table (``inf``/``nan`` become ``None``)."""
+    return [{k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+             for k, v in row.items()} for row in rows]

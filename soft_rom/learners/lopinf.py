@@ -39,6 +39,7 @@ from soft_rom.data import as_signal, check_finite, Episode
 from soft_rom.ddt import as_estimator, DerivativeEstimator, FiniteDifference
 from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
+from soft_rom.learners import lopinf_margins as margins
 from soft_rom.learners.lopinf_solvers import DEFAULT_EPS, FastSPDSolver, OperatorSolver
 from soft_rom.models import SecondOrderModel
 
@@ -87,6 +88,19 @@ class LOpInf:
         (:mod:`soft_rom.learners.lopinf_mass`; exact in any coordinates of a mechanical
         system, e.g. measured outputs); the model is returned in ``z = Lᵀ q`` (``M = L Lᵀ``)
         with identity mass, and ``mass_factor_`` is ``Lᵀ``. Linear forces only.
+    min_damping_ratio : float
+        Every mode of the ROM has at least this damping ratio (default
+        :data:`~soft_rom.learners.lopinf_margins.DEFAULT_MIN_DAMPING_RATIO`; 0: only the
+        absolute margin ``eps``, the paper's formulation). See
+        :mod:`soft_rom.learners.lopinf_margins`.
+    damping_frequency : float, optional
+        ``ω_*`` (rad/s) where the damping bound is tight; default from the data.
+    regularization : float or 'auto', optional
+        Dimensionless Tikhonov weight ``γ``; ``'auto'``: selected on held-out episode tails
+        from ``reg_grid`` (:func:`~soft_rom.learners.lopinf_margins.select_regularization`);
+        ``None`` (default): none.
+    reg_grid : sequence of float
+        Candidates for ``regularization='auto'``.
 
     Attributes
     ----------
@@ -114,7 +128,11 @@ class LOpInf:
                  ddt: int | DerivativeEstimator = 8, solver: OperatorSolver | None = None,
                  basis: BasisBuilder | None = None, eps: float = DEFAULT_EPS,
                  scale: bool = True, forces: str = 'linear',
-                 cubic_options: dict[str, Any] | None = None, mass: str = 'identity') -> None:
+                 cubic_options: dict[str, Any] | None = None, mass: str = 'identity',
+                 min_damping_ratio: float = margins.DEFAULT_MIN_DAMPING_RATIO,
+                 damping_frequency: float | None = None,
+                 regularization: float | str | None = None,
+                 reg_grid: Sequence[float] = margins.DEFAULT_REG_GRID) -> None:
         self.r = r
         self.energy = energy
         self.ddt = ddt
@@ -125,10 +143,16 @@ class LOpInf:
         self.forces = forces
         self.cubic_options = cubic_options
         self.mass = mass
+        self.min_damping_ratio = min_damping_ratio
+        self.damping_frequency = damping_frequency
+        self.regularization = regularization
+        self.reg_grid = reg_grid
 
     def __repr__(self) -> str:
         return (f'LOpInf(r={self.r!r}, energy={self.energy!r}, ddt={self.ddt!r}, '
-                f'solver={self.solver!r}, eps={self.eps!r})')
+                f'solver={self.solver!r}, eps={self.eps!r}, '
+                f'min_damping_ratio={self.min_damping_ratio!r}, '
+                f'regularization={self.regularization!r})')
 
     # ---------------------------------------------------------------------------------
     def fit(self, episodes: Episode | Sequence[Episode], q_ref: ArrayLike | None = None,
@@ -171,9 +195,9 @@ class LOpInf:
                                      f'first episode has {n}.')
         if q_ref is None:
             q_ref = np.asarray(eps_list[0].Q[:, 0:1], dtype=np.float64)[:, 0]
-        q_ref = as_signal('q_ref', np.reshape(np.asarray(q_ref, dtype=np.float64), (-1, 1)),
-                          rows=n)[:, 0].copy()
-        check_finite('q_ref', q_ref)
+        q_ref_a = as_signal('q_ref', np.reshape(np.asarray(q_ref, dtype=np.float64), (-1, 1)),
+                            rows=n)[:, 0].copy()
+        check_finite('q_ref', q_ref_a)
         builder = POD(r=self.r, energy=self.energy) if self.basis is None else copy.deepcopy(
             self.basis)
         if not callable(getattr(builder, 'fit', None)):
@@ -181,7 +205,7 @@ class LOpInf:
                               f'singular_values_); got {type(builder).__name__}.')
         dt = self._common_dt(eps_list)          # validate before the expensive POD
         t0 = time.perf_counter()
-        builder.fit([ep.Q for ep in eps_list], q_ref)
+        builder.fit([ep.Q for ep in eps_list], q_ref_a)
         if not isinstance(builder, BasisBuilder):
             raise ConfigError(f'the basis builder {type(builder).__name__} has no basis_ or '
                               'singular_values_ after fit().')
@@ -189,7 +213,7 @@ class LOpInf:
         if V.ndim != 2 or V.shape[0] != n:
             raise DimensionError(f'the basis builder returned basis_ of shape {V.shape}; '
                                  f'expected ({n}, r).')
-        Qhat = [project(ep.Q, V, q_ref) for ep in eps_list]
+        Qhat = [project(ep.Q, V, q_ref_a) for ep in eps_list]
         t_basis = time.perf_counter() - t0
         s = np.asarray(builder.singular_values_, dtype=np.float64)
         r = V.shape[1]
@@ -205,8 +229,8 @@ class LOpInf:
                          names=[ep.name for ep in eps_list], energy_captured=captured,
                          time_ranges=[[float(ep.t[0]), float(ep.t[-1])] for ep in eps_list],
                          metadata=metadata, **meta)
-        self.basis_ = builder
-        self.q_ref_ = q_ref
+        self.basis_ = builder  # type: BasisBuilder | None
+        self.q_ref_ = q_ref_a
         diag = self.diagnostics_
         diag['n_full'] = n
         diag['basis_seconds'] = t_basis
@@ -214,8 +238,8 @@ class LOpInf:
         self._rebuild_model()
         return self
 
-    def fit_reduced(self, Qhat: Sequence[ArrayLike], U: Sequence[ArrayLike],
-                    Y: Sequence[ArrayLike], dt: float, y_ref: ArrayLike | None = None, *,
+    def fit_reduced(self, Qhat: Sequence[Array], U: Sequence[Array],
+                    Y: Sequence[Array], dt: float, y_ref: ArrayLike | None = None, *,
                     input_names: Sequence[str] | None = None,
                     output_names: Sequence[str] | None = None,
                     input_units: Sequence[str] | None = None,
@@ -275,8 +299,8 @@ class LOpInf:
             raise DimensionError(f'dt must be a positive number of seconds; got {dt!r}.')
         if y_ref is None:
             y_ref = Y[0][:, 0]
-        y_ref = as_signal('y_ref', np.reshape(np.asarray(y_ref, dtype=np.float64), (-1, 1)),
-                          rows=p)[:, 0].copy()
+        y_ref_a = as_signal('y_ref', np.reshape(np.asarray(y_ref, dtype=np.float64), (-1, 1)),
+                            rows=p)[:, 0].copy()
         estimator = as_estimator(self.ddt)
         solver = FastSPDSolver() if self.solver is None else self.solver
         if not isinstance(solver, OperatorSolver):
@@ -305,38 +329,41 @@ class LOpInf:
                               f'{self.mass!r} with forces={self.forces!r}.')
         if self.mass == 'learned':
             from soft_rom.learners.lopinf_mass import solve_learned_mass
-            sol, Lt = solve_learned_mass(Qs, Qd, Qdd, Us, eps=self.eps, dt=dt, episodes=[
+            msol, Lt = solve_learned_mass(Qs, Qd, Qdd, Us, eps=self.eps, dt=dt, episodes=[
                 (np.asarray(q) / s_q, np.asarray(u) / s_u[:, None]) for q, u in zip(Qhat, U)])
             Qs, Qd, Qdd, all_q, self.mass_factor_ = Lt @ Qs, Lt @ Qd, Lt @ Qdd, Lt @ all_q, Lt
-        elif self.forces == 'cubic':
+        if self.forces == 'cubic':
             from soft_rom.learners.lopinf_cubic import fit_scaled
             sol, self.nonlinear_ = fit_scaled(Qs, Qd, Qdd, Us, s_q, solver, self.eps,
                                               self.cubic_options)
+            K, C, Bs = 0.5 * (sol.K + sol.K.T), 0.5 * (sol.C + sol.C.T), sol.B
+            sol_info: dict[str, Any] = dict(sol.info)
+            reg: dict[str, Any] = {'mode': 'none', 'gamma': 0.0}
+            residual = float(sol.info['objective'])
         elif self.forces == 'linear':
-            sol = solver.solve(Qs, Qd, Qdd, Us, eps=self.eps)
+            K, C, Bs, sol_info, reg = self._solve(solver, Qs, Qd, Qdd, Us, dt,
+                                                  [q.shape[1] - 2 * _half_width(estimator)
+                                                   for q in Qhat])
+            residual = float(np.linalg.norm(Qdd + C @ Qd + K @ Qs - Bs @ Us))
         else:
             raise ConfigError(f"forces must be 'linear' or 'cubic'; got {self.forces!r}.")
-        K = 0.5 * (sol.K + sol.K.T)
-        C = 0.5 * (sol.C + sol.C.T)
-        B = sol.B * s_q / s_u[None, :]
-        residual = float(np.linalg.norm(Qdd + C @ Qd + K @ Qs - sol.B @ Us)) if \
-            self.nonlinear_ is None else float(sol.info['objective'])
+        B = Bs * s_q / s_u[None, :]
         rel_residual = residual / max(float(np.linalg.norm(Qdd)), 1e-300)
 
         # Output operator: min ||(Y - y_ref) - E Qhat||_F over all samples.
-        dY = np.concatenate(Y, axis=1) - y_ref[:, None]
+        dY = np.concatenate(Y, axis=1) - y_ref_a[:, None]
         Et, *_ = np.linalg.lstsq((all_q / s_q).T, dY.T, rcond=None)
         E = Et.T / s_q
         out_res = float(np.linalg.norm(dY - E @ all_q)) / max(float(np.linalg.norm(dY)), 1e-300)
 
         self.K_, self.C_, self.B_, self.E_ = K, C, B, E
-        self.y_ref_ = y_ref
+        self.y_ref_ = y_ref_a
         self.dt_ = dt
         self.basis_ = None
         self.q_ref_ = None
         self.state_scale_ = s_q
         self.input_scale_ = s_u
-        self.solver_info_ = dict(sol.info)
+        self.solver_info_ = sol_info
         lam_k, lam_c = np.linalg.eigvalsh(K), np.linalg.eigvalsh(C)
         self.diagnostics_ = {
             'r': int(r),
@@ -347,8 +374,12 @@ class LOpInf:
             'eigenvalues_K': [float(x) for x in lam_k],
             'eigenvalues_C': [float(x) for x in lam_c],
             'eps': float(self.eps),
+            'margin': sol_info.get('margin'),
+            'regularization': reg,
+            'least_damped_mode': margins.least_damped_mode(K, C),
             'ddt': repr(estimator),
             'mass': self.mass,
+            'mass_info': None if self.mass_factor_ is None else msol.info['mass'],
             'solver': repr(solver),
             'solver_info': self.solver_info_,
             'state_scale': s_q,
@@ -372,6 +403,38 @@ class LOpInf:
         self._rebuild_model()
         return self
 
+    def _solve(self, solver: OperatorSolver, Qs: Array, Qd: Array, Qdd: Array, Us: Array,
+               dt: float, lengths: Sequence[int]
+               ) -> tuple[Array, Array, Array, dict[str, Any], dict[str, Any]]:
+        """Operators with the damping margin and the (selected) Tikhonov weight."""
+        kw: dict[str, Any] = dict(eps=self.eps, min_damping_ratio=float(self.min_damping_ratio),
+                                  frequency=self.damping_frequency)
+        reg: dict[str, Any] = {'mode': 'none', 'gamma': 0.0}
+        gamma = 0.0
+        if isinstance(self.regularization, str):
+            if self.regularization != 'auto':
+                raise ConfigError(f"regularization must be a number >= 0, 'auto' or None; got "
+                                  f'{self.regularization!r}.')
+            cuts = np.cumsum(lengths)[:-1]
+            parts = [np.split(x, cuts, axis=1) for x in (Qs, Qd, Qdd, Us)]
+
+            def fit(q: list[Array], qd: list[Array], qdd: list[Array], u: list[Array],
+                    g: float) -> tuple[Array, Array, Array]:
+                K_, C_, B_, _ = margins.constrained_solve(
+                    solver, np.hstack(q), np.hstack(qd), np.hstack(qdd), np.hstack(u),
+                    gamma=g, **kw)
+                return K_, C_, B_
+
+            gamma, table = margins.select_regularization(fit, parts[0], parts[1], parts[2],
+                                                         parts[3], dt, grid=self.reg_grid)
+            reg = {'mode': 'auto', 'gamma': gamma, 'candidates': table}
+        elif self.regularization is not None:
+            gamma = float(self.regularization)
+            reg = {'mode': 'fixed', 'gamma': gamma}
+        K, C, B, info = margins.constrained_solve(solver, Qs, Qd, Qdd, Us, gamma=gamma, **kw)
+        reg['lambda'] = info.get('regularization', {}).get('lambda')
+        return K, C, B, info, reg
+
     # ---------------------------------------------------------------------------------
     @property
     def model(self) -> SecondOrderModel:
@@ -381,7 +444,9 @@ class LOpInf:
 
     def predict(self, U: ArrayLike, x0: ArrayLike | None = None) -> Array:
         """Absolute outputs (p, k) for inputs ``U`` (m, k) from ``x0`` (default at rest)."""
-        return self.model.simulate(U, x0)
+        Y = self.model.simulate(U, x0)
+        assert not isinstance(Y, tuple)
+        return Y
 
     def _check(self) -> None:
         if not hasattr(self, 'model_'):

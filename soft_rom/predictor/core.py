@@ -297,17 +297,17 @@ class Predictor(Stepping):
         if not _ok_ns(stamp_ns):
             return self._bad_time('input')
         stamp_ns = int(stamp_ns)
-        u = np.asarray(u, dtype=np.float64)
+        vec = np.asarray(u, dtype=np.float64)
         m = self._dyn.m
-        if u.shape != (m,):
+        if vec.shape != (m,):
             return self._drop('wrong_length', None, stamp_ns,
-                              f'input of length {u.size}, expected {m}')
-        if not math.isfinite(u.sum()):
+                              f'input of length {vec.size}, expected {m}')
+        if not math.isfinite(vec.sum()):
             return self._drop('nonfinite', None, stamp_ns, 'input with NaN/Inf')
-        u = self._envelope_vector(u, stamp_ns)
-        if u is None:
+        inside = self._envelope_vector(vec, stamp_ns)
+        if inside is None:
             return False
-        return self._take(None, u, stamp_ns)
+        return self._take(None, inside, stamp_ns)
 
     def set_channel_ns(self, index: int, value: float, stamp_ns: int) -> bool:
         """Take one input channel (per-chamber topics); returns whether it was used."""

@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 import scipy.linalg as sla
 
+from soft_rom.data import all_finite
 from soft_rom.errors import ConfigError, ModelFileError, SolverError
 from soft_rom.models import DiscreteModel, file_sha256, LinearROM
 
@@ -90,7 +91,7 @@ def kalman_gain(A: Array, C: Array, Q: Array, R: Array) -> Array:
         ) from err
     S = C @ P @ C.T + R
     L = np.linalg.solve(S.T, (P @ C.T).T).T
-    if not np.all(np.isfinite(L)):
+    if not all_finite(L):
         raise SolverError('Kalman design produced a non-finite gain; run open loop.')
     return L
 

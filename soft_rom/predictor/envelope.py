@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from soft_rom.data import all_finite
 from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError
 
@@ -89,13 +90,13 @@ class Envelopes:
 
     def input_ok(self, index: int, value: float) -> bool:
         """Whether one channel's value is inside the input envelope."""
-        if self.u_lo is None:
+        if self.u_lo is None or self.u_hi is None:
             return True
         return bool(self.u_lo[index] <= value <= self.u_hi[index])
 
     def clip(self, index: int, value: float) -> float:
         """``value`` clipped into channel ``index``'s envelope."""
-        if self.u_lo is None:
+        if self.u_lo is None or self.u_hi is None:
             return value
         return float(min(max(value, self.u_lo[index]), self.u_hi[index]))
 
@@ -121,4 +122,4 @@ def _floats(values: Any, m: int) -> Array | None:
         arr = np.array([float(v) for v in values], dtype=np.float64)
     except (TypeError, ValueError):
         return None
-    return arr if np.all(np.isfinite(arr)) else None
+    return arr if all_finite(arr) else None

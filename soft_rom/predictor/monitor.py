@@ -18,9 +18,9 @@ from __future__ import annotations
 from collections import deque
 import math
 
-__all__ = ['ErrorMonitor']
+from soft_rom.metrics import relative_error_from_squares
 
-_TINY = 2.2250738585072014e-308
+__all__ = ['ErrorMonitor']
 
 
 class ErrorMonitor:
@@ -99,4 +99,5 @@ class ErrorMonitor:
         if not self._q:
             return math.nan, math.nan
         se = max(self._se, 0.0)
-        return (math.sqrt(se / max(self._sy, _TINY)), math.sqrt(se / max(self._sd, _TINY)))
+        return (relative_error_from_squares(se, self._sy, if_zero=0.0),
+                relative_error_from_squares(se, self._sd, if_zero=0.0))

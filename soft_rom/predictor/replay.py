@@ -12,6 +12,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.data import as_signal, Episode
 from soft_rom.errors import DimensionError
+from soft_rom.metrics import relative_deviation_error, relative_error
 from soft_rom.predictor.config import PredictorConfig
 from soft_rom.predictor.core import Predictor
 from soft_rom.predictor.loop import Publish
@@ -95,9 +96,9 @@ def replay_episode(predictor: Predictor, episode: Episode, *, measured: bool = T
     clocked = predictor.config.stepping != 'event'
     for j, (tj, sj) in enumerate(zip(t.tolist(), stamps)):
         if loop is not None:
-            e = _loop_sample(loop, Ut[j], None if Yt is None else Yt[j], sj, clocked, publish)
+            errors[j] = _loop_sample(loop, Ut[j], None if Yt is None else Yt[j], sj, clocked,
+                                     publish)
             Yhat[:, j] = predictor.output(ybuf)
-            errors[j] = e
         else:
             if clocked:
                 predictor.advance_to_ns(sj)
@@ -120,11 +121,9 @@ def replay_episode(predictor: Predictor, episode: Episode, *, measured: bool = T
         'model': predictor.info,
     }
     if measured:
-        E = Y - Yhat
-        D = Y - predictor.model.y_ref[:, None]
-        summary['relative_error'] = float(np.linalg.norm(E) / max(np.linalg.norm(Y), 1e-300))
-        summary['relative_deviation_error'] = float(
-            np.linalg.norm(E) / max(np.linalg.norm(D), 1e-300))
+        summary['relative_error'] = relative_error(Y, Yhat, if_zero=0.0)
+        summary['relative_deviation_error'] = relative_deviation_error(
+            Y, Yhat, predictor.model.y_ref, if_zero=0.0)
     return ReplayResult(t, Yhat, errors, levels, summary)
 
 
@@ -169,15 +168,12 @@ def kalman_vs_open_loop(model: Any, episode: Episode, *,
     """
     base = PredictorConfig() if config is None else config
     Yt = as_signal('Y_true', episode.Y if Y_true is None else Y_true)
-    D = np.linalg.norm(Yt - model.y_ref[:, None])
-    N = np.linalg.norm(Yt)
     out: dict[str, float] = {}
     for key, kal in (('open_loop', False), ('kalman', True)):
         cfg = base.replace(kalman=kal, rate_hz=0.0)
         res = replay_episode(Predictor(model, cfg), episode, measured=True)
-        err = np.linalg.norm(Yt - res.Y)
-        out[key] = float(err / max(D, 1e-300))
-        out[f'{key}_abs'] = float(err / max(N, 1e-300))
+        out[key] = relative_deviation_error(Yt, res.Y, model.y_ref, if_zero=0.0)
+        out[f'{key}_abs'] = relative_error(Yt, res.Y, if_zero=0.0)
     out['ratio'] = out['kalman'] / out['open_loop'] if out['open_loop'] > 0 else math.nan
     return out
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import heapq
 import math
-from typing import Any
+from typing import Any, cast, TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,8 +33,8 @@ def to_ns(t: float) -> int | None:
 
 
 def _ok_ns(t: Any) -> bool:
-    return isinstance(t, (int, np.integer)) and not isinstance(t, bool) and -_T_LIMIT <= t \
-        <= _T_LIMIT
+    return bool(isinstance(t, (int, np.integer)) and not isinstance(t, bool)
+                and -_T_LIMIT <= t <= _T_LIMIT)
 
 
 class Stepping:
@@ -48,12 +48,51 @@ class Stepping:
     channels: Any
     x: Array
     u: Array
+    emit_outputs: bool
+    _emitted: list[tuple[int, Array]]
+    _k: int | None
+    _origin: int
+    _done: bool
+    _released: bool
+    _queue: list[tuple[int, int, int, int, Any]]
+    _seq: int
+    _newest: int
+    _xn: Array
+    _Bu: Array
+    _y: Array
+    _dev: Array
+    _fast2: float
+    _hist: Array
+    _hist_k: NDArray[np.int64]
+
+    if TYPE_CHECKING:  # methods of Predictor used here (declared for the type checker)
+        @property
+        def model(self) -> Any: ...
+
+        @property
+        def t_ns(self) -> int | None: ...
+
+        def _time_of(self, k: int) -> int: ...
+
+        def _update_Bu(self) -> None: ...
+
+        def _step_of(self, t_ns: int) -> int: ...
+
+        def _anchor(self, t_ns: int) -> None: ...
+
+        def _alarm(self, key: str, t_ns: int | None, why: str) -> None: ...
+
+        def _bad_time(self, what: str) -> bool: ...
+
+        def _latch(self, index: int | None, value: Any) -> None: ...
+
+        def _measure_now(self, y: Array, stamp_ns: int, k: int) -> float | None: ...
 
     # -- clocked stepping ('fixed', 'input') ----------------------------------------------
     def _take_clocked(self, index: int | None, value: Any, stamp_ns: int) -> None:
         if self._k is None:
             self._anchor(stamp_ns)
-        elif stamp_ns < self.t_ns:
+        elif stamp_ns < self._time_of(self._k):
             self.counters['late'] += 1
             self.channels.late_one(index)
         else:
@@ -81,14 +120,14 @@ class Stepping:
             self._anchor(t_ns)
             if self.config.stepping == 'event':
                 self._first = t_ns
-                self._release(self._k)
+                self._release(cast(int, self._k))    # set by _anchor
             return 0
         if self.config.stepping == 'event':
             before = self.counters['steps']
             self._release(self._step_of(t_ns))
             return self.counters['steps'] - before
         d = self._dyn
-        now = self.t_ns
+        now = self._time_of(self._k)
         elapsed = t_ns - now
         if elapsed <= 0:
             return 0
@@ -148,6 +187,7 @@ class Stepping:
         if self._k is None:
             self._anchor(stamp_ns)
             self._first = stamp_ns
+        assert self._k is not None                  # anchored above
         s = self._step_of(stamp_ns)
         if index is None and s == self._k + 1 and self._done and not self._queue:
             # the 1 kHz array path: every input known up to s, nothing queued, one step
@@ -191,6 +231,7 @@ class Stepping:
                 wm = s_eff
         k_wm = self._step_of(newest if wm is None else int(wm))
         k_lag = self._step_of(newest - int(self.config.max_lag_s * 1e9))
+        assert self._k is not None                  # inputs are queued only once anchored
         if k_lag > k_wm and k_lag > self._k:
             self.counters['lag_forced'] += k_lag - max(k_wm, self._k)
             return k_lag
@@ -234,6 +275,7 @@ class Stepping:
         self._output_into(row)
         self._hist_k[k % _HISTORY] = k
         t_ns = self.t_ns
+        assert t_ns is not None                     # a step completes only once anchored
         if not self._check_output(t_ns, row):
             self._output_into(row)
         if self.emit_outputs:

@@ -29,6 +29,7 @@ from typing import Any, Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from soft_rom.data import all_finite
 from soft_rom.errors import ConfigError, DimensionError
 
 __all__ = [
@@ -115,7 +116,7 @@ class SnapshotSet:
         ref = np.zeros(n) if q_ref is None else np.asarray(q_ref, dtype=np.float64).reshape(-1)
         if ref.size != n:
             raise DimensionError(f'q_ref must have length n = {n}; got {ref.size}.')
-        if not np.all(np.isfinite(ref)):
+        if not all_finite(ref):
             raise DimensionError('q_ref contains NaN or Inf.')
         self.q_ref = ref
         self.names = ([f'ep{i + 1}' for i in range(len(arrays))] if names is None

@@ -42,6 +42,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 import scipy.linalg as sla
 
+from soft_rom.data import all_finite
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
 from soft_rom.scale import kernels
 from soft_rom.scale.blocks import (
@@ -238,7 +239,7 @@ class StreamingPOD:
             W, s, Z, total, passes = self._randomized(snaps, ex, l)
         else:
             W, s, Z, total, passes = self._gram(snaps, ex, l)
-        if not np.isfinite(total) or not np.all(np.isfinite(s)):
+        if not np.isfinite(total) or not all_finite(s):
             raise DimensionError('snapshots contain NaN or Inf; clean them before POD.')
         r = self._select(s, total)
         if W is not None:

@@ -67,7 +67,7 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from soft_rom.data import Episode
+from soft_rom.data import all_finite, Episode
 from soft_rom.errors import ConfigError, DimensionError, SolverError
 from soft_rom.sim.fem import CorotationalFEM
 from soft_rom.sim.inputs import DEFAULT_AMPLITUDE, random_pressures
@@ -451,7 +451,7 @@ class EelModel:
                 raise DimensionError(f'pressures must be ({self.n_chambers}, >= {n_steps}); got '
                                      f'{U.shape}. Arrays are (n_channels, n_samples).')
             U = U[:, :n_steps]
-        if not np.all(np.isfinite(U)):
+        if not all_finite(U):
             raise DimensionError('pressures contain NaN or Inf.')
 
         cfg = self.config
@@ -507,7 +507,7 @@ class EelModel:
                                    cg_maxiter)
                 cg_iters += it
                 cg_worst = max(cg_worst, res)
-            if not np.all(np.isfinite(vf)):
+            if not all_finite(vf):
                 raise SolverError(f'the simulation diverged at step {j} (t = {t[j]:.4f} s); '
                                   'lower the pressures or the time step.')
             v[free] = vf

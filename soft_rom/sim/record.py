@@ -1,7 +1,7 @@
 """Record simulated episodes as ROS 2 bags (one bag per episode, plus a JSON sidecar).
 
 Each sample ``j`` of an episode is written at ``t_j = j dt`` exactly as a SOFA + ROS 2
-recording at 1 kHz would look (the bag contract of ``SPEC.md``, through
+recording at 1 kHz would look (the bag contract of ``docs/bag_contract.md``, through
 :class:`soft_rom.bags.EpisodeBagWriter`): one ``FluidPressure`` per chamber, the centerline
 ``PoseArray`` and, unless disabled, the full state ``Float64MultiArray`` with layout
 ``[nodes, 3]``. States are streamed from the simulator's callback, never held in memory.

@@ -23,14 +23,14 @@ from dataclasses import asdict, dataclass, field
 import json
 import logging
 from pathlib import Path
-import re
 import time
 from typing import Any
 
 import numpy as np
 
 from soft_rom.data import Episode
-from soft_rom.errors import ConfigError
+from soft_rom.errors import ConfigError, DatasetError
+from soft_rom.learners.era import ERA_PRESETS
 from soft_rom.metrics import relative_deviation_error, relative_error
 from soft_rom.models import LinearROM
 from soft_rom.study import figures, paper
@@ -41,12 +41,9 @@ __all__ = ['StudyConfig', 'run_study', 'simulate_bags']
 LOG = logging.getLogger(__name__)
 METHODS = ('lopinf', 'dmdc', 'era', 'lopinf_cubic')
 
-#: ERA/OKID settings that work on the eel data (1 kHz, 40 outputs, slow lightly damped modes):
-#: identify on the 4 leading output principal components at the full rate with a 36-step
-#: observer and 500 Markov parameters (0.5 s). The learner's own defaults, tuned on a linear
-#: system, give unstable realizations on these noise-free nonlinear simulations.
-ERA_EEL_OPTIONS: dict[str, Any] = {'decimation': 1, 'output_rank': 4, 'observer_order': 36,
-                                   'n_markov': 500}
+#: ERA/OKID settings of the study: the learner's named preset ``'eel'`` (hand-tuned on the
+#: eel data; see :data:`soft_rom.learners.era.ERA_PRESETS`).
+ERA_EEL_OPTIONS: dict[str, Any] = dict(ERA_PRESETS['eel'])
 
 
 #: Cubic LOpInf settings for the eel: a stronger quartic floor than the learner's default keeps
@@ -203,18 +200,13 @@ def _errors(Y: np.ndarray, Yh: np.ndarray, y_ref: np.ndarray) -> tuple[float, fl
     return relative_error(Y, Yh), relative_deviation_error(Y, Yh, y_ref)
 
 
-def _output_index(names: Sequence[str]) -> dict[tuple[str, int], int]:
-    """Map ``(component, point)`` to the row of each output name (``x3``, ``z_3``, ``p3.z``)."""
-    index: dict[tuple[str, int], int] = {}
-    for row, name in enumerate(names):
-        m = (re.search(r'(?<![a-z])([xyz])[_.]?(\d+)$', name)
-             or re.search(r'(\d+)[_.]([xyz])$', name))
-        if m is None:
-            continue
-        a, b = m.groups()
-        comp, point = (a, int(b)) if a in 'xyz' else (b, int(a))
-        index[(comp, point)] = row
-    return index
+def _layout_index(ts: Any) -> dict[tuple[str, int], int]:
+    """``{(component, 0-based point): row}`` from the training set's stored output layout."""
+    layout = ts.output_layout
+    if layout is None or not {'x', 'z'} <= set(layout.components):
+        raise DatasetError(f'{ts.path}: the study needs x and z centerline outputs; the '
+                           f'training set has {ts.output_names[:4]}...')
+    return dict(layout.index())
 
 
 def _shape(index: dict[tuple[str, int], int], y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -275,7 +267,7 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
                         metric_label='Relative error on deviations')
     # The paper's y10 and y20 "at different scales": z of the mid-body point and of the tail.
     names = ts.output_names
-    index = _output_index(names)
+    index = _layout_index(ts)
     n_pts = max((p for (_c, p) in index), default=0)
     rows = [index.get(('z', n_pts // 2), min(9, len(names) - 1)),
             index.get(('z', n_pts), min(19, len(names) - 1))]
@@ -356,7 +348,7 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
     figures.error_bars(out / 'bars_deviation.png', test_dev, rom_labels=labels,
                        metric_label='Relative error on deviations')
     shape_ep = tests[0]
-    index = _output_index(ts.output_names)
+    index = _layout_index(ts)
     shapes: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {'fom': []}
     cols = [min(int(round(tt / shape_ep.dt)), shape_ep.n_samples - 1) for tt in cfg.shape_times]
     shapes['fom'] = [_shape(index, shape_ep.Y[:, j]) for j in cols]

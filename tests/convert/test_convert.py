@@ -12,7 +12,7 @@ from soft_rom.convert import BagMapping, convert, load_mapping, read_episode
 from soft_rom.dataset import TrainingSet
 from soft_rom.errors import ConfigError
 
-CONFIG = Path(__file__).resolve().parents[1] / 'config' / 'bag_mapping.yaml'
+CONFIG = Path(__file__).resolve().parents[2] / 'config' / 'bag_mapping.yaml'
 
 
 def _sim_bag(path, storage='mcap', k=40, n_nodes=9, seed=0, t0=0.001, **kw):

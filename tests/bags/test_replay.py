@@ -5,35 +5,19 @@ from __future__ import annotations
 from collections import Counter
 import json
 
+from _bags import N_POINTS, small_episode, small_model, write_input_bag
 import numpy as np
 import pytest
 
-from soft_rom.bags.replay_io import read_messages, replay_to_bag, write_input_bag
+from soft_rom.bags.replay_io import read_messages, replay_to_bag
 from soft_rom.data import Episode
 from soft_rom.errors import BagError
 from soft_rom.models import file_sha256, SecondOrderModel
 from soft_rom.predictor import Predictor, PredictorConfig
 from soft_rom.predictor.conversions import data_to_array, outputs_to_points, poses_to_points
 
-N_POINTS = 5
 NODE = '/soft_rom_predictor'
-
-
-def _model() -> SecondOrderModel:
-    rng = np.random.default_rng(7)
-    r, m, p = 4, 3, 2 * N_POINTS
-    M = rng.standard_normal((r, r))
-    K = (M @ M.T / r + 4.0 * np.eye(r)) * 100.0
-    y_ref = np.concatenate([np.linspace(0.0, 0.4, N_POINTS), np.zeros(N_POINTS)])
-    return SecondOrderModel(K, 0.5 * np.eye(r) + 0.01 * K, rng.standard_normal((r, m)),
-                            0.01 * rng.standard_normal((p, r)), dt=1e-3, y_ref=y_ref)
-
-
-def _episode(model: SecondOrderModel, k: int = 120) -> Episode:
-    rng = np.random.default_rng(8)
-    U = np.repeat(rng.standard_normal((model.n_inputs, k // 10)), 10, axis=1)
-    t = 2.0 + np.arange(k) * model.dt
-    return Episode(t=t, U=U, Y=model.simulate(U), name='ep')
+_model, _episode = small_model, small_episode
 
 
 @pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])

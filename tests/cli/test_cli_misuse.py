@@ -186,14 +186,13 @@ def test_overwrite_replaces_what_soft_rom_wrote(ws, tmp_path, capsys) -> None:
 
 
 def test_replay_output_marked_and_recording_never_replaced(tmp_path, capsys) -> None:
-    import test_replay as tr
+    from _bags import small_episode, small_model, write_input_bag
 
-    from soft_rom.bags.replay_io import write_input_bag
     from soft_rom.outputs import is_marked
 
-    model = tr._model()
+    model = small_model()
     path = model.save(tmp_path / 'm.npz')
-    bag = write_input_bag(tmp_path / 'in', tr._episode(model), storage='mcap')
+    bag = write_input_bag(tmp_path / 'in', small_episode(model), storage='mcap')
     recorded = _tree(Path(bag))
     out = tmp_path / 'pred'
     argv = ['replay', str(path), str(bag), '-o', str(out), '--quiet']
@@ -202,7 +201,7 @@ def test_replay_output_marked_and_recording_never_replaced(tmp_path, capsys) -> 
     assert main(argv + ['--overwrite']) == 0                 # ours: replaced
     assert main(['replay', str(path), str(bag), '-o', str(bag), '--overwrite']) == 2
     other = tmp_path / 'other'
-    other_bag = write_input_bag(other, tr._episode(model), storage='mcap')
+    other_bag = write_input_bag(other, small_episode(model), storage='mcap')
     kept = _tree(Path(other_bag))
     assert main(['replay', str(path), str(bag), '-o', str(other_bag), '--overwrite']) == 2
     assert _tree(Path(other_bag)) == kept and _tree(Path(bag)) == recorded

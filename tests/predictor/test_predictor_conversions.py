@@ -26,7 +26,7 @@ from soft_rom.predictor.conversions import (
 )
 from soft_rom.predictor.params import load_params_file, PARAMS, predictor_config
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_outputs_points_round_trip() -> None:
