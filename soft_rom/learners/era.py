@@ -424,6 +424,10 @@ class ERAOKID:
             'y_ref', np.reshape(y_ref, (-1, 1)), rows=p)[:, 0]
         d = int(self.decimation)
         Ud, Yd = decimate(ep.U, ep.Y - y_ref[:, None], d)
+        if Ud.shape[1] < 2 * (2 * m + 1):
+            raise DimensionError(
+                f'episode {ep.name!r} has {Ud.shape[1]} samples after decimation {d}: too few '
+                f'for OKID with m={m} inputs. Use less decimation or a longer episode.')
         s_u = channel_scale(Ud)
         s_y = channel_scale(Yd)
         Us, Ys = Ud / s_u[:, None], Yd / s_y[:, None]
