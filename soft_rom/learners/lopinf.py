@@ -84,10 +84,10 @@ class LOpInf:
     cubic_options : dict, optional
         ``reg``, ``eps4`` of :func:`~soft_rom.learners.lopinf_cubic.fit_cubic`.
     mass : {'identity', 'learned'}
-        ``'learned'``: fit ``M q'' + C q' + K q = B u`` with an SPD mass ``M ⪰ I`` too
-        (:mod:`soft_rom.learners.lopinf_mass`; exact in any coordinates of a mechanical
-        system, e.g. measured outputs); the model is returned in ``z = Lᵀ q`` (``M = L Lᵀ``)
-        with identity mass, and ``mass_factor_`` is ``Lᵀ``. Linear forces only.
+        ``'learned'``: learn an SPD mass ``M`` too (:mod:`soft_rom.learners.lopinf_mass`;
+        exact in any coordinates of a mechanical system, e.g. measured outputs) and fit the
+        SPD ``K, C`` in ``z = Lᵀ q`` (``M = L Lᵀ``): the model has identity mass in ``z``,
+        and ``mass_factor_`` is ``Lᵀ``. Linear forces only.
     min_damping_ratio : float
         Every mode of the ROM has at least this damping ratio (default
         :data:`~soft_rom.learners.lopinf_margins.DEFAULT_MIN_DAMPING_RATIO`; 0: only the
