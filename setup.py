@@ -6,6 +6,22 @@ from setuptools import find_packages, setup
 
 package_name = 'soft_rom'
 
+# ros-jazzy-* wheels (CPython 3.11): the ROS packages the node and its tests import.
+ROS_WHEELS = [
+    'ros-jazzy-rclpy>=7.1',
+    'ros-jazzy-rmw-fastrtps-cpp>=8.4',
+    'ros-jazzy-ament-index-python>=1.8',
+    'ros-jazzy-builtin-interfaces>=2.0',
+    'ros-jazzy-rcl-interfaces>=2.0',
+    'ros-jazzy-lifecycle-msgs>=2.0',
+    'ros-jazzy-std-msgs>=5.3',
+    'ros-jazzy-std-srvs>=5.3',
+    'ros-jazzy-sensor-msgs>=5.3',
+    'ros-jazzy-geometry-msgs>=5.3',
+    'ros-jazzy-visualization-msgs>=5.3',
+    'ros-jazzy-diagnostic-msgs>=5.3',
+]
+
 setup(
     name=package_name,
     version='0.1.0',
@@ -14,7 +30,7 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),
-        ('share/' + package_name + '/config', glob('config/*.yaml')),
+        ('share/' + package_name + '/config', glob('config/*.yaml') + glob('config/*.rviz')),
         ('share/' + package_name + '/launch', glob('launch/*.launch.py')),
     ],
     python_requires='>=3.10',
@@ -34,6 +50,10 @@ setup(
         'test': ['pytest>=7', 'ruff>=0.5', 'mypy>=1.8', 'colcon-common-extensions>=0.3'],
         'dask': ['dask[array]>=2023.1', 'distributed>=2023.1'],
         'mesh': ['gmsh>=4.11'],
+        # The ROS 2 Jazzy runtime from PyPI, for `predictor` and the node tests without an apt
+        # installation. These wheels are built for CPython 3.11 only; on Ubuntu 24.04 (Python
+        # 3.12) install ros-jazzy-* with apt and `source /opt/ros/jazzy/setup.bash` instead.
+        'ros': ROS_WHEELS,
     },
     zip_safe=False,
     maintainer='soft_rom maintainers',
@@ -45,7 +65,7 @@ setup(
     entry_points={
         'console_scripts': [
             'soft-rom = soft_rom.cli:main',
-            'predictor = soft_rom.ros.predictor_node:main',
+            'predictor = soft_rom.ros:main',
         ],
     },
 )

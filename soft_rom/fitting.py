@@ -159,22 +159,24 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             Qhat = [project(ep.Q, pod.basis_, q_ref) for ep in episodes]
             t_basis = time.perf_counter() - t0
             dt = episodes[0].dt
+            slv = FastSPDSolver() if solver == 'fast' else CvxpySolver()
+            r_fit = r_max or pod.r_
+            learner = LOpInf(r=r_fit, ddt=estimator, solver=slv, forces=forces,
+                             cubic_options=cubic_options, mass=mass, **(lopinf_options or {}))
+            learner.fit_reduced(
+                [q[:r_fit] for q in Qhat], [ep.U for ep in episodes],
+                [ep.Y for ep in episodes], dt, y_ref, names=[ep.name for ep in episodes],
+                energy_captured=float(pod.energy_[r_fit - 1]),
+                time_ranges=[[float(ep.t[0]), float(ep.t[-1])] for ep in episodes],
+                metadata={'training': provenance, **extra,
+                          'pod_singular_values': pod.singular_values_[:100].tolist()},
+                **names)
+            t_fit = time.perf_counter() - t0 - t_basis
             for r in (r_values or (pod.r_,)):
                 t1 = time.perf_counter()
-                slv = FastSPDSolver() if solver == 'fast' else CvxpySolver()
-                learner = LOpInf(r=r, ddt=estimator, solver=slv, forces=forces,
-                                 cubic_options=cubic_options, mass=mass,
-                                 **(lopinf_options or {}))
-                learner.fit_reduced(
-                    [q[:r] for q in Qhat], [ep.U for ep in episodes],
-                    [ep.Y for ep in episodes], dt, y_ref, names=[ep.name for ep in episodes],
-                    energy_captured=float(pod.energy_[r - 1]),
-                    time_ranges=[[float(ep.t[0]), float(ep.t[-1])] for ep in episodes],
-                    metadata={'training': provenance, **extra,
-                              'pod_singular_values': pod.singular_values_[:100].tolist()},
-                    **names)
-                out.append((learner.model_, t_basis / len(r_values or (1,))
-                            + time.perf_counter() - t1))
+                model = learner.model_for(r, energy_captured=float(pod.energy_[r - 1]))
+                seconds = t_fit if r == r_fit else time.perf_counter() - t1
+                out.append((model, t_basis / len(r_values or (1,)) + seconds))
                 bar.update(1)
         elif method == 'dmdc':
             from soft_rom.learners.dmdc import DMDc

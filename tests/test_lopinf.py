@@ -353,3 +353,25 @@ def test_tikhonov_columns_add_the_penalty_and_selection_is_reported():
                                                         'regularization']['lambda']}
     with pytest.raises(Exception, match='regularization'):
         LOpInf(r=6, regularization='sometimes').fit(episodes)
+
+
+def test_model_for_equals_a_fit_at_that_r() -> None:
+    # a sweep over r is one POD plus one operator solve per r: model_for(r) must equal a
+    # learner fitted at r directly (same basis, same coordinates), and refuse r out of range
+    from soft_rom.errors import ConfigError
+
+    eps = _chain_episodes(n=20, k=800, seeds=(1, 2))
+    big = LOpInf(r=6).fit(eps)
+    for r in (2, 4, 6):
+        small = LOpInf(r=r).fit(eps).model_
+        got = big.model_for(r)
+        assert got.r == r
+        for name in ('K', 'C', 'B', 'E'):
+            a, b = getattr(got, name), getattr(small, name)
+            assert np.linalg.norm(a - b) <= 1e-8 * max(np.linalg.norm(b), 1e-300), name
+        assert got.metadata['diagnostics']['energy_captured'] == pytest.approx(
+            small.metadata['diagnostics']['energy_captured'], rel=1e-12)
+    assert big.model_for(6) is big.model_
+    for bad in (0, 7, 2.5):
+        with pytest.raises(ConfigError):
+            big.model_for(bad)

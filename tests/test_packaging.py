@@ -13,23 +13,42 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# Python import name -> the rosdep key / ROS package that provides it.
+# ROS 2 Jazzy packages: rosdep resolves a package name through the distribution file.
+ROS_PACKAGES = {
+    'rclpy', 'std_msgs', 'std_srvs', 'sensor_msgs', 'geometry_msgs', 'visualization_msgs',
+    'diagnostic_msgs', 'builtin_interfaces', 'rcl_interfaces', 'lifecycle_msgs', 'launch',
+    'launch_ros', 'rosgraph_msgs',
+}
+# System keys checked by hand against rosdistro's rosdep/python.yaml and base.yaml at commit
+# 8468e88ccd523427f9131e39d2af0938f1c298b2 (2026-08-22): each exists there, with an ubuntu
+# rule. Add a key here only after checking it the same way (a missing key makes
+# `rosdep install` fail for everyone).
+VERIFIED_ROSDEP_KEYS = {
+    'python3-numpy', 'python3-scipy', 'python3-yaml', 'python3-matplotlib', 'python3-tqdm',
+    'python3-cvxpy-pip', 'python3-rosbags-pip', 'python3-pytest',
+}
+# Dependencies without any rosdep key (no zarr key of any spelling exists): setup.py
+# requires them, package.xml says in a comment how to get them, and so does the README.
+NO_ROSDEP_KEY = {'zarr': "pip install 'zarr>=2.16'"}
+
+# Python import name -> the rosdep key / ROS package that provides it (None: NO_ROSDEP_KEY).
 ROSDEP_OF = {
     'rclpy': 'rclpy', 'std_msgs': 'std_msgs', 'std_srvs': 'std_srvs',
     'sensor_msgs': 'sensor_msgs', 'geometry_msgs': 'geometry_msgs',
     'visualization_msgs': 'visualization_msgs', 'diagnostic_msgs': 'diagnostic_msgs',
     'builtin_interfaces': 'builtin_interfaces', 'rcl_interfaces': 'rcl_interfaces',
-    'launch': 'launch', 'launch_ros': 'launch_ros',
+    'lifecycle_msgs': 'lifecycle_msgs', 'launch': 'launch', 'launch_ros': 'launch_ros',
     'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'yaml': 'python3-yaml',
     'matplotlib': 'python3-matplotlib', 'tqdm': 'python3-tqdm',
-    'cvxpy': 'python3-cvxpy-pip', 'rosbags': 'python3-rosbags-pip', 'zarr': 'python3-zarr-pip',
+    'cvxpy': 'python3-cvxpy-pip', 'rosbags': 'python3-rosbags-pip', 'zarr': None,
 }
-OPTIONAL = {'dask', 'distributed', 'gmsh', 'clarabel'}  # imported lazily, extras only
+# Imported lazily for extras (dask, mesh); clarabel is the cvxpy solver cvxpy installs.
+OPTIONAL = {'dask', 'distributed', 'gmsh', 'clarabel'}
 
 
-def _exec_depends() -> set[str]:
+def _exec_depends(tags: tuple[str, ...] = ('exec_depend', 'depend')) -> set[str]:
     tree = ET.parse(ROOT / 'package.xml')
-    return {e.text.strip() for e in tree.getroot() if e.tag in ('exec_depend', 'depend')}
+    return {e.text.strip() for e in tree.getroot() if e.tag in tags}
 
 
 def _top_level_imports() -> set[str]:
@@ -42,16 +61,48 @@ def test_package_xml_declares_what_the_code_imports() -> None:
     stdlib = set(sys.stdlib_module_names) | {'soft_rom', '__future__'}
     missing = []
     for name in sorted(_top_level_imports() - stdlib - OPTIONAL):
-        key = ROSDEP_OF.get(name)
-        if key is None or key not in deps:
+        if name not in ROSDEP_OF:
+            missing.append(f'{name}: unknown')
+            continue
+        key = ROSDEP_OF[name]
+        if key is None:
+            assert name in NO_ROSDEP_KEY, name
+        elif key not in deps:
             missing.append(f'{name} -> {key}')
     assert not missing, f'imports without an exec_depend in package.xml: {missing}'
 
 
 def test_package_xml_declares_nothing_unused() -> None:
     used = {ROSDEP_OF[n] for n in _top_level_imports() if n in ROSDEP_OF}
+    used |= {'lifecycle_msgs'}      # the node's lifecycle mode: rclpy.lifecycle imports it
     unused = _exec_depends() - used
     assert not unused, f'exec_depends not imported anywhere: {sorted(unused)}'
+
+
+def test_every_rosdep_key_is_verified() -> None:
+    keys = _exec_depends(('exec_depend', 'depend', 'build_depend', 'test_depend',
+                          'build_export_depend', 'buildtool_depend'))
+    unknown = sorted(keys - ROS_PACKAGES - VERIFIED_ROSDEP_KEYS)
+    assert not unknown, (f'package.xml keys not verified against the rosdep database: '
+                         f'{unknown}')
+    tests = {e.text.strip() for e in ET.parse(ROOT / 'package.xml').getroot()
+             if e.tag == 'test_depend'}
+    test_imports = set().union(*(top_level_imports(p) for p in (ROOT / 'tests').glob('*.py')))
+    for name in sorted(test_imports & ROS_PACKAGES - _exec_depends()):
+        assert name in tests, f'tests import {name}: a test_depend of package.xml'
+
+
+def test_dependencies_without_a_key_agree() -> None:
+    xml = (ROOT / 'package.xml').read_text(encoding='utf-8')
+    setup = (ROOT / 'setup.py').read_text(encoding='utf-8')
+    readme = (ROOT / 'README.md').read_text(encoding='utf-8')
+    for name, command in NO_ROSDEP_KEY.items():
+        assert f"'{name}>=" in setup, f'setup.py must require {name}'
+        assert command in xml, f'package.xml must say how to get {name}: {command}'
+        assert command in readme, f'the README must say how to get {name}: {command}'
+    # the code's message when zarr is missing names the same command
+    code = ''.join(p.read_text(encoding='utf-8') for p in (ROOT / 'soft_rom').rglob('*.py'))
+    assert 'pip install zarr' in code
 
 
 @pytest.mark.skipif(shutil.which('colcon') is None and not (Path(sys.executable).parent / 'colcon')
@@ -71,6 +122,7 @@ def test_colcon_build_installs_executables_and_marker(tmp_path) -> None:
     assert (index / 'soft_rom').is_file()
     assert (install / 'share' / 'soft_rom' / 'package.xml').is_file()
     assert list((install / 'share' / 'soft_rom' / 'config').glob('*.yaml'))
+    assert (install / 'share' / 'soft_rom' / 'config' / 'predictor.rviz').is_file()
     assert list((install / 'share' / 'soft_rom' / 'launch').glob('*.launch.py'))
 
 

@@ -277,6 +277,10 @@ class LOpInf:
         -------
         self
         """
+        self._reduced: dict[str, Any] = dict(
+            Qhat=list(Qhat), U=list(U), Y=list(Y), dt=dt, y_ref=y_ref, input_names=input_names,
+            output_names=output_names, input_units=input_units, output_units=output_units,
+            names=names, time_ranges=time_ranges, metadata=metadata)
         t0 = time.perf_counter()
         Qhat = [as_signal('Qhat', q) for q in Qhat]
         U = [as_signal('U', u) for u in U]
@@ -434,6 +438,51 @@ class LOpInf:
         K, C, B, info = margins.constrained_solve(solver, Qs, Qd, Qdd, Us, gamma=gamma, **kw)
         reg['lambda'] = info.get('regularization', {}).get('lambda')
         return K, C, B, info, reg
+
+    def model_for(self, r: int, *, energy_captured: float | None = None) -> Any:
+        """The ROM of a smaller reduced dimension from the same fit (like DMDc and ERA/OKID).
+
+        The basis and the reduced coordinates of :meth:`fit` (or :meth:`fit_reduced`) are
+        reused: the leading ``r`` coordinates are taken and only the operators are solved
+        again, so a sweep over r costs one POD. ``model_for(self.model_.r)`` is the fitted
+        model itself.
+
+        Parameters
+        ----------
+        r : int
+            ``1 <= r <=`` the fitted dimension.
+        energy_captured : float, optional
+            POD energy fraction of the first r modes (diagnostics); default from the basis
+            of :meth:`fit`, if there is one.
+
+        Returns
+        -------
+        SecondOrderModel (or the cubic model for ``forces='cubic'``)
+        """
+        self._check()
+        r_fit = int(self.model_.r)
+        if isinstance(r, bool) or not isinstance(r, (int, np.integer)) or not 1 <= r <= r_fit:
+            raise ConfigError(f'model_for needs 1 <= r <= {r_fit} (the fitted dimension); '
+                              f'got {r!r}.')
+        if int(r) == r_fit:
+            return self.model_
+        red: dict[str, Any] = dict(self._reduced)
+        captured = energy_captured
+        builder = self.basis_
+        if builder is not None and captured is None:
+            energy = getattr(builder, 'energy_', None)
+            sv = np.asarray(builder.singular_values_, dtype=np.float64)
+            captured = (float(np.asarray(energy)[r - 1]) if energy is not None
+                        else float(np.sum(sv[:r] ** 2) / np.sum(sv ** 2)))
+        other = copy.copy(self)
+        other.r = int(r)
+        other.fit_reduced([q[:r] for q in red.pop('Qhat')], red.pop('U'), red.pop('Y'),
+                          red.pop('dt'), red.pop('y_ref'), energy_captured=captured, **red)
+        if builder is not None:
+            other.model_.metadata['diagnostics'].update(
+                {k: self.diagnostics_[k] for k in ('n_full', 'singular_values')
+                 if k in self.diagnostics_})
+        return other.model_
 
     # ---------------------------------------------------------------------------------
     @property

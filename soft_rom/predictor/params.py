@@ -18,7 +18,7 @@ from soft_rom.errors import ConfigError
 from soft_rom.predictor.config import PredictorConfig
 from soft_rom.predictor.loop import LoopSettings
 
-__all__ = ['NODE_NAME', 'PARAMS', 'Param', 'load_params_file', 'loop_settings',
+__all__ = ['NODE_NAME', 'NODE_PARAMS', 'PARAMS', 'Param', 'load_params_file', 'loop_settings',
            'predictor_config', 'render_params_file']
 
 NODE_NAME = 'soft_rom_predictor'
@@ -120,8 +120,21 @@ PARAMS: tuple[Param, ...] = (
           range=(0.0, 1e9), read_only=False),
 )
 
+#: Parameters only the ROS node has (executor, lifecycle, diagnostics id); ``replay --config``
+#: accepts and ignores them so that one params file serves both.
+NODE_PARAMS: tuple[Param, ...] = (
+    Param('lifecycle', False, 'true: a managed (lifecycle) node, started by configure and '
+          'activate transitions; false: a plain node that starts at once.'),
+    Param('executor', 'events', 'rclpy executor: events (rclpy.experimental.EventsExecutor: '
+          'about half the CPU per message, what 1 kHz inputs need; falls back to '
+          'single_threaded where this rclpy lacks it) or single_threaded '
+          '(SingleThreadedExecutor).', choices=('events', 'single_threaded')),
+    Param('hardware_id', '', 'hardware_id of the /diagnostics statuses; empty = the node '
+          'name.'),
+)
+
 _CONFIG_FIELDS = {f.name for f in fields(PredictorConfig)}
-_BY_NAME = {p.name: p for p in PARAMS}
+_BY_NAME = {p.name: p for p in PARAMS + NODE_PARAMS}
 
 
 def predictor_config(values: Mapping[str, Any]) -> PredictorConfig:

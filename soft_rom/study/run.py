@@ -272,7 +272,7 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
     rows = [index.get(('z', n_pts // 2), min(9, len(names) - 1)),
             index.get(('z', n_pts), min(19, len(names) - 1))]
     figures.output_traces(out / 'traces.png', ep1.t, ep1.Y,
-                          {m: predictions[m][b['r']] for m, b in best.items()}, rows,
+                          {m: predictions[m][int(b['r'])] for m, b in best.items()}, rows,
                           [names[i] for i in rows], t_split=cfg.t_train,
                           rom_labels={m: f'{figures.LABELS[m]} r={b["r"]}'
                                       for m, b in best.items()})
@@ -336,7 +336,9 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
         _e, (e_train, r, model) = era_candidates[era_episode]
         chosen['era'] = {'r': r, 'train': e_train, 'episode': era_episode}
         models['era'] = model
-    test, test_dev, preds = {}, {}, {}
+    test: dict[str, dict[str, float]] = {}
+    test_dev: dict[str, dict[str, float]] = {}
+    preds: dict[str, dict[str, np.ndarray]] = {}
     for method, model in models.items():
         test[method], test_dev[method], preds[method] = {}, {}, {}
         for ep in tests:

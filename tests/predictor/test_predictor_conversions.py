@@ -109,3 +109,19 @@ def test_params_file_errors(tmp_path) -> None:
     bad.write_text('a: [\n')
     with pytest.raises(ConfigError):
         load_params_file(bad)
+
+
+def test_params_file_with_node_only_parameters_serves_replay(tmp_path) -> None:
+    # one params file for the node and for `soft-rom replay --config`: the node-only
+    # parameters (executor, lifecycle, hardware_id) are accepted and ignored by replay
+    from soft_rom.errors import ConfigError
+    from soft_rom.predictor.params import load_params_file, predictor_config
+
+    path = tmp_path / 'p.yaml'
+    path.write_text("/**:\n  ros__parameters:\n    lifecycle: true\n    executor: 'events'\n"
+                    "    hardware_id: 'eel-1'\n    kalman: true\n    use_sim_time: true\n")
+    values = load_params_file(path)
+    assert predictor_config(values).kalman is True
+    path.write_text('/**:\n  ros__parameters:\n    lifecycel: true\n')
+    with pytest.raises(ConfigError, match='lifecycel'):
+        load_params_file(path)

@@ -1,0 +1,184 @@
+"""Declaring the predictor node's parameters, and refusing or applying run-time changes.
+
+The core's parameters (names, defaults, ranges, which change at run time) are stated once
+in :mod:`soft_rom.predictor.params`; two more exist only on the node (``NODE_PARAMS``).
+
+* A double parameter accepts an integer (``-p rate_hz:=100``, ``ros2 param set ... 100``):
+  it is converted before rclpy checks the type.
+* A refused change is logged at WARN with the reason (read-only, wrong type, out of range,
+  or refused by the core / the model file) and returned as the reason to the caller.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.parameter import Parameter
+
+from soft_rom.predictor import PredictorConfig
+from soft_rom.predictor.loop import LoopSettings
+from soft_rom.predictor.params import loop_settings as _loop_settings
+from soft_rom.predictor.params import NODE_PARAMS, Param, PARAMS, predictor_config
+
+__all__ = ['NODE_PARAMS', 'NodeSettings', 'ParameterMixin']
+
+ALL_PARAMS = PARAMS + NODE_PARAMS
+_BY_NAME = {p.name: p for p in ALL_PARAMS}
+_DOUBLES = {p.name for p in ALL_PARAMS
+            if isinstance(p.default, float) and not isinstance(p.default, bool)}
+
+
+@dataclass(frozen=True)
+class NodeSettings:
+    """The node's read-only parameters, read once at start-up."""
+
+    input_mode: str
+    input_topics: tuple[str, ...]
+    array_topic: str
+    input_scale: float
+    input_offset: float
+    input_qos: str
+    qos_depth: int
+    diagnostics_rate_hz: float
+    frame_id: str
+    output_components: str
+    fill_value: float
+    measured_topic: str
+    wait_for_model: bool
+    lifecycle: bool
+    executor: str
+    hardware_id: str
+
+
+def _descriptor(p: Param) -> ParameterDescriptor:
+    text = p.description
+    if p.choices:
+        text += f' One of: {", ".join(p.choices)}.'
+    if not p.read_only:
+        text += ' Changeable at run time.'
+    d = ParameterDescriptor(description=text, read_only=p.read_only)
+    if p.choices:
+        d.additional_constraints = f'one of {", ".join(p.choices)}'
+    if p.range is not None and not isinstance(p.default, bool):
+        if isinstance(p.default, int):
+            d.integer_range = [IntegerRange(from_value=int(p.range[0]),
+                                            to_value=int(p.range[1]), step=1)]
+        elif isinstance(p.default, float):
+            d.floating_point_range = [FloatingPointRange(from_value=float(p.range[0]),
+                                                         to_value=float(p.range[1]),
+                                                         step=0.0)]
+    return d
+
+
+def _as_double(param: Parameter) -> Parameter:
+    if param.name in _DOUBLES and param.type_ == Parameter.Type.INTEGER:
+        return Parameter(param.name, Parameter.Type.DOUBLE, float(param.value))
+    return param
+
+
+class ParameterMixin:
+    """Parameter handling of :class:`~soft_rom.ros.predictor_node.PredictorNode`.
+
+    The node implements ``apply_parameters(names, values)``, which raises to refuse.
+    """
+
+    def declare_predictor_parameters(self) -> NodeSettings:
+        """Declare every parameter (integers given for doubles converted); the settings."""
+        overrides = self._parameter_overrides  # type: ignore[attr-defined]
+        for name, param in list(overrides.items()):
+            overrides[name] = _as_double(param)
+        for p in ALL_PARAMS:
+            self.declare_parameter(p.name, p.default,  # type: ignore[attr-defined]
+                                   _descriptor(p))
+        self.add_pre_set_parameters_callback(self._pre_set)  # type: ignore[attr-defined]
+        self.add_on_set_parameters_callback(self._on_set)  # type: ignore[attr-defined]
+        v = self.parameter_values()
+        return NodeSettings(
+            input_mode=str(v['input_mode']), input_topics=tuple(v['input_topics']),
+            array_topic=str(v['array_topic']), input_scale=float(v['input_scale']),
+            input_offset=float(v['input_offset']), input_qos=str(v['input_qos']),
+            qos_depth=int(v['qos_depth']),
+            diagnostics_rate_hz=float(v['diagnostics_rate_hz']), frame_id=str(v['frame_id']),
+            output_components=str(v['output_components']), fill_value=float(v['fill_value']),
+            measured_topic=str(v['measured_topic']), wait_for_model=bool(v['wait_for_model']),
+            lifecycle=bool(v['lifecycle']), executor=str(v['executor']),
+            hardware_id=str(v['hardware_id']))
+
+    def parameter_values(self, changes: list[Parameter] | None = None) -> dict[str, Any]:
+        """Every parameter's value, with ``changes`` applied over them."""
+        values = {p.name: self.get_parameter(p.name).value  # type: ignore[attr-defined]
+                  for p in ALL_PARAMS}
+        for param in changes or []:
+            values[param.name] = param.value
+        return values
+
+    def settings_value(self, name: str) -> Any:
+        """One parameter's current value."""
+        return self.get_parameter(name).value  # type: ignore[attr-defined]
+
+    def predictor_config(self, values: dict[str, Any] | None = None) -> PredictorConfig:
+        """The core's settings from the parameters (or from ``values``)."""
+        return predictor_config(self.parameter_values() if values is None else values)
+
+    def loop_settings(self) -> LoopSettings:
+        """The runtime loop's settings (publish rates, layout, input scaling)."""
+        return _loop_settings(self.parameter_values())
+
+    def check_settings(self) -> None:
+        """Refuse read-only settings outside their choices (a start-up error)."""
+        for p in ALL_PARAMS:
+            if p.choices and self.settings_value(p.name) not in p.choices:
+                raise ValueError(f'{p.name} must be one of {", ".join(p.choices)}; got '
+                                 f'{self.settings_value(p.name)!r}')
+
+    def _warn_refused(self, reason: str) -> None:
+        self.get_logger().warning(  # type: ignore[attr-defined]
+            f'parameter change refused: {reason}')
+
+    def _pre_set(self, params: list[Parameter]) -> list[Parameter]:
+        # Runs before rclpy's own checks: converts integers for doubles, and logs (WARN) the
+        # refusals that rclpy then returns without logging (read-only, type, range).
+        out = []
+        for param in params:
+            param = _as_double(param)
+            p = _BY_NAME.get(param.name)
+            if p is not None:
+                why = self._refusal(p, param)
+                if why:
+                    self._warn_refused(why)
+            out.append(param)
+        return out
+
+    @staticmethod
+    def _refusal(p: Param, param: Parameter) -> str | None:
+        if p.read_only:
+            return (f'{param.name} is read-only (set it at start-up: --ros-args -p '
+                    f'{param.name}:=VALUE)')
+        expected = Parameter.Type.from_parameter_value(p.default)
+        if param.type_ != expected:
+            return f'{param.name} must be of type {expected.name}; got {param.type_.name}'
+        if p.range is not None and not p.range[0] <= param.value <= p.range[1]:
+            return f'{param.name} = {param.value!r} outside {p.range[0]:g}..{p.range[1]:g}'
+        return None
+
+    def _on_set(self, params: list[Parameter]) -> SetParametersResult:
+        names = {p.name for p in params}
+        changeable = {p.name for p in ALL_PARAMS if not p.read_only}
+        if not names & changeable:
+            return SetParametersResult(successful=True)
+        try:
+            self.apply_parameters(names, self.parameter_values(params))  # type: ignore
+        except Exception as err:  # noqa: BLE001 - refused, running model stays
+            why = str(err).rstrip('.')
+            reason = f'{type(err).__name__}: {why}; the running model is unchanged'
+            self._warn_refused(reason)
+            return SetParametersResult(successful=False, reason=reason)
+        return SetParametersResult(successful=True)
+
