@@ -14,6 +14,11 @@ stderr and recorded in the model file (``metadata['coordinates']``). Measured ou
 noisy, so their default derivative estimator is :class:`~soft_rom.ddt.SavitzkyGolay`
 (``ddt='savgol'``); states keep the eighth-order differences. The models predict outputs
 from inputs either way, so the predictor, replay, evaluate and the node use them unchanged.
+
+Mass: in output coordinates ``y = T q`` of a mechanical system the identity-mass form has a
+non-symmetric stiffness, so LOpInf learns an SPD mass matrix too there (``mass='learned'``,
+:mod:`soft_rom.learners.lopinf_mass`; the default on outputs, ``'identity'`` on states and
+with cubic forces); said on stderr and recorded in ``metadata['mass']``.
 """
 
 from __future__ import annotations
@@ -90,6 +95,7 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
                progress: bool = True, coordinates: str | None = None,
                ddt: str | None = None, forces: str = 'linear',
                cubic_options: dict[str, Any] | None = None,
+               mass: str | None = None,
                lopinf_options: dict[str, Any] | None = None,
                dmdc_options: dict[str, Any] | None = None) -> list[tuple[LinearROM, float]]:
     """Fit ``method`` for each r; returns ``[(model, seconds), ...]``.
@@ -106,6 +112,9 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
     ddt : str, optional
         LOpInf derivative estimator by name (``fd2`` .. ``fd8``, ``savgol[:W[:P]]``);
         default ``fd<ddt_order>`` on states and ``savgol`` on outputs.
+    mass : {'identity', 'learned'}, optional
+        LOpInf mass matrix (default ``'learned'`` on outputs with linear forces, else
+        ``'identity'``).
     """
     names = _names(ts)
     out: list[tuple[LinearROM, float]] = []
@@ -122,11 +131,17 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             q_ref = y_ref
     if ddt is None:
         ddt = 'savgol' if coords == 'outputs' else f'fd{ddt_order}'
+    if mass is None:
+        mass = 'learned' if coords == 'outputs' and forces == 'linear' else 'identity'
+    if mass not in ('identity', 'learned'):
+        raise ConfigError(f"--mass must be 'identity' or 'learned'; got {mass!r}.")
     if coords == 'outputs':
         why = ' (the training set has no Q)' if coordinates is None else ''
-        how = f', derivatives by {ddt}' if method == 'lopinf' else ''
+        how = f', derivatives by {ddt}, {mass} mass' if method == 'lopinf' else ''
         print(f'note: {method} uses the measured outputs (deviations from y_ref) as its '
               f'coordinates{why}{how}; --coordinates to choose.', file=sys.stderr)
+    elif method == 'lopinf' and mass == 'learned':
+        print('note: lopinf learns an SPD mass matrix (--mass learned).', file=sys.stderr)
     from soft_rom.ddt import parse_estimator
     estimator = parse_estimator(ddt)
     extra = {'coordinates': coords}
@@ -147,7 +162,7 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             slv = FastSPDSolver() if solver == 'fast' else CvxpySolver()
             r_fit = r_max or pod.r_
             learner = LOpInf(r=r_fit, ddt=estimator, solver=slv, forces=forces,
-                             cubic_options=cubic_options, **(lopinf_options or {}))
+                             cubic_options=cubic_options, mass=mass, **(lopinf_options or {}))
             learner.fit_reduced(
                 [q[:r_fit] for q in Qhat], [ep.U for ep in episodes],
                 [ep.Y for ep in episodes], dt, y_ref, names=[ep.name for ep in episodes],
@@ -259,7 +274,7 @@ def fit_models_streaming(ts: Any, method: str, *, r_values: tuple[int, ...] | No
                          energy: float | None, episodes: list[str] | None,
                          t_max: float | None, provenance: dict[str, Any],
                          dmdc_p: int | None = None, era_options: dict[str, Any] | None = None,
-                         client: Any = None, progress: bool = True,
+                         client: Any = None, progress: bool = True, mass: str | None = None,
                          ) -> list[tuple[LinearROM, float]]:
     """Like :func:`fit_models`, streaming the snapshots from disk (or on a Dask cluster).
 
@@ -271,7 +286,9 @@ def fit_models_streaming(ts: Any, method: str, *, r_values: tuple[int, ...] | No
         eps = select_episodes(ts, episodes, t_max)
         return fit_models(ts, method, r_values=r_values, energy=energy, episodes=eps,
                           provenance=provenance, dmdc_p=dmdc_p, era_options=era_options,
-                          progress=progress)
+                          progress=progress, mass=mass)
+    if mass == 'learned' and method == 'lopinf':
+        raise ConfigError('--mass learned on states is fitted in memory; drop --streaming/--dask')
     opts = {k: v for k, v in (era_options or {}).items() if v is not None}
     era_episode = opts.pop('episode', None)
     own_client = isinstance(client, str)

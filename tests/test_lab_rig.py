@@ -5,7 +5,9 @@ jittered clocks, a 120 Hz motion-capture centerline with jitter, lost frames and
 noise. The bags go through ``convert``, ``fit`` (LOpInf, DMDc, ERA) and ``evaluate`` as a
 user would run them; the LOpInf errors on the held-out bag are compared with an
 unconstrained least-squares second-order fit on the same training episodes and the same
-coordinates, computed here in the same run.
+coordinates (with eighth-order differences and with the same Savitzky-Golay derivatives as
+LOpInf), computed here in the same run, and with the identity-mass LOpInf (``--mass
+identity``), which pays a bias in output coordinates (non-symmetric stiffness ``T M⁻¹ K T⁻¹``).
 """
 
 from __future__ import annotations
@@ -88,29 +90,41 @@ def test_user_sequence_lopinf_beats_unconstrained_fit(lab, monkeypatch, capsys):
                  'lab1,lab2', '-o', 'm', '--no-progress']) == 0
     err = capsys.readouterr().err
     assert 'lopinf uses the measured outputs' in err and 'savgol' in err
+    assert 'learned mass' in err
+    assert main(['fit', 'lab.zarr', '--method', 'lopinf', '--r', '2:8:2', '--episodes',
+                 'lab1,lab2', '-o', 'mid', '--mass', 'identity', '--no-progress']) == 0
+    assert 'identity mass' in capsys.readouterr().err
     assert main(['fit', 'lab.zarr', '--method', 'era', '--r', '4:12:4', '--episodes', 'lab1',
                  '-o', 'm', '--no-progress']) == 0
     models = sorted(str(p) for p in Path('m').glob('*.npz'))
     assert len(models) == 11
-    assert main(['evaluate', *models, '--data', 'lab.zarr', '--episodes', 'lab3',
-                 '--json', 'eval.json']) == 0
-    rows = json.loads(Path('eval.json').read_text())
-    got = {(Path(r['model']).name if 'model' in r else r['path']): r for r in rows
-           if r.get('episode') == 'lab3'}
+    ident = sorted(str(p) for p in Path('mid').glob('*.npz'))
+    got = {}
+    for prefix, paths in (('', models), ('identity_', ident)):
+        assert main(['evaluate', *paths, '--data', 'lab.zarr', '--episodes', 'lab3',
+                     '--json', f'{prefix}eval.json']) == 0
+        for row in json.loads(Path(f'{prefix}eval.json').read_text()):
+            if row.get('episode') == 'lab3':
+                got[prefix + Path(row['model'] if 'model' in row else row['path']).name] = row
     ts = TrainingSet.open('lab.zarr')
     train, test = [ts['lab1'], ts['lab2']], ts['lab3']
-    lines = ['r   lopinf   dmdc     unconstrained(fd8)  unconstrained(savgol)']
+    lines = ['r   lopinf(identity)  lopinf(learned mass)  unconstrained(fd8)  '
+             'unconstrained(savgol)  dmdc']
     for r in (2, 4, 6, 8):
         lop = got[f'lab_lopinf_r{r}.npz']['relative_deviation_error']
+        lop_id = got[f'identity_lab_lopinf_r{r}.npz']['relative_deviation_error']
         dmdc = got[f'lab_dmdc_r{r}.npz']['relative_deviation_error']
         base_fd8 = unconstrained_fit(train, test, ts.y_ref, r, FiniteDifference(8))
         base_sg = unconstrained_fit(train, test, ts.y_ref, r, SavitzkyGolay())
-        lines.append(f'{r}   {lop:.4f}   {dmdc:.4f}   {base_fd8:.4f}              '
-                     f'{base_sg:.4f}')
+        lines.append(f'{r}   {lop_id:.4f}            {lop:.4f}                {base_fd8:.4f}'
+                     f'              {base_sg:.4f}                 {dmdc:.4f}')
         assert lop < 0.15                      # noise floor of the true model: ~0.05
         assert lop < base_fd8 / 3
+        assert lop <= lop_id * 1.001           # the learned mass never does worse here
         model = load_model(f'm/lab_lopinf_r{r}.npz')
         assert model.metadata['coordinates'] == 'outputs'
+        assert model.metadata['mass'] == 'learned'
+        assert load_model(f'mid/lab_lopinf_r{r}.npz').metadata['mass'] == 'identity'
         assert model.stability_margin() > 0
         assert model.metadata['training']['t0_ns']['lab1'] == ts.t0_ns('lab1')
     for r in (4, 8, 12):

@@ -73,6 +73,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument('--forces', choices=('linear', 'cubic'), default='linear',
                         help='LOpInf restoring force: linear (K q) or cubic (gradient of a '
                              'quartic potential, energy-consistent integrator; default linear)')
+    parser.add_argument('--mass', choices=('identity', 'learned'), default=None,
+                        help='LOpInf mass matrix: identity, or learned (SPD, exact in any '
+                             'coordinates); default learned on outputs, identity on states')
     parser.add_argument('--ddt-order', type=int, choices=(2, 4, 6, 8), default=8,
                         help='finite-difference order for LOpInf derivatives (default 8)')
     parser.add_argument('--coordinates', choices=('state', 'outputs'), default=None,
@@ -232,14 +235,14 @@ def run(args: argparse.Namespace) -> int:
                 ts, method, r_values=args.r, energy=args.energy,
                 episodes=[ep.name for ep in episodes], t_max=args.t_max,
                 provenance=provenance, dmdc_p=args.dmdc_p, era_options=era_options,
-                client=args.dask, progress=not args.quiet)
+                client=args.dask, progress=not args.quiet, mass=args.mass)
         else:
             fitted = fit_models(ts, method, r_values=args.r, energy=args.energy,
                                 episodes=episodes, provenance=provenance, solver=args.solver,
                                 ddt_order=args.ddt_order, dmdc_p=args.dmdc_p,
                                 forces=args.forces,
                                 era_options=era_options, progress=not args.quiet,
-                                coordinates=args.coordinates, ddt=args.ddt,
+                                coordinates=args.coordinates, ddt=args.ddt, mass=args.mass,
                                 lopinf_options=lopinf_options, dmdc_options=dmdc_options)
         for model, seconds in fitted:
             path = outdir / f'{prefix}_{_label(method, args)}_r{model.r}.npz'

@@ -83,6 +83,11 @@ class LOpInf:
         :mod:`soft_rom.learners.lopinf_cubic`; ``solver`` is then its linear block's solver).
     cubic_options : dict, optional
         ``reg``, ``eps4`` of :func:`~soft_rom.learners.lopinf_cubic.fit_cubic`.
+    mass : {'identity', 'learned'}
+        ``'learned'``: learn an SPD mass ``M`` too (:mod:`soft_rom.learners.lopinf_mass`;
+        exact in any coordinates of a mechanical system, e.g. measured outputs) and fit the
+        SPD ``K, C`` in ``z = Lᵀ q`` (``M = L Lᵀ``): the model has identity mass in ``z``,
+        and ``mass_factor_`` is ``Lᵀ``. Linear forces only.
     min_damping_ratio : float
         Every mode of the ROM has at least this damping ratio (default
         :data:`~soft_rom.learners.lopinf_margins.DEFAULT_MIN_DAMPING_RATIO`; 0: only the
@@ -123,7 +128,7 @@ class LOpInf:
                  ddt: int | DerivativeEstimator = 8, solver: OperatorSolver | None = None,
                  basis: BasisBuilder | None = None, eps: float = DEFAULT_EPS,
                  scale: bool = True, forces: str = 'linear',
-                 cubic_options: dict[str, Any] | None = None,
+                 cubic_options: dict[str, Any] | None = None, mass: str = 'identity',
                  min_damping_ratio: float = margins.DEFAULT_MIN_DAMPING_RATIO,
                  damping_frequency: float | None = None,
                  regularization: float | str | None = None,
@@ -137,6 +142,7 @@ class LOpInf:
         self.scale = scale
         self.forces = forces
         self.cubic_options = cubic_options
+        self.mass = mass
         self.min_damping_ratio = min_damping_ratio
         self.damping_frequency = damping_frequency
         self.regularization = regularization
@@ -320,6 +326,16 @@ class LOpInf:
         Qs, Qd, Qdd, (Us,) = _episodes(estimator, [q / s_q for q in Qhat], dt,
                                        [[u / s_u[:, None] for u in U]])
         self.nonlinear_: dict[str, Any] | None = None
+        self.mass_factor_: Array | None = None
+        if self.mass not in ('identity', 'learned') or (self.mass == 'learned'
+                                                         and self.forces != 'linear'):
+            raise ConfigError(f"mass must be 'identity' or 'learned' (linear forces only); got "
+                              f'{self.mass!r} with forces={self.forces!r}.')
+        if self.mass == 'learned':
+            from soft_rom.learners.lopinf_mass import solve_learned_mass
+            msol, Lt = solve_learned_mass(Qs, Qd, Qdd, Us, eps=self.eps, dt=dt, episodes=[
+                (np.asarray(q) / s_q, np.asarray(u) / s_u[:, None]) for q, u in zip(Qhat, U)])
+            Qs, Qd, Qdd, all_q, self.mass_factor_ = Lt @ Qs, Lt @ Qd, Lt @ Qdd, Lt @ all_q, Lt
         if self.forces == 'cubic':
             from soft_rom.learners.lopinf_cubic import fit_scaled
             sol, self.nonlinear_ = fit_scaled(Qs, Qd, Qdd, Us, s_q, solver, self.eps,
@@ -366,6 +382,8 @@ class LOpInf:
             'regularization': reg,
             'least_damped_mode': margins.least_damped_mode(K, C),
             'ddt': repr(estimator),
+            'mass': self.mass,
+            'mass_info': None if self.mass_factor_ is None else msol.info['mass'],
             'solver': repr(solver),
             'solver_info': self.solver_info_,
             'state_scale': s_q,
@@ -385,6 +403,7 @@ class LOpInf:
                            input_units=input_units, output_units=output_units)
         self._extra_meta = dict(metadata or {})
         self._extra_meta.setdefault('envelope', training_envelope(zip(U, Y), y_ref))
+        self._extra_meta.setdefault('mass', self.mass)
         self._rebuild_model()
         return self
 
