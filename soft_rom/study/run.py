@@ -3,7 +3,7 @@
 Pipeline (every step goes through the same public pieces a user calls):
 
 1. :mod:`soft_rom.sim` simulates Ep 1 … Ep N and records each as a ROS 2 bag
-   (:class:`soft_rom.bags.EpisodeBagWriter`, the SPEC's bag contract);
+   (:class:`soft_rom.bags.EpisodeBagWriter`, the bag contract of docs/bag_contract.md);
 2. :mod:`soft_rom.convert` turns the bags into a zarr training set;
 3. the learners fit LOpInf / DMDc / ERA-OKID ROMs over ranges of ``r``;
 4. :mod:`soft_rom.evaluation` predicts and scores them (both metrics);
