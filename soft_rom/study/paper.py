@@ -2,8 +2,8 @@
 
 Source: Sharma et al., *Data-driven Model Reduction for Soft Robots via Lagrangian Operator
 Inference* (reference 1 of docs/methods.md), Fig. 2 (time extrapolation, relative output error
-vs r, trained on Ep 1 up to 1.5 s) and Fig. 4 (unseen inputs, test errors of the ROMs trained on Ep 1 and Ep 2:
-LOpInf r = 10, DMDc r = 12, ERA/OKID r = 28 from Ep 2).
+vs r, trained on Ep 1 up to 1.5 s) and Fig. 4 (unseen inputs, test errors of the ROMs trained
+on Ep 1 and Ep 2: LOpInf r = 10, DMDc r = 12, ERA/OKID r = 28 from Ep 2).
 """
 
 from __future__ import annotations
