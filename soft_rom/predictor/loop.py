@@ -132,8 +132,10 @@ class SequenceClock:
     (so a 1 kHz sender on a 1 kHz model gets exactly one step per message, however the
     executor bunches them). When that sequence and the reception clock disagree by more
     than ``resync_ns`` (a pause, lost messages, a different rate) the reception time is
-    taken instead when it is later, or the previous stamp when the sequence ran ahead (stamps
-    never go backwards); both counted in :attr:`resyncs`. Until 8 intervals are seen the period is
+    taken instead when it is later; when the sequence ran ahead, the next step (the period
+    estimate restarts at one step) or, for a sender faster than the model, the previous stamp
+    (stamps never go backwards, and never lead the reception clock by more than ``resync_ns``);
+    both counted in :attr:`resyncs`. Until 8 intervals are seen the period is
     taken to be one step (the recommended set-up: the sender at the model rate).
 
     Parameters
@@ -168,8 +170,13 @@ class SequenceClock:
             candidate = self.last + self.period
             if abs(now_ns - candidate) <= self.resync_ns:
                 t = candidate
-            elif now_ns < candidate:    # far ahead of the reception clock: never backwards,
-                t = self.last           # hold (the message joins the current step)
+            elif now_ns < candidate:    # far ahead of the reception clock: never backwards;
+                # the next step while that stays within the bound (the period estimate ran
+                # ahead: restart it at one step), else join the current step (a sender
+                # faster than the model)
+                t = (self.last + self.h_ns if self.last + self.h_ns <= now_ns + self.resync_ns
+                     else self.last)
+                self.period = self.h_ns
                 self.resyncs += 1
             else:
                 self.resyncs += 1

@@ -563,3 +563,20 @@ def test_untrusted_model_is_reported_and_refused_when_strict(tmp_path) -> None:
     with pytest.raises(ModelFileError, match='not trusted'):
         running.reload(path)
     assert running.model is good                       # the running model stays
+
+
+def test_unstamped_sender_that_speeds_up_gets_a_new_step_per_message() -> None:
+    # the period estimate from a slow start (10 ms) runs the sequence ahead of a sender that
+    # then sends every 3 ms: past the bound each message still gets a step of its own (never
+    # joins a step whose output is already out), and never runs far ahead of reception
+    loop = RuntimeLoop(Predictor(_model(m=3)))
+    recv = np.concatenate([T0_NS + np.arange(40) * 10 * H_NS,
+                           T0_NS + 400 * H_NS + np.arange(1, 400) * 3 * H_NS])
+    times, outs = [], 0
+    for a in recv.tolist():
+        outs += len(loop.on_array(np.ones(3), 0, a).outputs)
+        times.append(loop.predictor.t_ns)
+    assert all(b > a for a, b in zip(times, times[1:]))         # a new step every message
+    assert loop.predictor.counters['late'] == 0
+    lead = max(t - a for t, a in zip(times, recv.tolist()))
+    assert lead <= loop.predictor.config.max_lag_s * 1e9 + H_NS
