@@ -49,7 +49,6 @@ setup(
     extras_require={
         'test': ['pytest>=7', 'ruff>=0.5', 'mypy>=1.8', 'colcon-common-extensions>=0.3'],
         'dask': ['dask[array]>=2023.1', 'distributed>=2023.1'],
-        'mesh': ['gmsh>=4.11'],
         # The ROS 2 Jazzy runtime from PyPI, for `predictor` and the node tests without an apt
         # installation. These wheels are built for CPython 3.11 only; on Ubuntu 24.04 (Python
         # 3.12) install ros-jazzy-* with apt and `source /opt/ros/jazzy/setup.bash` instead.
