@@ -19,6 +19,12 @@ Mass: in output coordinates ``y = T q`` of a mechanical system the identity-mass
 non-symmetric stiffness, so LOpInf learns an SPD mass matrix too there (``mass='learned'``,
 :mod:`soft_rom.learners.lopinf_mass`; the default on outputs, ``'identity'`` on states and
 with cubic forces); said on stderr and recorded in ``metadata['mass']``.
+
+Refinement: on measured outputs the derivatives come from noisy data, which biases the
+equation-error operator fit; LOpInf then refines ``K, C, B`` by the simulation error of the
+training episodes, constraints kept (``refine='output-error'``,
+:mod:`soft_rom.learners.lopinf_refine`): the default on outputs with linear forces,
+``'none'`` (the paper's fit) on states; said on stderr and recorded in ``metadata['refine']``.
 """
 
 from __future__ import annotations
@@ -95,7 +101,7 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
                progress: bool = True, coordinates: str | None = None,
                ddt: str | None = None, forces: str = 'linear',
                cubic_options: dict[str, Any] | None = None,
-               mass: str | None = None,
+               mass: str | None = None, refine: str | None = None,
                lopinf_options: dict[str, Any] | None = None,
                dmdc_options: dict[str, Any] | None = None) -> list[tuple[LinearROM, float]]:
     """Fit ``method`` for each r; returns ``[(model, seconds), ...]``.
@@ -115,6 +121,9 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
     mass : {'identity', 'learned'}, optional
         LOpInf mass matrix (default ``'learned'`` on outputs with linear forces, else
         ``'identity'``).
+    refine : {'none', 'output-error'}, optional
+        LOpInf refinement by simulation error (default ``'output-error'`` on outputs with
+        linear forces, else ``'none'``).
     """
     names = _names(ts)
     out: list[tuple[LinearROM, float]] = []
@@ -135,9 +144,16 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
         mass = 'learned' if coords == 'outputs' and forces == 'linear' else 'identity'
     if mass not in ('identity', 'learned'):
         raise ConfigError(f"--mass must be 'identity' or 'learned'; got {mass!r}.")
+    if refine is None:
+        refine = 'output-error' if coords == 'outputs' and forces == 'linear' else 'none'
+    if refine not in ('none', 'output-error') or (refine != 'none' and forces != 'linear'):
+        raise ConfigError(f"--refine must be 'none' or 'output-error' (linear forces only); "
+                          f'got {refine!r} with --forces {forces}.')
     if coords == 'outputs':
         why = ' (the training set has no Q)' if coordinates is None else ''
-        how = f', derivatives by {ddt}, {mass} mass' if method == 'lopinf' else ''
+        how = (f', derivatives by {ddt}, {mass} mass'
+               + (', refined by output error' if refine != 'none' else '')
+               if method == 'lopinf' else '')
         print(f'note: {method} uses the measured outputs (deviations from y_ref) as its '
               f'coordinates{why}{how}; --coordinates to choose.', file=sys.stderr)
     elif method == 'lopinf' and mass == 'learned':
@@ -162,7 +178,8 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
             slv = FastSPDSolver() if solver == 'fast' else CvxpySolver()
             r_fit = r_max or pod.r_
             learner = LOpInf(r=r_fit, ddt=estimator, solver=slv, forces=forces,
-                             cubic_options=cubic_options, mass=mass, **(lopinf_options or {}))
+                             cubic_options=cubic_options, mass=mass, refine=refine,
+                             **(lopinf_options or {}))
             learner.fit_reduced(
                 [q[:r_fit] for q in Qhat], [ep.U for ep in episodes],
                 [ep.Y for ep in episodes], dt, y_ref, names=[ep.name for ep in episodes],
@@ -275,7 +292,7 @@ def fit_models_streaming(ts: Any, method: str, *, r_values: tuple[int, ...] | No
                          t_max: float | None, provenance: dict[str, Any],
                          dmdc_p: int | None = None, era_options: dict[str, Any] | None = None,
                          client: Any = None, progress: bool = True, mass: str | None = None,
-                         ) -> list[tuple[LinearROM, float]]:
+                         refine: str | None = None) -> list[tuple[LinearROM, float]]:
     """Like :func:`fit_models`, streaming the snapshots from disk (or on a Dask cluster).
 
     One streamed POD pass (:func:`soft_rom.scale.streaming.reduce_streaming`) serves every ``r``;
@@ -286,9 +303,12 @@ def fit_models_streaming(ts: Any, method: str, *, r_values: tuple[int, ...] | No
         eps = select_episodes(ts, episodes, t_max)
         return fit_models(ts, method, r_values=r_values, energy=energy, episodes=eps,
                           provenance=provenance, dmdc_p=dmdc_p, era_options=era_options,
-                          progress=progress, mass=mass)
+                          progress=progress, mass=mass, refine=refine)
     if mass == 'learned' and method == 'lopinf':
         raise ConfigError('--mass learned on states is fitted in memory; drop --streaming/--dask')
+    if refine not in (None, 'none') and method == 'lopinf':
+        raise ConfigError('--refine output-error on states is fitted in memory; drop '
+                          '--streaming/--dask')
     opts = {k: v for k, v in (era_options or {}).items() if v is not None}
     era_episode = opts.pop('episode', None)
     own_client = isinstance(client, str)

@@ -90,9 +90,10 @@ def test_user_sequence_lopinf_beats_unconstrained_fit(lab, monkeypatch, capsys):
                  'lab1,lab2', '-o', 'm', '--no-progress']) == 0
     err = capsys.readouterr().err
     assert 'lopinf uses the measured outputs' in err and 'savgol' in err
-    assert 'learned mass' in err
+    assert 'learned mass' in err and 'refined by output error' in err
     assert main(['fit', 'lab.zarr', '--method', 'lopinf', '--r', '2:8:2', '--episodes',
-                 'lab1,lab2', '-o', 'mid', '--mass', 'identity', '--no-progress']) == 0
+                 'lab1,lab2', '-o', 'mid', '--mass', 'identity', '--refine', 'none',
+                 '--no-progress']) == 0
     assert 'identity mass' in capsys.readouterr().err
     assert main(['fit', 'lab.zarr', '--method', 'era', '--r', '4:12:4', '--episodes', 'lab1',
                  '-o', 'm', '--no-progress']) == 0
@@ -108,7 +109,7 @@ def test_user_sequence_lopinf_beats_unconstrained_fit(lab, monkeypatch, capsys):
                 got[prefix + Path(row['model'] if 'model' in row else row['path']).name] = row
     ts = TrainingSet.open('lab.zarr')
     train, test = [ts['lab1'], ts['lab2']], ts['lab3']
-    lines = ['r   lopinf(identity)  lopinf(learned mass)  unconstrained(fd8)  '
+    lines = ['r   lopinf(identity, no refine)  lopinf(default)  unconstrained(fd8)  '
              'unconstrained(savgol)  dmdc']
     for r in (2, 4, 6, 8):
         lop = got[f'lab_lopinf_r{r}.npz']['relative_deviation_error']
@@ -116,14 +117,18 @@ def test_user_sequence_lopinf_beats_unconstrained_fit(lab, monkeypatch, capsys):
         dmdc = got[f'lab_dmdc_r{r}.npz']['relative_deviation_error']
         base_fd8 = unconstrained_fit(train, test, ts.y_ref, r, FiniteDifference(8))
         base_sg = unconstrained_fit(train, test, ts.y_ref, r, SavitzkyGolay())
-        lines.append(f'{r}   {lop_id:.4f}            {lop:.4f}                {base_fd8:.4f}'
-                     f'              {base_sg:.4f}                 {dmdc:.4f}')
+        lines.append(f'{r}   {lop_id:.4f}                       {lop:.4f}           '
+                     f'{base_fd8:.4f}              {base_sg:.4f}                 {dmdc:.4f}')
         assert lop < 0.15                      # noise floor of the true model: ~0.05
         assert lop < base_fd8 / 3
-        assert lop <= lop_id * 1.001           # the learned mass never does worse here
+        assert lop < base_sg                   # the acceptance: beats the unconstrained fit
+        assert lop < lop_id
         model = load_model(f'm/lab_lopinf_r{r}.npz')
         assert model.metadata['coordinates'] == 'outputs'
         assert model.metadata['mass'] == 'learned'
+        assert model.metadata['refine'] == 'output-error'
+        ref = model.metadata['diagnostics']['refinement']
+        assert ref['criterion'] == 'output-error' and ref['improvement'] > 0
         assert load_model(f'mid/lab_lopinf_r{r}.npz').metadata['mass'] == 'identity'
         assert model.stability_margin() > 0
         assert model.metadata['training']['t0_ns']['lab1'] == ts.t0_ns('lab1')

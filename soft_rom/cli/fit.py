@@ -76,6 +76,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument('--mass', choices=('identity', 'learned'), default=None,
                         help='LOpInf mass matrix: identity, or learned (SPD, exact in any '
                              'coordinates); default learned on outputs, identity on states')
+    parser.add_argument('--refine', choices=('none', 'output-error'), default=None,
+                        help='LOpInf: refine K, C, B by the simulation error of the training '
+                             'episodes (constraints kept; unbiased for measurement noise); '
+                             'default output-error on outputs, none on states')
     parser.add_argument('--ddt-order', type=int, choices=(2, 4, 6, 8), default=8,
                         help='finite-difference order for LOpInf derivatives (default 8)')
     parser.add_argument('--coordinates', choices=('state', 'outputs'), default=None,
@@ -235,7 +239,8 @@ def run(args: argparse.Namespace) -> int:
                 ts, method, r_values=args.r, energy=args.energy,
                 episodes=[ep.name for ep in episodes], t_max=args.t_max,
                 provenance=provenance, dmdc_p=args.dmdc_p, era_options=era_options,
-                client=args.dask, progress=not args.quiet, mass=args.mass)
+                client=args.dask, progress=not args.quiet, mass=args.mass,
+                refine=args.refine)
         else:
             fitted = fit_models(ts, method, r_values=args.r, energy=args.energy,
                                 episodes=episodes, provenance=provenance, solver=args.solver,
@@ -243,6 +248,7 @@ def run(args: argparse.Namespace) -> int:
                                 forces=args.forces,
                                 era_options=era_options, progress=not args.quiet,
                                 coordinates=args.coordinates, ddt=args.ddt, mass=args.mass,
+                                refine=args.refine,
                                 lopinf_options=lopinf_options, dmdc_options=dmdc_options)
         for model, seconds in fitted:
             path = outdir / f'{prefix}_{_label(method, args)}_r{model.r}.npz'

@@ -123,6 +123,11 @@ def format_text(d: dict[str, Any]) -> str:
         if isinstance(mode, dict) and 'damping_ratio' in mode:
             lines.append(f"  least-damped mode: {mode.get('frequency_hz', float('nan')):.4g} Hz, "
                          f"damping ratio {mode['damping_ratio']:.4g}")
+        ref = diag.get('refinement') if isinstance(diag, dict) else None
+        if isinstance(ref, dict) and ref.get('criterion') == 'output-error':
+            lines.append(f"  refined by output error: {ref.get('iterations')} iterations "
+                         f"({ref.get('status')}), training simulation error "
+                         f"-{100 * float(ref.get('improvement', 0.0)):.1f} %")
         if meta:
             text = json.dumps(meta, sort_keys=True, default=str)
             lines.append('  metadata: ' + (text if len(text) <= 400 else text[:400] + ' ...'))

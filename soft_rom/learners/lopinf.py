@@ -101,6 +101,11 @@ class LOpInf:
         ``None`` (default): none.
     reg_grid : sequence of float
         Candidates for ``regularization='auto'``.
+    refine : {'none', 'output-error'}
+        ``'output-error'``: start from the operators above and minimize the simulation error
+        of the training episodes over ``K, C, B`` (and each episode's initial state), the
+        constraints kept (:mod:`soft_rom.learners.lopinf_refine`): unbiased for noise on
+        measured coordinates, where the equation error is not. Linear forces only.
 
     Attributes
     ----------
@@ -132,7 +137,8 @@ class LOpInf:
                  min_damping_ratio: float = margins.DEFAULT_MIN_DAMPING_RATIO,
                  damping_frequency: float | None = None,
                  regularization: float | str | None = None,
-                 reg_grid: Sequence[float] = margins.DEFAULT_REG_GRID) -> None:
+                 reg_grid: Sequence[float] = margins.DEFAULT_REG_GRID,
+                 refine: str = 'none') -> None:
         self.r = r
         self.energy = energy
         self.ddt = ddt
@@ -147,12 +153,13 @@ class LOpInf:
         self.damping_frequency = damping_frequency
         self.regularization = regularization
         self.reg_grid = reg_grid
+        self.refine = refine
 
     def __repr__(self) -> str:
         return (f'LOpInf(r={self.r!r}, energy={self.energy!r}, ddt={self.ddt!r}, '
                 f'solver={self.solver!r}, eps={self.eps!r}, '
                 f'min_damping_ratio={self.min_damping_ratio!r}, '
-                f'regularization={self.regularization!r})')
+                f'regularization={self.regularization!r}, refine={self.refine!r})')
 
     # ---------------------------------------------------------------------------------
     def fit(self, episodes: Episode | Sequence[Episode], q_ref: ArrayLike | None = None,
@@ -336,6 +343,11 @@ class LOpInf:
             msol, Lt = solve_learned_mass(Qs, Qd, Qdd, Us, eps=self.eps, dt=dt, episodes=[
                 (np.asarray(q) / s_q, np.asarray(u) / s_u[:, None]) for q, u in zip(Qhat, U)])
             Qs, Qd, Qdd, all_q, self.mass_factor_ = Lt @ Qs, Lt @ Qd, Lt @ Qdd, Lt @ all_q, Lt
+        if self.refine not in ('none', 'output-error') or (self.refine != 'none'
+                                                            and self.forces != 'linear'):
+            raise ConfigError(f"refine must be 'none' or 'output-error' (linear forces only); "
+                              f'got {self.refine!r} with forces={self.forces!r}.')
+        refined: dict[str, Any] | None = None
         if self.forces == 'cubic':
             from soft_rom.learners.lopinf_cubic import fit_scaled
             sol, self.nonlinear_ = fit_scaled(Qs, Qd, Qdd, Us, s_q, solver, self.eps,
@@ -348,6 +360,12 @@ class LOpInf:
             K, C, Bs, sol_info, reg = self._solve(solver, Qs, Qd, Qdd, Us, dt,
                                                   [q.shape[1] - 2 * _half_width(estimator)
                                                    for q in Qhat])
+            if self.refine == 'output-error':
+                from soft_rom.learners.lopinf_refine import refine_output_error
+                K, C, Bs, refined = refine_output_error(
+                    K, C, Bs, [(np.asarray(q) / s_q, np.asarray(u) / s_u[:, None])
+                               for q, u in zip(Qhat, U)], dt, Lt=self.mass_factor_,
+                    margin=sol_info.get('margin'), eps=self.eps)
             residual = float(np.linalg.norm(Qdd + C @ Qd + K @ Qs - Bs @ Us))
         else:
             raise ConfigError(f"forces must be 'linear' or 'cubic'; got {self.forces!r}.")
@@ -380,6 +398,7 @@ class LOpInf:
             'eps': float(self.eps),
             'margin': sol_info.get('margin'),
             'regularization': reg,
+            'refinement': refined if refined is not None else {'criterion': 'none'},
             'least_damped_mode': margins.least_damped_mode(K, C),
             'ddt': repr(estimator),
             'mass': self.mass,
@@ -404,6 +423,7 @@ class LOpInf:
         self._extra_meta = dict(metadata or {})
         self._extra_meta.setdefault('envelope', training_envelope(zip(U, Y), y_ref))
         self._extra_meta.setdefault('mass', self.mass)
+        self._extra_meta.setdefault('refine', self.refine)
         self._rebuild_model()
         return self
 
