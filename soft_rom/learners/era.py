@@ -71,7 +71,7 @@ __all__ = ['ERA_EEL_OPTIONS', 'ERA_PRESETS', 'ERAOKID', 'decimate', 'era', 'hank
 #: identify on the 4 leading output principal components at the full rate with a 36-step
 #: observer and 500 Markov parameters (0.5 s), plain least squares (no ridge, no selection).
 ERA_EEL_OPTIONS: dict[str, Any] = {'decimation': 1, 'output_rank': 4, 'observer_order': 36,
-                                   'n_markov': 500, 'selection': 'none'}
+                                   'n_markov': 500, 'selection': 'none', 'refit': False}
 
 #: Named settings for :meth:`ERAOKID.from_preset` (and ``soft-rom fit --era-preset``):
 #: ``'auto'`` the data-driven defaults; ``'eel'`` the study's hand-tuned settings;
@@ -81,7 +81,7 @@ ERA_PRESETS: dict[str, dict[str, Any]] = {
     'auto': {},
     'eel': ERA_EEL_OPTIONS,
     'legacy': {'decimation': 5, 'n_markov': 100, 'max_observer_order': 10,
-               'output_rank': None, 'selection': 'none'},
+               'output_rank': None, 'selection': 'none', 'refit': False},
 }
 
 Array = NDArray[np.float64]
@@ -186,11 +186,8 @@ def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: in
 
 def _hankel(markov: Array, start: int, rows: int, cols: int) -> Array:
     _, p, m = markov.shape
-    H = np.empty((rows * p, cols * m))
-    for i in range(rows):
-        for j in range(cols):
-            H[i * p:(i + 1) * p, j * m:(j + 1) * m] = markov[start + i + j]
-    return H
+    idx = start + np.arange(rows)[:, None] + np.arange(cols)[None, :]
+    return np.ascontiguousarray(markov[idx].transpose(0, 2, 1, 3).reshape(rows * p, cols * m))
 
 
 def hankel_rank(hsv: ArrayLike, *, tol: float = 1e-3) -> int:
@@ -348,7 +345,8 @@ class ERAOKID:
                  hsv_tol: float = 1e-3, max_observer_order: int = 10,
                  output_rank: int | str | None = 'auto', okid_rcond: float | None = None,
                  okid_ridge: float | None = None, selection: str = 'holdout',
-                 holdout: float = 0.2) -> None:
+                 holdout: float = 0.2, refit: bool = True,
+                 tie_tol: float = era_select.TIE_TOL) -> None:
         self.r = r
         self.n_markov = n_markov
         self.observer_order = observer_order
@@ -362,6 +360,8 @@ class ERAOKID:
         self.okid_ridge = okid_ridge
         self.selection = selection
         self.holdout = holdout
+        self.refit = refit
+        self.tie_tol = tie_tol
 
     @classmethod
     def from_preset(cls, name: str, **overrides: Any) -> ERAOKID:
@@ -392,11 +392,6 @@ class ERAOKID:
         self
         """
         t0 = time.perf_counter()
-        if self.decimation == 'auto':
-            return self._fit_auto_decimation(episode, y_ref, input_names=input_names,
-                                             output_names=output_names,
-                                             input_units=input_units,
-                                             output_units=output_units, metadata=metadata)
         ep = _one_episode(episode)
         if not ep.is_uniform():
             raise DimensionError(f'episode {ep.name!r} is not uniformly sampled.')
@@ -405,65 +400,84 @@ class ERAOKID:
         m, p = ep.U.shape[0], ep.Y.shape[0]
         y_ref = ep.Y[:, 0].copy() if y_ref is None else as_signal(
             'y_ref', np.reshape(y_ref, (-1, 1)), rows=p)[:, 0]
-        d = int(self.decimation)
-        Ud, Yd = decimate(ep.U, ep.Y - y_ref[:, None], d)
-        if Ud.shape[1] < 2 * (2 * m + 1):
-            raise DimensionError(
-                f'episode {ep.name!r} has {Ud.shape[1]} samples after decimation {d}: too few '
-                f'for OKID with m={m} inputs. Use less decimation or a longer episode.')
-        s_u = channel_scale(Ud)
-        s_y = channel_scale(Yd)
-        Us, Ys = Ud / s_u[:, None], Yd / s_y[:, None]
         if self.selection not in ('holdout', 'none'):
             raise ConfigError(f"selection must be 'holdout' or 'none'; got {self.selection!r}.")
-        P = None
-        q = self.output_rank
-        if q == 'auto':
-            sv = np.linalg.svd(Ys, compute_uv=False)
-            cum = np.cumsum(sv ** 2) / max(float(np.sum(sv ** 2)), 1e-300)
-            q = min(p, max(4, int(np.searchsorted(cum, 0.99) + 1)))
-        elif isinstance(q, str):
-            raise ConfigError(f"output_rank must be an integer, 'auto' or None; got {q!r}.")
-        if q is not None and int(q) < p:
-            q = int(q)
-            if not 1 <= q <= p:
-                raise ConfigError(f'output_rank must be between 1 and p = {p}; got {q}.')
-            P = np.linalg.svd(Ys, full_matrices=False)[0][:, :q]     # (p, q), orthonormal
-            Ys = P.T @ Ys
-        elif q is not None and not 1 <= int(q) <= p:
-            raise ConfigError(f'output_rank must be between 1 and p = {p}; got {q}.')
+        auto_d = self.decimation == 'auto'
+        selecting = self.selection == 'holdout' or auto_d
+        if auto_d:
+            grid = [d for d in era_select.DECIMATION_GRID
+                    if d == 1 or ep.n_samples // d >= 200]
+        else:
+            grid = [int(self.decimation)]
+        ridge = self.okid_ridge
+        sel = None
+        tried: list[dict[str, Any]] = []
+        prepared: dict[int, tuple[Array, Array, Array, Array, Array | None]] = {}
+        if selecting:
+            rows: list[dict[str, Any]] = []
+            per_d: dict[int, dict[str, Any]] = {}
+            for d in grid:
+                try:
+                    prepared[d] = self._prepare(ep, y_ref, d)
+                    Us, Ys = prepared[d][:2]
+                    nm_d = None if self.n_markov is None else int(self.n_markov)
+                    res = era_select.select_okid(
+                        Us, Ys, holdout=float(self.holdout),
+                        observer_orders=None if self.observer_order is None else (
+                            int(self.observer_order),),
+                        rhos=era_select.RIDGE_GRID if ridge is None else (float(ridge),),
+                        n_markov=nm_d, r_values=None if self.r is None else (int(self.r),),
+                        refit=bool(self.refit), tie_tol=float(self.tie_tol))
+                except (ConfigError, DimensionError) as err:
+                    if not auto_d:
+                        raise
+                    tried.append({'decimation': d, 'tail_error': None, 'error': str(err)})
+                    continue
+                per_d[d] = res
+                rows.extend({**row, 'decimation': d} for row in res['rows'])
+                tried.append({'decimation': d, 'tail_error': res['tail_error']})
+            if not per_d:
+                raise DimensionError(
+                    f'ERA/OKID found no usable setting for episode {ep.name!r} '
+                    f'({ep.n_samples} samples): {tried[0]["error"] if tried else ""}')
+            best = era_select.choose(rows, float(self.tie_tol))
+            d = int(best['decimation'])
+            sel = dict(per_d[d])
+            sel.update({'observer_order': int(best['observer_order']),
+                        'ridge': float(best['ridge']), 'r': int(best['r']),
+                        'tail_error': float(best['tail_error'])})
+            sel['table'] = [{**row, 'decimation': dd} for dd, res in per_d.items()
+                            for row in res['table']]
+            del sel['rows']
+            lo, ridge = sel['observer_order'], sel['ridge']
+            r_sel: int | None = sel['r'] if self.r is None else int(self.r)
+        else:
+            d = grid[0]
+            r_sel = self.r
+        Us, Ys, s_u, s_y, P = prepared[d] if d in prepared else self._prepare(ep, y_ref, d)
         p_id = Ys.shape[0]
         K = Us.shape[1]
         nm = era_select.default_n_markov(K) if self.n_markov is None else int(self.n_markov)
-        r_sel = self.r
-        ridge = self.okid_ridge
-        sel = None
-        if self.selection == 'holdout':
-            sel = era_select.select_okid(
-                Us, Ys, holdout=float(self.holdout),
-                observer_orders=None if self.observer_order is None else (
-                    int(self.observer_order),),
-                rhos=era_select.RIDGE_GRID if ridge is None else (float(ridge),),
-                n_markov=None if self.n_markov is None else nm,
-                r_values=None if self.r is None else (int(self.r),))
-            lo, ridge = sel['observer_order'], sel['ridge']
-            r_sel = sel['r'] if self.r is None else self.r
-        elif self.observer_order is None:
-            # Keep at least 2 equations per unknown: near-square regressions fit the noise
-            # and give unstable Markov sequences.
-            lo = min(int(self.max_observer_order), (K // 2 - m) // (m + p_id))
-            if lo < 1:
-                raise DimensionError(
-                    f'episode {ep.name!r} has {K} samples after decimation {d}: too few for '
-                    f'OKID with m={m}, p={p_id} (needs at least {2 * (2 * m + p_id)}). Use less '
-                    'decimation or a longer episode.')
-        else:
-            lo = int(self.observer_order)
+        if sel is None:
+            if self.observer_order is None:
+                # Keep at least 2 equations per unknown: near-square regressions fit the
+                # noise and give unstable Markov sequences.
+                lo = min(int(self.max_observer_order), (K // 2 - m) // (m + p_id))
+                if lo < 1:
+                    raise DimensionError(
+                        f'episode {ep.name!r} has {K} samples after decimation {d}: too few '
+                        f'for OKID with m={m}, p={p_id} (needs at least {2 * (2 * m + p_id)}). '
+                        'Use less decimation or a longer episode.')
+            else:
+                lo = int(self.observer_order)
         markov, info = okid_markov(Us, Ys, observer_order=lo, n_markov=nm,
                                    rcond=self.okid_rcond, ridge=ridge)
         A, Bs, Cs, Ds, hsv = era(markov, r_sel, n_block_rows=self.n_block_rows,
                                  n_block_cols=self.n_block_cols, tol=self.hsv_tol)
-        if sel is not None and np.max(np.abs(np.linalg.eigvals(A))) >= 1:
+        refitted = stabilized = False
+        if self.refit:
+            A, Cs, Ds, refitted, stabilized = _stabilize_refit(A, Bs, Cs, Ds, Us, Ys)
+        if sel is not None and not refitted and np.max(np.abs(np.linalg.eigvals(A))) >= 1:
             # The refit on the whole episode can move a lightly damped pole out of the unit
             # circle: keep the model validated on the held-out tail (fitted on the head).
             cut = int(sel['cut'])
@@ -474,6 +488,7 @@ class ERAOKID:
             sel['refit'] = 'head (the whole-episode refit was unstable)'
         elif sel is not None:
             sel['refit'] = 'whole episode'
+        self._train = (Us, Ys)
         if P is not None:
             Cs, Ds = P @ Cs, P @ Ds
         self.output_basis_ = P
@@ -494,6 +509,7 @@ class ERAOKID:
         self.observer_order_ = lo
         self.okid_ridge_ = ridge
         self.selection_ = sel
+        self.decimation_ = d
         self.okid_residual_ = info['residual']
         self.y_ref_ = y_ref
         self.input_scale_ = s_u
@@ -509,6 +525,8 @@ class ERAOKID:
             'selection_table': None if sel is None else _finite_rows(sel['table']),
             'selection_tail_error': None if sel is None else sel['tail_error'],
             'selection_refit': None if sel is None else sel.get('refit'),
+            'selection_tie_tol': None if sel is None else float(self.tie_tol),
+            'output_refit': bool(refitted), 'stabilized': bool(stabilized),
             'observer_order': lo, 'okid_residual': info['residual'],
             'okid_rank': info['rank'], 'okid_unknowns': info['n_unknowns'],
             'n_block_rows': self.n_block_rows, 'n_block_cols': self.n_block_cols,
@@ -520,42 +538,44 @@ class ERAOKID:
             'stability_margin': float(1.0 - np.max(np.abs(ev))),
             'fit_time_s': self.fit_time_,
         })
+        if auto_d:
+            meta['decimation_search'] = tried
         self.model_ = DiscreteModel(A, B, C, D, dt=dt, method='era', y_ref=y_ref,
                                     input_names=input_names, output_names=output_names,
                                     input_units=input_units, output_units=output_units,
                                     metadata=meta)
         return self
 
-    def _fit_auto_decimation(self, episode: Episode | Sequence[Episode],
-                             y_ref: ArrayLike | None, **kw: Any) -> ERAOKID:
-        """Fit at every decimation of the grid; keep the best held-out tail error."""
-        import copy
-        ep = _one_episode(episode)
-        best: ERAOKID | None = None
-        tried: list[dict[str, Any]] = []
-        for d in era_select.DECIMATION_GRID:
-            if ep.n_samples // d < 200 and d > 1:
-                continue
-            trial = copy.copy(self)
-            trial.decimation = d
-            if trial.selection == 'none':
-                trial.selection = 'holdout'
-            try:
-                trial.fit(episode, y_ref, **kw)
-            except (ConfigError, DimensionError) as err:
-                tried.append({'decimation': d, 'tail_error': None, 'error': str(err)})
-                continue
-            err_d = float((trial.selection_ or {}).get('tail_error', np.inf))
-            tried.append({'decimation': d, 'tail_error': err_d})
-            if best is None or err_d < float((best.selection_ or {}).get('tail_error', np.inf)):
-                best = trial
-        if best is None:
-            raise DimensionError(f'ERA/OKID found no usable setting for episode {ep.name!r} '
-                                 f'({ep.n_samples} samples): {tried[0]["error"] if tried else ""}')
-        self.__dict__.update({k: v for k, v in best.__dict__.items() if k.endswith('_')})
-        self.decimation_ = best.decimation
-        self.model_.metadata['decimation_search'] = tried
-        return self
+    def _prepare(self, ep: Episode, y_ref: Array, d: int
+                 ) -> tuple[Array, Array, Array, Array, Array | None]:
+        """Decimated, scaled (and output-compressed) data: ``Us, Ys, s_u, s_y, P``."""
+        m, p = ep.U.shape[0], ep.Y.shape[0]
+        Ud, Yd = decimate(ep.U, ep.Y - y_ref[:, None], d)
+        if Ud.shape[1] < 2 * (2 * m + 1):
+            raise DimensionError(
+                f'episode {ep.name!r} has {Ud.shape[1]} samples after decimation {d}: too few '
+                f'for OKID with m={m} inputs. Use less decimation or a longer episode.')
+        s_u = channel_scale(Ud)
+        s_y = channel_scale(Yd)
+        s_y = np.maximum(s_y, era_select.OUTPUT_SCALE_FLOOR * float(np.max(s_y)))
+        Us, Ys = Ud / s_u[:, None], Yd / s_y[:, None]
+        P = None
+        q = self.output_rank
+        if q == 'auto':
+            sv = np.linalg.svd(Ys, compute_uv=False)
+            cum = np.cumsum(sv ** 2) / max(float(np.sum(sv ** 2)), 1e-300)
+            q = min(p, max(4, int(np.searchsorted(cum, 0.99) + 1)))
+        elif isinstance(q, str):
+            raise ConfigError(f"output_rank must be an integer, 'auto' or None; got {q!r}.")
+        if q is not None and int(q) < p:
+            q = int(q)
+            if not 1 <= q <= p:
+                raise ConfigError(f'output_rank must be between 1 and p = {p}; got {q}.')
+            P = np.linalg.svd(Ys, full_matrices=False)[0][:, :q]     # (p, q), orthonormal
+            Ys = P.T @ Ys
+        elif q is not None and not 1 <= int(q) <= p:
+            raise ConfigError(f'output_rank must be between 1 and p = {p}; got {q}.')
+        return Us, Ys, s_u, s_y, P
 
     def model_for(self, r: int) -> DiscreteModel:
         """The ROM of order ``r`` from the stored Markov parameters (no new OKID solve)."""
@@ -563,6 +583,8 @@ class ERAOKID:
             raise NotFittedError('this ERAOKID is not fitted yet; call fit(episode) first.')
         A, Bs, Cs, Ds, _ = era(self.markov_, int(r), n_block_rows=self.n_block_rows,
                                n_block_cols=self.n_block_cols, tol=self.hsv_tol)
+        if self.refit:
+            A, Cs, Ds = _stabilize_refit(A, Bs, Cs, Ds, *self._train)[:3]
         if self.output_basis_ is not None:
             Cs, Ds = self.output_basis_ @ Cs, self.output_basis_ @ Ds
         s_u, s_y = self.input_scale_, self.output_scale_
@@ -585,6 +607,21 @@ class ERAOKID:
                              y_ref=self.y_ref_, input_names=old.input_names,
                              output_names=old.output_names, input_units=old.input_units,
                              output_units=old.output_units, metadata=meta)
+
+
+def _stabilize_refit(A: Array, B: Array, C: Array, D: Array, Us: Array, Ys: Array
+                     ) -> tuple[Array, Array, Array, bool, bool]:
+    """Stabilized ``A`` and least-squares ``C, D`` on the data (``refit=True``).
+
+    Returns ``A, C, D, refitted, stabilized`` (the inputs unchanged when the eigenvectors are
+    too ill conditioned to move the unstable eigenvalues).
+    """
+    As = era_select.stabilize(A)
+    if As is None:
+        return A, C, D, False, False
+    X = era_select.simulate_states(As, B, Us)
+    C2, D2 = era_select.fit_output_map(X, Us, Ys)
+    return As, C2, D2, True, As is not A
 
 
 def _finite_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:

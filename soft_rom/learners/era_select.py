@@ -42,19 +42,29 @@ from numpy.typing import NDArray
 
 from soft_rom.errors import ConfigError
 
-__all__ = ['MAX_MARKOV', 'OBSERVER_GRID', 'RIDGE_FLOOR', 'RIDGE_GRID', 'default_n_markov',
-           'fir_response', 'okid_regression', 'ridge_markov', 'select_okid']
+__all__ = ['MAX_MARKOV', 'OBSERVER_GRID', 'R_MAX', 'RIDGE_FLOOR', 'RIDGE_GRID', 'TIE_TOL',
+           'choose', 'default_n_markov', 'fir_response', 'fit_output_map', 'okid_regression',
+           'ridge_markov', 'score_orders', 'select_okid', 'simulate_states', 'stabilize']
 
 Array = NDArray[np.float64]
 
 #: Smallest relative ridge weight (a relative output precision of about 3e-3).
-RIDGE_FLOOR = 1e-5
+RIDGE_FLOOR = 1e-6
 #: Candidate relative ridge weights ``ρ``.
-RIDGE_GRID = (1e-5, 1e-4, 1e-3)
+RIDGE_GRID = (1e-6, 1e-5, 1e-4, 1e-3)
+#: Output channels are scaled by their RMS, but never by less than this fraction of the
+#: largest channel RMS (nearly static channels would otherwise amplify their perturbations).
+OUTPUT_SCALE_FLOOR = 0.1
+#: Orders tried by the selection (up to ``r_max``).
+R_GRID = (2, 4, 6, 8, 10, 12, 16, 20, 24, 28, 32, 40, 48, 56)
 #: Candidate observer orders (those that fit the data are tried).
 OBSERVER_GRID = (8, 16, 32, 64)
 #: Cap of the automatic Markov horizon.
 MAX_MARKOV = 500
+#: Largest order tried by the selection.
+R_MAX = 40
+#: Relative band of held-out errors treated as tied (:func:`choose`).
+TIE_TOL = 0.03
 
 
 def default_n_markov(K: int) -> int:
@@ -159,10 +169,73 @@ def era_truncated(markov: Array, rmax: int, *, seed: int = 0
     return A, B, C, markov[0].copy(), sv
 
 
+def stabilize(A: Array) -> Array | None:
+    """``A`` with every eigenvalue outside the unit circle reflected inside (``λ → λ/|λ|²``).
+
+    A stable ``A`` is returned as it is. Otherwise ``A' = Re(V diag(λ') V⁻¹)`` (conjugate
+    pairs stay conjugate, so ``A'`` is real); ``None`` when the eigenvectors are too ill
+    conditioned (``cond(V) > 1e8``) for that to be accurate.
+    """
+    ev, V = np.linalg.eig(A)
+    a = np.abs(ev)
+    if np.all(a < 1.0):
+        return A
+    if np.linalg.cond(V) > 1e8:
+        return None
+    ev2 = np.where(a >= 1.0, ev / np.maximum(a, 1e-300) * np.minimum(1.0 / a, 1.0 - 1e-9), ev)
+    As = np.real(V @ np.diag(ev2) @ np.linalg.inv(V))
+    if not np.max(np.abs(np.linalg.eigvals(As))) < 1.0:
+        return None
+    return np.asarray(As, dtype=np.float64)
+
+
+def simulate_states(A: Array, B: Array, U: Array) -> Array:
+    """States ``x_0 .. x_{K-1}`` from rest, shape (r, K)."""
+    K = U.shape[1]
+    X = np.empty((A.shape[0], K))
+    BU = B @ U
+    x = np.zeros(A.shape[0])
+    for k in range(K):
+        X[:, k] = x
+        x = A @ x + BU[:, k]
+    return X
+
+
+def fit_output_map(X: Array, U: Array, Y: Array) -> tuple[Array, Array]:
+    """Least-squares ``C, D`` of ``Y ≈ C X + D U`` (ridge ``1e-10 σ_1²``, well posed)."""
+    Z = np.concatenate([X, U], axis=0)
+    G = Z @ Z.T
+    lam = 1e-10 * max(float(np.max(np.diag(G))), 1e-300) * Z.shape[0]
+    G[np.diag_indices_from(G)] += lam
+    CD = np.linalg.solve(G, Z @ Y.T).T
+    r = X.shape[0]
+    return CD[:, :r], CD[:, r:]
+
+
+def choose(rows: list[dict[str, Any]], tie_tol: float = TIE_TOL) -> dict[str, Any]:
+    """The selected candidate: the preferred one among those tied with the best.
+
+    Candidates whose held-out error is within ``tie_tol`` (relative) of the best are tied;
+    among them the preference is fixed: the largest ridge weight, then the smallest order
+    ``r``, then the smallest observer order, then the smallest decimation. A perturbation of
+    the data that moves the errors by much less than ``tie_tol`` cannot change the choice
+    unless an error sits within that perturbation of the band's edge.
+    """
+    ok = [row for row in rows if np.isfinite(row['tail_error'])]
+    if not ok:
+        raise ConfigError('no OKID setting gave a stable ERA realization on these data; give '
+                          'observer_order, okid_ridge and r by hand.')
+    best = min(row['tail_error'] for row in ok)
+    tied = [row for row in ok if row['tail_error'] <= best * (1.0 + tie_tol)]
+    return min(tied, key=lambda row: (-row['ridge'], row['r'], row['observer_order'],
+                                      row.get('decimation', 1)))
+
+
 def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
                 observer_orders: tuple[int, ...] | None = None,
                 rhos: tuple[float, ...] = RIDGE_GRID, n_markov: int | None = None,
-                r_max: int = 40, r_values: tuple[int, ...] | None = None) -> dict[str, Any]:
+                r_max: int = R_MAX, r_values: tuple[int, ...] | None = None,
+                refit: bool = True, tie_tol: float = TIE_TOL) -> dict[str, Any]:
     """Choose ``(l, ρ, r)`` by the held-out tail error of the ERA/OKID model.
 
     Parameters
@@ -185,12 +258,19 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
         Largest order tried (when ``r_values`` is not given: even orders 2 ... ``r_max``).
     r_values : tuple of int, optional
         Orders tried.
+    refit : bool
+        Score the stabilized realization with ``C, D`` refitted on the head
+        (:func:`stabilize`, :func:`fit_output_map`); ``False``: the ERA realization as it
+        is, unstable ones rejected.
+    tie_tol : float
+        Relative band of tied errors (:func:`choose`).
 
     Returns
     -------
     dict
-        ``observer_order``, ``ridge``, ``r``, ``tail_error``, ``table`` (best ``r`` of every
-        candidate), ``cut`` (samples in the head), ``n_markov``.
+        ``observer_order``, ``ridge``, ``r``, ``tail_error`` (of the chosen candidate),
+        ``rows`` (every ``(l, ρ, r)`` tried), ``table`` (best ``r`` of every ``(l, ρ)``),
+        ``cut`` (samples in the head), ``n_markov``.
     """
     if not 0.0 < holdout < 0.9:
         raise ConfigError(f'holdout must be in (0, 0.9); got {holdout!r}.')
@@ -207,61 +287,60 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
         cands = [l_max]
     nm = default_n_markov(cut) if n_markov is None else int(n_markov)
     rhos = tuple(max(float(x), RIDGE_FLOOR) for x in rhos)
+    rows: list[dict[str, Any]] = []
     table: list[dict[str, Any]] = []
     for lo in cands:
         for markov, info in ridge_markov(Us[:, :cut], Ys[:, :cut], lo, nm, rhos):
-            row: dict[str, Any] = {'observer_order': lo, 'ridge': info['ridge'], 'r': None,
-                                   'tail_error': float('inf'),
-                                   'effective_rank': info['effective_rank']}
+            base = {'observer_order': lo, 'ridge': info['ridge']}
             try:
                 rr = max(r_values) if r_values else r_max
                 A, B, C, D, _ = era_truncated(markov, rr)
-                cand_r = [r for r in (r_values or tuple(range(2, rr + 1, 2)))
-                          if r <= A.shape[0]]
-                r, rows = select_order(A, B, C, D, Us, Ys, cut, cand_r)
-                row['r'] = r
-                row['tail_error'] = min(x['tail_error'] for x in rows)
+                cand_r = [r for r in (r_values or R_GRID) if r <= min(rr, A.shape[0])]
+                found = score_orders(A, B, C, D, Us, Ys, cut, cand_r, refit=refit)
             except (ConfigError, np.linalg.LinAlgError):
-                pass
-            table.append(row)
-    ok = [row for row in table if np.isfinite(row['tail_error'])]
-    if not ok:
-        raise ConfigError('no OKID setting gave a stable ERA realization on these data; give '
-                          'observer_order, okid_ridge and r by hand.')
-    best = min(ok, key=lambda row: row['tail_error'])
+                found = []
+            found = [{**base, **row} for row in found]
+            rows.extend(found)
+            fin = [row for row in found if np.isfinite(row['tail_error'])]
+            table.append(min(fin, key=lambda row: row['tail_error']) if fin else
+                         {**base, 'r': None, 'tail_error': float('inf')})
+    best = choose(rows, tie_tol)
     return {'observer_order': int(best['observer_order']), 'ridge': float(best['ridge']),
-            'r': int(best['r']), 'tail_error': float(best['tail_error']), 'table': table,
-            'cut': cut, 'n_markov': nm}
+            'r': int(best['r']), 'tail_error': float(best['tail_error']), 'rows': rows,
+            'table': table, 'cut': cut, 'n_markov': nm}
 
 
-def select_order(A_full: Array, B_full: Array, C_full: Array, D: Array, Us: Array, Ys: Array,
-                 cut: int, r_candidates: list[int]) -> tuple[int, list[dict[str, float]]]:
-    """The ``r`` whose ERA model simulates the tail best (unstable ones rejected).
+def score_orders(A_full: Array, B_full: Array, C_full: Array, D: Array, Us: Array,
+                 Ys: Array, cut: int, r_candidates: list[int], *, refit: bool = True
+                 ) -> list[dict[str, Any]]:
+    """Held-out tail error of every order ``r`` (simulated from rest over the episode).
 
     ``A_full, B_full, C_full`` are the balanced realization of the largest candidate order;
     the leading ``r`` states of a balanced ERA realization are the order-``r`` realization.
+    With ``refit`` the realization is stabilized and ``C, D`` are refitted on the head
+    (samples before ``cut``); otherwise unstable realizations score ``inf``.
     """
     rows = []
     for r in r_candidates:
-        A, B, C = A_full[:r, :r], B_full[:r], C_full[:, :r]
+        A, B, C, Dr = A_full[:r, :r], B_full[:r], C_full[:, :r], D
         rho = float(np.max(np.abs(np.linalg.eigvals(A))))
-        if not rho < 1.0:
+        if refit:
+            As = stabilize(A)
+            if As is None:
+                rows.append({'r': r, 'tail_error': float('inf'), 'spectral_radius': rho})
+                continue
+            A = As
+        elif not rho < 1.0:
             rows.append({'r': r, 'tail_error': float('inf'), 'spectral_radius': rho})
             continue
-        x = np.zeros(r)
-        K = Us.shape[1]
-        Yh = np.empty((C.shape[0], K))
-        BU = B @ Us
-        for k in range(K):
-            Yh[:, k] = C @ x
-            x = A @ x + BU[:, k]
-        Yh += D @ Us
-        rows.append({'r': r, 'tail_error': _rel(Yh[:, cut:], Ys[:, cut:]),
+        X = simulate_states(A, B, Us)
+        if refit:
+            C, Dr = fit_output_map(X[:, :cut], Us[:, :cut], Ys[:, :cut])
+        Yh = C @ X + Dr @ Us
+        err = _rel(Yh[:, cut:], Ys[:, cut:])
+        rows.append({'r': r, 'tail_error': err if np.isfinite(err) else float('inf'),
                      'spectral_radius': rho})
-    ok = [row for row in rows if np.isfinite(row['tail_error'])]
-    if not ok:
-        raise ConfigError('every ERA order gave an unstable realization on these data.')
-    return int(min(ok, key=lambda row: row['tail_error'])['r']), rows
+    return rows
 
 
 #: Decimation factors tried by ``ERAOKID(decimation='auto')``.
