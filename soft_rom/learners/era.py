@@ -51,6 +51,7 @@ and the realization is scaled back (``B = B_s diag(1/s_u)``, ``C = diag(s_y) C_s
 from __future__ import annotations
 
 from collections.abc import Sequence
+import contextlib
 import time
 from typing import Any
 
@@ -71,7 +72,8 @@ __all__ = ['ERA_EEL_OPTIONS', 'ERA_PRESETS', 'ERAOKID', 'decimate', 'era', 'hank
 #: identify on the 4 leading output principal components at the full rate with a 36-step
 #: observer and 500 Markov parameters (0.5 s), plain least squares (no ridge, no selection).
 ERA_EEL_OPTIONS: dict[str, Any] = {'decimation': 1, 'output_rank': 4, 'observer_order': 36,
-                                   'n_markov': 500, 'selection': 'none', 'refit': False}
+                                   'n_markov': 500, 'selection': 'none', 'refit': False,
+                                   'output_scale_floor': 0.0}
 
 #: Named settings for :meth:`ERAOKID.from_preset` (and ``soft-rom fit --era-preset``):
 #: ``'auto'`` the data-driven defaults; ``'eel'`` the study's hand-tuned settings;
@@ -81,7 +83,8 @@ ERA_PRESETS: dict[str, dict[str, Any]] = {
     'auto': {},
     'eel': ERA_EEL_OPTIONS,
     'legacy': {'decimation': 5, 'n_markov': 100, 'max_observer_order': 10,
-               'output_rank': None, 'selection': 'none', 'refit': False},
+               'output_rank': None, 'selection': 'none', 'refit': False,
+               'output_scale_floor': 0.0},
 }
 
 Array = NDArray[np.float64]
@@ -117,8 +120,8 @@ def decimate(U: ArrayLike, Y: ArrayLike, factor: int) -> tuple[Array, Array]:
 
 
 def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: int,
-                rcond: float | None = None, ridge: float | None = None
-                ) -> tuple[Array, dict[str, Any]]:
+                rcond: float | None = None, ridge: float | None = None,
+                intercept: bool = False) -> tuple[Array, dict[str, Any]]:
     """System Markov parameters from arbitrary input/output data by OKID.
 
     Parameters
@@ -138,6 +141,8 @@ def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: in
         Relative Tikhonov weight ``ρ`` (``λ = ρ σ_1(Φ)²``;
         :mod:`soft_rom.learners.era_select`): the well-posed solve. ``None``: plain least
         squares (exact data only).
+    intercept : bool
+        Ridge solve with an unpenalized constant term (insensitive to an output offset).
 
     Returns
     -------
@@ -165,7 +170,7 @@ def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: in
             f'{rows} equations ({K} samples): use observer_order <= {max(kmax, 0)}, more data, '
             'or less decimation.')
     if ridge is not None:
-        markov, info = era_select.ridge_markov(U, Y, lo, nm, (float(ridge),))[0]
+        markov, info = era_select.ridge_markov(U, Y, lo, nm, (float(ridge),), intercept)[0]
         info['rank'] = info['effective_rank']
         return markov, info
     V = np.concatenate([U, Y], axis=0)                       # (m + p, K)
@@ -209,7 +214,8 @@ def hankel_rank(hsv: ArrayLike, *, tol: float = 1e-3) -> int:
 
 def era(markov: ArrayLike, r: int | None = None, *, n_block_rows: int | None = None,
         n_block_cols: int | None = None,
-        tol: float = 1e-3) -> tuple[Array, Array, Array, Array, Array]:
+        tol: float = 1e-3, _factors: dict[str, Array] | None = None
+        ) -> tuple[Array, Array, Array, Array, Array]:
     """Eigensystem realization from Markov parameters (Juang & Pappa 1985).
 
     Parameters
@@ -258,11 +264,26 @@ def era(markov: ArrayLike, r: int | None = None, *, n_block_rows: int | None = N
     if not 1 <= r <= s.size or s[r - 1] <= 0:
         raise ConfigError(f'r must be between 1 and the numerical rank of the Hankel matrix '
                           f'({int(np.sum(s > 0))} of {s.size} singular values > 0); got {r}.')
-    sq = np.sqrt(s[:r])
-    A = (P[:, :r].T @ H1 @ Qt[:r].T) / np.outer(sq, sq)
-    B = sq[:, None] * Qt[:r, :m]
-    C = P[:p, :r] * sq[None, :]
-    return A, B, C, markov[0].copy(), s
+    R = min(max(r, _CACHED_ORDERS), int(np.sum(s > 0)))
+    factors = {'M': P[:, :R].T @ H1 @ Qt[:R].T, 's': s, 'Qm': Qt[:R, :m].copy(),
+               'Pp': P[:p, :R].copy(), 'D': markov[0].copy()}
+    if _factors is not None:
+        _factors.update(factors)
+    A, B, C, D = _era_from_factors(factors, r)
+    return A, B, C, D, s
+
+
+#: Orders whose realizations :func:`era` keeps factors for (``ERAOKID.model_for``).
+_CACHED_ORDERS = 200
+
+
+def _era_from_factors(f: dict[str, Array], r: int) -> tuple[Array, Array, Array, Array]:
+    """Order-``r`` ERA realization from the factors :func:`era` kept (``r <= R``)."""
+    sq = np.sqrt(f['s'][:r])
+    A = f['M'][:r, :r] / np.outer(sq, sq)
+    B = sq[:, None] * f['Qm'][:r]
+    C = f['Pp'][:, :r] * sq[None, :]
+    return A, B, C, f['D'].copy()
 
 
 class ERAOKID:
@@ -346,7 +367,9 @@ class ERAOKID:
                  output_rank: int | str | None = 'auto', okid_rcond: float | None = None,
                  okid_ridge: float | None = None, selection: str = 'holdout',
                  holdout: float = 0.2, refit: bool = True,
-                 tie_tol: float = era_select.TIE_TOL) -> None:
+                 tie_tol: float = era_select.TIE_TOL,
+                 output_scale_floor: float = era_select.OUTPUT_SCALE_FLOOR,
+                 blas_threads: int | None = 1) -> None:
         self.r = r
         self.n_markov = n_markov
         self.observer_order = observer_order
@@ -362,6 +385,8 @@ class ERAOKID:
         self.holdout = holdout
         self.refit = refit
         self.tie_tol = tie_tol
+        self.output_scale_floor = output_scale_floor
+        self.blas_threads = blas_threads
 
     @classmethod
     def from_preset(cls, name: str, **overrides: Any) -> ERAOKID:
@@ -377,7 +402,7 @@ class ERAOKID:
             input_units: Sequence[str] | None = None,
             output_units: Sequence[str] | None = None,
             metadata: dict[str, Any] | None = None) -> ERAOKID:
-        """Identify the ROM from one episode.
+        """Identify the ROM from one episode (see the class for the settings).
 
         Parameters
         ----------
@@ -391,6 +416,15 @@ class ERAOKID:
         -------
         self
         """
+        with _blas_threads(self.blas_threads):
+            return self._fit(episode, y_ref, input_names=input_names,
+                             output_names=output_names, input_units=input_units,
+                             output_units=output_units, metadata=metadata)
+
+    def _fit(self, episode: Episode | Sequence[Episode], y_ref: ArrayLike | None, *,
+             input_names: Sequence[str] | None, output_names: Sequence[str] | None,
+             input_units: Sequence[str] | None, output_units: Sequence[str] | None,
+             metadata: dict[str, Any] | None) -> ERAOKID:
         t0 = time.perf_counter()
         ep = _one_episode(episode)
         if not ep.is_uniform():
@@ -450,10 +484,13 @@ class ERAOKID:
                             for row in res['table']]
             del sel['rows']
             lo, ridge = sel['observer_order'], sel['ridge']
+            intercept = bool(best.get('intercept', False))
+            sel['intercept'] = intercept
             r_sel: int | None = sel['r'] if self.r is None else int(self.r)
         else:
             d = grid[0]
             r_sel = self.r
+            intercept = False
         Us, Ys, s_u, s_y, P = prepared[d] if d in prepared else self._prepare(ep, y_ref, d)
         p_id = Ys.shape[0]
         K = Us.shape[1]
@@ -471,9 +508,11 @@ class ERAOKID:
             else:
                 lo = int(self.observer_order)
         markov, info = okid_markov(Us, Ys, observer_order=lo, n_markov=nm,
-                                   rcond=self.okid_rcond, ridge=ridge)
+                                   rcond=self.okid_rcond, ridge=ridge, intercept=intercept)
+        factors: dict[str, Array] = {}
         A, Bs, Cs, Ds, hsv = era(markov, r_sel, n_block_rows=self.n_block_rows,
-                                 n_block_cols=self.n_block_cols, tol=self.hsv_tol)
+                                 n_block_cols=self.n_block_cols, tol=self.hsv_tol,
+                                 _factors=factors)
         refitted = stabilized = False
         if self.refit:
             A, Cs, Ds, refitted, stabilized = _stabilize_refit(A, Bs, Cs, Ds, Us, Ys)
@@ -482,13 +521,15 @@ class ERAOKID:
             # circle: keep the model validated on the held-out tail (fitted on the head).
             cut = int(sel['cut'])
             markov, info = okid_markov(Us[:, :cut], Ys[:, :cut], observer_order=lo,
-                                       n_markov=nm, ridge=ridge)
+                                       n_markov=nm, ridge=ridge, intercept=intercept)
             A, Bs, Cs, Ds, hsv = era(markov, r_sel, n_block_rows=self.n_block_rows,
-                                     n_block_cols=self.n_block_cols, tol=self.hsv_tol)
+                                     n_block_cols=self.n_block_cols, tol=self.hsv_tol,
+                                     _factors=factors)
             sel['refit'] = 'head (the whole-episode refit was unstable)'
         elif sel is not None:
             sel['refit'] = 'whole episode'
         self._train = (Us, Ys)
+        self._factors = factors
         if P is not None:
             Cs, Ds = P @ Cs, P @ Ds
         self.output_basis_ = P
@@ -521,7 +562,7 @@ class ERAOKID:
             'learner': 'ERAOKID', 'r': r, 'episode': ep.name,
             'decimation': d, 'dt_data': ep.dt, 'dt_fit': d * ep.dt, 'dt_model': dt,
             'resampled_to_data_rate': self.resampled_, 'n_markov': nm,
-            'okid_ridge': ridge, 'selection': self.selection,
+            'okid_ridge': ridge, 'okid_intercept': intercept, 'selection': self.selection,
             'selection_table': None if sel is None else _finite_rows(sel['table']),
             'selection_tail_error': None if sel is None else sel['tail_error'],
             'selection_refit': None if sel is None else sel.get('refit'),
@@ -557,7 +598,7 @@ class ERAOKID:
                 f'for OKID with m={m} inputs. Use less decimation or a longer episode.')
         s_u = channel_scale(Ud)
         s_y = channel_scale(Yd)
-        s_y = np.maximum(s_y, era_select.OUTPUT_SCALE_FLOOR * float(np.max(s_y)))
+        s_y = np.maximum(s_y, float(self.output_scale_floor) * float(np.max(s_y)))
         Us, Ys = Ud / s_u[:, None], Yd / s_y[:, None]
         P = None
         q = self.output_rank
@@ -577,12 +618,27 @@ class ERAOKID:
             raise ConfigError(f'output_rank must be between 1 and p = {p}; got {q}.')
         return Us, Ys, s_u, s_y, P
 
+    def markov_parameters(self) -> Array:
+        """OKID Markov parameters in data units, shape (n_markov + 1, p, m).
+
+        ``markov[0] = D``, ``markov[k]`` the response of the outputs ``k`` model steps after a
+        unit input pulse (lifted from the output components, scales undone).
+        """
+        if not hasattr(self, 'markov_'):
+            raise NotFittedError('this ERAOKID is not fitted yet; call fit(episode) first.')
+        mk = self.markov_ if self.output_basis_ is None else self.output_basis_ @ self.markov_
+        return np.asarray(self.output_scale_[:, None] * mk / self.input_scale_[None, :])
+
     def model_for(self, r: int) -> DiscreteModel:
         """The ROM of order ``r`` from the stored Markov parameters (no new OKID solve)."""
         if not hasattr(self, 'markov_'):
             raise NotFittedError('this ERAOKID is not fitted yet; call fit(episode) first.')
-        A, Bs, Cs, Ds, _ = era(self.markov_, int(r), n_block_rows=self.n_block_rows,
-                               n_block_cols=self.n_block_cols, tol=self.hsv_tol)
+        f = getattr(self, '_factors', None)
+        if f and 1 <= int(r) <= f['M'].shape[0]:
+            A, Bs, Cs, Ds = _era_from_factors(f, int(r))
+        else:
+            A, Bs, Cs, Ds, _ = era(self.markov_, int(r), n_block_rows=self.n_block_rows,
+                                   n_block_cols=self.n_block_cols, tol=self.hsv_tol)
         if self.refit:
             A, Cs, Ds = _stabilize_refit(A, Bs, Cs, Ds, *self._train)[:3]
         if self.output_basis_ is not None:
@@ -607,6 +663,17 @@ class ERAOKID:
                              y_ref=self.y_ref_, input_names=old.input_names,
                              output_names=old.output_names, input_units=old.input_units,
                              output_units=old.output_units, metadata=meta)
+
+
+def _blas_threads(n: int | None) -> Any:
+    """Limit BLAS threads to ``n`` while fitting (threadpoolctl, when installed)."""
+    if n is None:
+        return contextlib.nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # optional: without it the process's BLAS settings apply
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=int(n), user_api='blas')
 
 
 def _stabilize_refit(A: Array, B: Array, C: Array, D: Array, Us: Array, Ys: Array

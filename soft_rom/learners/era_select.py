@@ -44,7 +44,8 @@ from soft_rom.errors import ConfigError
 
 __all__ = ['MAX_MARKOV', 'OBSERVER_GRID', 'R_MAX', 'RIDGE_FLOOR', 'RIDGE_GRID', 'TIE_TOL',
            'choose', 'default_n_markov', 'fir_response', 'fit_output_map', 'okid_regression',
-           'ridge_markov', 'score_orders', 'select_okid', 'simulate_states', 'stabilize']
+           'modal_states', 'ridge_markov', 'score_orders', 'select_okid', 'simulate_states',
+           'stabilize']
 
 Array = NDArray[np.float64]
 
@@ -102,11 +103,20 @@ def markov_from_observer(theta: Array, m: int, p: int, lo: int, nm: int) -> Arra
     return markov
 
 
-def ridge_markov(U: Array, Y: Array, lo: int, nm: int, rhos: tuple[float, ...]
-                 ) -> list[tuple[Array, dict[str, Any]]]:
-    """Ridge OKID for several ``ρ`` from one SVD; ``[(markov, info), ...]``."""
+def ridge_markov(U: Array, Y: Array, lo: int, nm: int, rhos: tuple[float, ...],
+                 intercept: bool = False) -> list[tuple[Array, dict[str, Any]]]:
+    """Ridge OKID for several ``ρ`` from one SVD; ``[(markov, info), ...]``.
+
+    ``intercept``: with an unpenalized constant term (centered regression), so that the
+    coefficients do not depend on a constant offset of the outputs (an error in ``y_ref``,
+    the first sample of noisy data); without it the mean levels of the data inform the static
+    gains (exact data starting at rest).
+    """
     m, p = U.shape[0], Y.shape[0]
     Phi, T = okid_regression(U, Y, lo)
+    if intercept:
+        Phi = Phi - Phi.mean(axis=1, keepdims=True)
+        T = T - T.mean(axis=1, keepdims=True)
     Uo, s, Vt = np.linalg.svd(Phi, full_matrices=False)
     TV = T @ Vt.T                                   # (p, n_unknowns)
     den = float(np.linalg.norm(T))
@@ -119,7 +129,7 @@ def ridge_markov(U: Array, Y: Array, lo: int, nm: int, rhos: tuple[float, ...]
         resid = float(np.linalg.norm(T - theta @ Phi))
         markov = markov_from_observer(theta, m, p, lo, nm)
         out.append((markov, {'residual': resid / den if den > 0 else 0.0,
-                             'ridge': float(rho), 'n_unknowns': int(Phi.shape[0]),
+                             'ridge': float(rho), 'intercept': bool(intercept), 'n_unknowns': int(Phi.shape[0]),
                              'effective_rank': int(np.sum(s ** 2 > lam)),
                              'condition': float((s[0] ** 2 + lam) / (s[-1] ** 2 + lam))}))
     return out
@@ -216,8 +226,9 @@ def choose(rows: list[dict[str, Any]], tie_tol: float = TIE_TOL) -> dict[str, An
     """The selected candidate: the preferred one among those tied with the best.
 
     Candidates whose held-out error is within ``tie_tol`` (relative) of the best are tied;
-    among them the preference is fixed: the largest ridge weight, then the smallest order
-    ``r``, then the smallest observer order, then the smallest decimation. A perturbation of
+    among them the preference is fixed: the largest ridge weight, then the regression with an
+    intercept, then the smallest order ``r``, then the smallest observer order, then the
+    smallest decimation. A perturbation of
     the data that moves the errors by much less than ``tie_tol`` cannot change the choice
     unless an error sits within that perturbation of the band's edge.
     """
@@ -227,15 +238,16 @@ def choose(rows: list[dict[str, Any]], tie_tol: float = TIE_TOL) -> dict[str, An
                           'observer_order, okid_ridge and r by hand.')
     best = min(row['tail_error'] for row in ok)
     tied = [row for row in ok if row['tail_error'] <= best * (1.0 + tie_tol)]
-    return min(tied, key=lambda row: (-row['ridge'], row['r'], row['observer_order'],
-                                      row.get('decimation', 1)))
+    return min(tied, key=lambda row: (-row['ridge'], not row.get('intercept', False), row['r'],
+                                      row['observer_order'], row.get('decimation', 1)))
 
 
 def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
                 observer_orders: tuple[int, ...] | None = None,
                 rhos: tuple[float, ...] = RIDGE_GRID, n_markov: int | None = None,
                 r_max: int = R_MAX, r_values: tuple[int, ...] | None = None,
-                refit: bool = True, tie_tol: float = TIE_TOL) -> dict[str, Any]:
+                refit: bool = True, tie_tol: float = TIE_TOL,
+                intercepts: tuple[bool, ...] = (False, True)) -> dict[str, Any]:
     """Choose ``(l, ρ, r)`` by the held-out tail error of the ERA/OKID model.
 
     Parameters
@@ -264,6 +276,8 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
         is, unstable ones rejected.
     tie_tol : float
         Relative band of tied errors (:func:`choose`).
+    intercepts : tuple of bool
+        OKID regressions tried without / with an intercept (:func:`ridge_markov`).
 
     Returns
     -------
@@ -289,9 +303,9 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
     rhos = tuple(max(float(x), RIDGE_FLOOR) for x in rhos)
     rows: list[dict[str, Any]] = []
     table: list[dict[str, Any]] = []
-    for lo in cands:
-        for markov, info in ridge_markov(Us[:, :cut], Ys[:, :cut], lo, nm, rhos):
-            base = {'observer_order': lo, 'ridge': info['ridge']}
+    for lo, icpt in ((lo, icpt) for lo in cands for icpt in intercepts):
+        for markov, info in ridge_markov(Us[:, :cut], Ys[:, :cut], lo, nm, rhos, icpt):
+            base = {'observer_order': lo, 'ridge': info['ridge'], 'intercept': icpt}
             try:
                 rr = max(r_values) if r_values else r_max
                 A, B, C, D, _ = era_truncated(markov, rr)
@@ -306,7 +320,7 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
                          {**base, 'r': None, 'tail_error': float('inf')})
     best = choose(rows, tie_tol)
     return {'observer_order': int(best['observer_order']), 'ridge': float(best['ridge']),
-            'r': int(best['r']), 'tail_error': float(best['tail_error']), 'rows': rows,
+            'intercept': bool(best['intercept']), 'r': int(best['r']), 'tail_error': float(best['tail_error']), 'rows': rows,
             'table': table, 'cut': cut, 'n_markov': nm}
 
 
@@ -323,24 +337,59 @@ def score_orders(A_full: Array, B_full: Array, C_full: Array, D: Array, Us: Arra
     rows = []
     for r in r_candidates:
         A, B, C, Dr = A_full[:r, :r], B_full[:r], C_full[:, :r], D
-        rho = float(np.max(np.abs(np.linalg.eigvals(A))))
         if refit:
-            As = stabilize(A)
-            if As is None:
+            X, rho = modal_states(A, B, Us)
+            if X is None:
                 rows.append({'r': r, 'tail_error': float('inf'), 'spectral_radius': rho})
                 continue
-            A = As
-        elif not rho < 1.0:
-            rows.append({'r': r, 'tail_error': float('inf'), 'spectral_radius': rho})
-            continue
-        X = simulate_states(A, B, Us)
-        if refit:
             C, Dr = fit_output_map(X[:, :cut], Us[:, :cut], Ys[:, :cut])
+        else:
+            rho = float(np.max(np.abs(np.linalg.eigvals(A))))
+            if not rho < 1.0:
+                rows.append({'r': r, 'tail_error': float('inf'), 'spectral_radius': rho})
+                continue
+            X = simulate_states(A, B, Us)
         Yh = C @ X + Dr @ Us
         err = _rel(Yh[:, cut:], Ys[:, cut:])
         rows.append({'r': r, 'tail_error': err if np.isfinite(err) else float('inf'),
                      'spectral_radius': rho})
     return rows
+
+
+def modal_states(A: Array, B: Array, U: Array) -> tuple[Array | None, float]:
+    """States of the stabilized realization (:func:`stabilize`) in real modal coordinates.
+
+    Every mode is a first-order recursion ``z_{k+1} = λ z_k + g_k`` (``g = V⁻¹ B u``), run by
+    ``scipy.signal.lfilter``; a conjugate pair gives the real and imaginary parts of one of
+    its modes. The rows span the same space as the states of :func:`stabilize` ``(A)``, so a
+    refitted ``C`` gives the same outputs. Returns ``(X (r, K) or None, spectral radius)``.
+    """
+    from scipy.signal import lfilter
+    ev, V = np.linalg.eig(A)
+    a = np.abs(ev)
+    rho = float(np.max(a))
+    if rho >= 1.0:
+        if np.linalg.cond(V) > 1e8:
+            return None, rho
+        ev = np.where(a >= 1.0, ev / a * np.minimum(1.0 / a, 1.0 - 1e-9), ev)
+    try:
+        G = np.linalg.solve(V, B @ U)
+    except np.linalg.LinAlgError:
+        return None, rho
+    r, K = A.shape[0], U.shape[1]
+    X = np.empty((r, K))
+    j = 0
+    while j < r:
+        if ev[j].imag != 0.0 and j + 1 < r:
+            z = lfilter([0.0, 1.0], [1.0, -ev[j]], G[j])
+            X[j], X[j + 1] = z.real, z.imag
+            j += 2
+        else:
+            X[j] = lfilter([0.0, 1.0], [1.0, -ev[j].real], G[j].real)
+            j += 1
+    if not np.all(np.isfinite(X)):
+        return None, rho
+    return X, rho
 
 
 #: Decimation factors tried by ``ERAOKID(decimation='auto')``.
