@@ -43,6 +43,10 @@ last seconds. The knobs:
 (:mod:`soft_rom.learners.era_select`, which also explains why the ridge solve is needed);
 named presets (:data:`ERA_PRESETS`) give the hand-tuned settings.
 
+About 680 lines: the learner's fit carries the search over decimations, the refit on the
+whole episode and the presets; the selection itself lives in
+:mod:`soft_rom.learners.era_select`.
+
 Unit invariance: inputs and outputs are divided by their per-channel RMS before OKID/ERA
 and the realization is scaled back (``B = B_s diag(1/s_u)``, ``C = diag(s_y) C_s``,
 ``D = diag(s_y) D_s diag(1/s_u)``); the Hankel singular values are those of the scaled data.
@@ -51,7 +55,6 @@ and the realization is scaled back (``B = B_s diag(1/s_u)``, ``C = diag(s_y) C_s
 from __future__ import annotations
 
 from collections.abc import Sequence
-import contextlib
 import time
 from typing import Any
 
@@ -290,12 +293,14 @@ class ERAOKID:
     """ERA/OKID learner: a discrete ROM from the inputs and outputs of one episode.
 
     Defaults (``selection='holdout'``): well-posed ridge OKID (module
-    :mod:`soft_rom.learners.era_select`), with the observer order ``l``, the ridge weight
-    ``ρ`` and the order ``r`` chosen together by the error of the ERA model on a held-out tail
-    of the episode (fit on the first 80 %), then refitted on the whole episode; the Markov
-    horizon is a third of the samples (at most 500); the data rate is kept (``decimation=1``)
-    and outputs are identified on their leading principal components. Any of ``r``,
-    ``observer_order``, ``okid_ridge`` given by hand is kept fixed in the search.
+    :mod:`soft_rom.learners.era_select`), with the decimation, the observer order ``l``, the
+    ridge weight ``ρ``, the OKID intercept and the order ``r`` chosen together by the error of
+    the stabilized, output-refitted ERA model on a held-out tail of the episode (fit on the
+    first 80 %; errors within ``tie_tol`` of the best are tied and broken by a fixed
+    preference, so tiny perturbations do not change the choice), then refitted on the whole
+    episode; the Markov horizon is a third of the samples (at most 500); outputs are
+    identified on their leading principal components. Any of ``r``, ``observer_order``,
+    ``okid_ridge`` given by hand is kept fixed in the search.
 
     Parameters
     ----------
@@ -337,6 +342,19 @@ class ERAOKID:
         Data-driven settings (default) or the given ones as they are.
     holdout : float
         Fraction of the episode held out for the selection.
+    refit : bool
+        Stabilize the realization (eigenvalues outside the unit circle reflected inside) and
+        refit ``C, D`` by least squares on the simulated states (default); ``False``: the ERA
+        realization as it is (the presets).
+    tie_tol : float
+        Relative band of held-out errors treated as tied in the selection.
+    output_scale_floor : float
+        Output channels are scaled by their RMS, at least this fraction of the largest
+        channel RMS (``0``: plain per-channel RMS, as the presets).
+    blas_threads : int, optional
+        BLAS threads while fitting (needs ``threadpoolctl``; without it, or with ``None``, the
+        process's setting applies). Default 1: the many medium-sized factorizations of the
+        selection run many times slower with threads on a loaded machine.
 
     Presets: :meth:`from_preset` with a name of :data:`ERA_PRESETS` (``'eel'``: the study's
     hand-tuned settings :data:`ERA_EEL_OPTIONS`).
@@ -416,7 +434,7 @@ class ERAOKID:
         -------
         self
         """
-        with _blas_threads(self.blas_threads):
+        with era_select.blas_threads(self.blas_threads):
             return self._fit(episode, y_ref, input_names=input_names,
                              output_names=output_names, input_units=input_units,
                              output_units=output_units, metadata=metadata)
@@ -515,7 +533,7 @@ class ERAOKID:
                                  _factors=factors)
         refitted = stabilized = False
         if self.refit:
-            A, Cs, Ds, refitted, stabilized = _stabilize_refit(A, Bs, Cs, Ds, Us, Ys)
+            A, Cs, Ds, refitted, stabilized = era_select.stabilize_refit(A, Bs, Cs, Ds, Us, Ys)
         if sel is not None and not refitted and np.max(np.abs(np.linalg.eigvals(A))) >= 1:
             # The refit on the whole episode can move a lightly damped pole out of the unit
             # circle: keep the model validated on the held-out tail (fitted on the head).
@@ -590,7 +608,7 @@ class ERAOKID:
     def _prepare(self, ep: Episode, y_ref: Array, d: int
                  ) -> tuple[Array, Array, Array, Array, Array | None]:
         """Decimated, scaled (and output-compressed) data: ``Us, Ys, s_u, s_y, P``."""
-        m, p = ep.U.shape[0], ep.Y.shape[0]
+        m = ep.U.shape[0]
         Ud, Yd = decimate(ep.U, ep.Y - y_ref[:, None], d)
         if Ud.shape[1] < 2 * (2 * m + 1):
             raise DimensionError(
@@ -600,22 +618,7 @@ class ERAOKID:
         s_y = channel_scale(Yd)
         s_y = np.maximum(s_y, float(self.output_scale_floor) * float(np.max(s_y)))
         Us, Ys = Ud / s_u[:, None], Yd / s_y[:, None]
-        P = None
-        q = self.output_rank
-        if q == 'auto':
-            sv = np.linalg.svd(Ys, compute_uv=False)
-            cum = np.cumsum(sv ** 2) / max(float(np.sum(sv ** 2)), 1e-300)
-            q = min(p, max(4, int(np.searchsorted(cum, 0.99) + 1)))
-        elif isinstance(q, str):
-            raise ConfigError(f"output_rank must be an integer, 'auto' or None; got {q!r}.")
-        if q is not None and int(q) < p:
-            q = int(q)
-            if not 1 <= q <= p:
-                raise ConfigError(f'output_rank must be between 1 and p = {p}; got {q}.')
-            P = np.linalg.svd(Ys, full_matrices=False)[0][:, :q]     # (p, q), orthonormal
-            Ys = P.T @ Ys
-        elif q is not None and not 1 <= int(q) <= p:
-            raise ConfigError(f'output_rank must be between 1 and p = {p}; got {q}.')
+        Ys, P = era_select.compress_outputs(Ys, self.output_rank)
         return Us, Ys, s_u, s_y, P
 
     def markov_parameters(self) -> Array:
@@ -640,7 +643,7 @@ class ERAOKID:
             A, Bs, Cs, Ds, _ = era(self.markov_, int(r), n_block_rows=self.n_block_rows,
                                    n_block_cols=self.n_block_cols, tol=self.hsv_tol)
         if self.refit:
-            A, Cs, Ds = _stabilize_refit(A, Bs, Cs, Ds, *self._train)[:3]
+            A, Cs, Ds = era_select.stabilize_refit(A, Bs, Cs, Ds, *self._train)[:3]
         if self.output_basis_ is not None:
             Cs, Ds = self.output_basis_ @ Cs, self.output_basis_ @ Ds
         s_u, s_y = self.input_scale_, self.output_scale_
@@ -663,32 +666,6 @@ class ERAOKID:
                              y_ref=self.y_ref_, input_names=old.input_names,
                              output_names=old.output_names, input_units=old.input_units,
                              output_units=old.output_units, metadata=meta)
-
-
-def _blas_threads(n: int | None) -> Any:
-    """Limit BLAS threads to ``n`` while fitting (threadpoolctl, when installed)."""
-    if n is None:
-        return contextlib.nullcontext()
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # optional: without it the process's BLAS settings apply
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=int(n), user_api='blas')
-
-
-def _stabilize_refit(A: Array, B: Array, C: Array, D: Array, Us: Array, Ys: Array
-                     ) -> tuple[Array, Array, Array, bool, bool]:
-    """Stabilized ``A`` and least-squares ``C, D`` on the data (``refit=True``).
-
-    Returns ``A, C, D, refitted, stabilized`` (the inputs unchanged when the eigenvectors are
-    too ill conditioned to move the unstable eigenvalues).
-    """
-    As = era_select.stabilize(A)
-    if As is None:
-        return A, C, D, False, False
-    X = era_select.simulate_states(As, B, Us)
-    C2, D2 = era_select.fit_output_map(X, Us, Ys)
-    return As, C2, D2, True, As is not A
 
 
 def _finite_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:

@@ -16,25 +16,36 @@ outputs, with the same 1.6e-6 residual). Those directions are not determined by 
 solved from one SVD of ``Φ`` (``Θ = Y V diag(s/(s²+λ)) Uᵀ``). Its conditioning is
 ``(σ_1² + λ)/λ ≤ 1/ρ + 1``, so results are reproducible (thread counts, rounding, tiny
 perturbations) when ``ρ`` is not tiny; the directions it damps are those with
-``σ_i < √ρ σ_1``, i.e. where an output error of relative size ``√ρ`` (a noise level) would
-already dominate the coefficient. ``ρ`` is therefore tied to the noise level of the data: it
-is never below ``RIDGE_FLOOR`` (``1e-5 ≈ (3e-3)²``: a relative output precision of 0.3 %,
-about as good as measured soft-robot poses get; on the eel it keeps the Markov parameters
-within 1e-8 under a 1e-9 output perturbation, where ``1e-6`` gives 1.5e-8) and is chosen
-from ``RIDGE_GRID`` by the criterion below.
+``σ_i < √ρ σ_1``, i.e. where an output error of relative size ``√ρ`` would already dominate
+the coefficient. ``ρ`` is never below ``RIDGE_FLOOR`` and is chosen from ``RIDGE_GRID``.
+The regression is tried without and with an unpenalized intercept (centered data): with it
+the coefficients do not depend on a constant output offset (the first sample of noisy data
+used as ``y_ref`` carries the noise into every deviation); without it the mean levels inform
+the static gains (exact data starting at rest). Output channels are scaled by their RMS but
+never by less than ``OUTPUT_SCALE_FLOOR`` of the largest: a nearly static channel (next to a
+clamp) would otherwise be blown up to unit size with its perturbations.
 
-**The criterion.** Every candidate ``(l, ρ)`` is fitted on the head of the training episode
-(``1 - holdout``, default 80 %); its ERA model (a randomized truncated SVD of the Hankel
-matrix, for speed) is simulated from rest over the whole episode for every even order up to
-``r_max``, unstable realizations rejected, and scored by the relative output error on the
-held-out tail: the quantity the ROM is used for (prediction on new times). The best
-``(l, ρ, r)`` is refitted on the whole episode with the exact ERA. The Markov horizon is
-``n_markov = min(K // 3, MAX_MARKOV)``: long enough for the slow modes of a soft body at
-1 kHz, with two thirds of the samples left as OKID equations.
+**The criterion.** Every candidate ``(d, l, ρ, intercept)`` is fitted on the head of the
+training episode (``1 - holdout``, default 80 %); its ERA model (a randomized truncated SVD of
+the Hankel matrix) is, for every order of ``R_GRID``, stabilized (eigenvalues outside the unit
+circle reflected inside, :func:`stabilize`), simulated from rest over the whole episode, its
+``C, D`` refitted by least squares on the head (:func:`fit_output_map`), and scored by the
+relative output error on the held-out tail: the quantity the ROM is used for (prediction at
+new times). The refit makes the realization an output-error fit for the ERA poles, which is
+what corrects the bias the ridge puts on the Markov parameters.
+
+**Stable choice.** Errors within ``TIE_TOL`` (3 %) of the best are tied and the tie is
+broken by a fixed preference (:func:`choose`: largest ``ρ``, intercept, smallest ``r``,
+smallest ``l``, smallest ``d``), so a perturbation of the data that moves the errors by far
+less than 3 % cannot change the settings (before: nearly equal errors of neighbouring ``r``
+flipped the choice under a 1e-9 perturbation). The chosen ``(d, l, ρ, intercept, r)`` is
+refitted on the whole episode with the exact ERA, stabilized and its ``C, D`` refitted. The
+Markov horizon is ``n_markov = min(K // 3, MAX_MARKOV)``.
 """
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any
 
 import numpy as np
@@ -42,7 +53,8 @@ from numpy.typing import NDArray
 
 from soft_rom.errors import ConfigError
 
-__all__ = ['MAX_MARKOV', 'OBSERVER_GRID', 'R_MAX', 'RIDGE_FLOOR', 'RIDGE_GRID', 'TIE_TOL',
+__all__ = ['blas_threads', 'compress_outputs', 'MAX_MARKOV', 'OBSERVER_GRID', 'OUTPUT_SCALE_FLOOR',
+           'R_GRID', 'R_MAX', 'RIDGE_FLOOR', 'RIDGE_GRID', 'stabilize_refit', 'TIE_TOL',
            'choose', 'default_n_markov', 'fir_response', 'fit_output_map', 'okid_regression',
            'modal_states', 'ridge_markov', 'score_orders', 'select_okid', 'simulate_states',
            'stabilize']
@@ -129,7 +141,8 @@ def ridge_markov(U: Array, Y: Array, lo: int, nm: int, rhos: tuple[float, ...],
         resid = float(np.linalg.norm(T - theta @ Phi))
         markov = markov_from_observer(theta, m, p, lo, nm)
         out.append((markov, {'residual': resid / den if den > 0 else 0.0,
-                             'ridge': float(rho), 'intercept': bool(intercept), 'n_unknowns': int(Phi.shape[0]),
+                             'ridge': float(rho), 'intercept': bool(intercept),
+                             'n_unknowns': int(Phi.shape[0]),
                              'effective_rank': int(np.sum(s ** 2 > lam)),
                              'condition': float((s[0] ** 2 + lam) / (s[-1] ** 2 + lam))}))
     return out
@@ -320,7 +333,8 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
                          {**base, 'r': None, 'tail_error': float('inf')})
     best = choose(rows, tie_tol)
     return {'observer_order': int(best['observer_order']), 'ridge': float(best['ridge']),
-            'intercept': bool(best['intercept']), 'r': int(best['r']), 'tail_error': float(best['tail_error']), 'rows': rows,
+            'intercept': bool(best['intercept']), 'r': int(best['r']),
+            'tail_error': float(best['tail_error']), 'rows': rows,
             'table': table, 'cut': cut, 'n_markov': nm}
 
 
@@ -390,6 +404,57 @@ def modal_states(A: Array, B: Array, U: Array) -> tuple[Array | None, float]:
     if not np.all(np.isfinite(X)):
         return None, rho
     return X, rho
+
+
+def blas_threads(n: int | None) -> Any:
+    """Limit BLAS threads to ``n`` while fitting (threadpoolctl, when installed)."""
+    if n is None:
+        return contextlib.nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # optional: without it the process's BLAS settings apply
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=int(n), user_api='blas')
+
+
+def stabilize_refit(A: Array, B: Array, C: Array, D: Array, Us: Array, Ys: Array
+                     ) -> tuple[Array, Array, Array, bool, bool]:
+    """Stabilized ``A`` and least-squares ``C, D`` on the data (``refit=True``).
+
+    Returns ``A, C, D, refitted, stabilized`` (the inputs unchanged when the eigenvectors are
+    too ill conditioned to move the unstable eigenvalues).
+    """
+    As = stabilize(A)
+    if As is None:
+        return A, C, D, False, False
+    X = simulate_states(As, B, Us)
+    C2, D2 = fit_output_map(X, Us, Ys)
+    return As, C2, D2, True, As is not A
+
+
+def compress_outputs(Ys: Array, rank: int | str | None) -> tuple[Array, Array | None]:
+    """Leading principal components ``P`` (p, q) of the scaled outputs: ``(Pᵀ Y_s, P)``.
+
+    ``rank``: ``q``; ``'auto'``: the components holding 99 % of the energy, at least
+    ``min(p, 4)``; ``None`` (or ``q = p``): the outputs as they are (``P = None``).
+    """
+    p = Ys.shape[0]
+    q = rank
+    if q == 'auto':
+        sv = np.linalg.svd(Ys, compute_uv=False)
+        cum = np.cumsum(sv ** 2) / max(float(np.sum(sv ** 2)), 1e-300)
+        q = min(p, max(4, int(np.searchsorted(cum, 0.99) + 1)))
+    elif isinstance(q, str):
+        raise ConfigError(f"output_rank must be an integer, 'auto' or None; got {q!r}.")
+    if q is None:
+        return Ys, None
+    q = int(q)
+    if not 1 <= q <= p:
+        raise ConfigError(f'output_rank must be between 1 and p = {p}; got {q}.')
+    if q == p:
+        return Ys, None
+    P = np.linalg.svd(Ys, full_matrices=False)[0][:, :q]         # (p, q), orthonormal
+    return P.T @ Ys, P
 
 
 #: Decimation factors tried by ``ERAOKID(decimation='auto')``.
