@@ -13,7 +13,8 @@ outputs, with the same 1.6e-6 residual). Those directions are not determined by 
 .. math:: \\Theta = \\arg\\min \\|Y - \\Theta\\Phi\\|_F^2 + \\lambda \\|\\Theta\\|_F^2, \\qquad
     \\lambda = \\rho\\, \\sigma_1(\\Phi)^2,
 
-solved from one SVD of ``Φ`` (``Θ = Y V diag(s/(s²+λ)) Uᵀ``). Its conditioning is
+solved from one factorization of ``Φ`` (``Θ = Y V diag(s/(s²+λ)) Uᵀ``, from the
+eigendecomposition of ``ΦΦᵀ``). Its conditioning is
 ``(σ_1² + λ)/λ ≤ 1/ρ + 1``, so results are reproducible (thread counts, rounding, tiny
 perturbations) when ``ρ`` is not tiny; the directions it damps are those with
 ``σ_i < √ρ σ_1``, i.e. where an output error of relative size ``√ρ`` would already dominate
@@ -53,11 +54,11 @@ from numpy.typing import NDArray
 
 from soft_rom.errors import ConfigError
 
-__all__ = ['blas_threads', 'compress_outputs', 'MAX_MARKOV', 'OBSERVER_GRID', 'OUTPUT_SCALE_FLOOR',
-           'R_GRID', 'R_MAX', 'RIDGE_FLOOR', 'RIDGE_GRID', 'stabilize_refit', 'TIE_TOL',
-           'choose', 'default_n_markov', 'fir_response', 'fit_output_map', 'okid_regression',
-           'modal_states', 'ridge_markov', 'score_orders', 'select_okid', 'simulate_states',
-           'stabilize']
+__all__ = ['blas_threads', 'choose', 'compress_outputs', 'default_n_markov', 'fir_response',
+           'first_order_responses', 'fit_output_map', 'MAX_MARKOV', 'modal_inputs',
+           'OBSERVER_GRID', 'okid_regression', 'OUTPUT_SCALE_FLOOR', 'R_GRID', 'R_MAX',
+           'real_modal_states', 'RIDGE_FLOOR', 'RIDGE_GRID', 'ridge_markov', 'score_orders',
+           'select_okid', 'simulate_states', 'stabilize', 'stabilize_refit', 'TIE_TOL']
 
 Array = NDArray[np.float64]
 
@@ -101,23 +102,29 @@ def okid_regression(U: Array, Y: Array, lo: int) -> tuple[Array, Array]:
 
 
 def markov_from_observer(theta: Array, m: int, p: int, lo: int, nm: int) -> Array:
-    """System Markov parameters ``(nm + 1, p, m)`` from the observer coefficients."""
-    D = theta[:, :m]
-    Y1 = [theta[:, m + (i - 1) * (m + p): m + (i - 1) * (m + p) + m] for i in range(1, lo + 1)]
-    Y2 = [theta[:, m + (i - 1) * (m + p) + m: m + i * (m + p)] for i in range(1, lo + 1)]
+    """System Markov parameters ``(nm + 1, p, m)`` from the observer coefficients.
+
+    ``Y_k = Ȳ⁽¹⁾_k + [Ȳ⁽²⁾_1 … Ȳ⁽²⁾_j] [Y_{k-1}; …; Y_{k-j}]``, ``j = min(k, l)``: one
+    matrix product per ``k``.
+    """
+    blocks = theta[:, m:].reshape(p, lo, m + p)
+    Y1 = blocks[:, :, :m].transpose(1, 0, 2)                   # (lo, p, m)
+    Y2 = np.ascontiguousarray(blocks[:, :, m:]).reshape(p, lo * p)   # [Ȳ2_1 … Ȳ2_lo]
     markov = np.zeros((nm + 1, p, m))
-    markov[0] = D
+    markov[0] = theta[:, :m]
     for k in range(1, nm + 1):
-        acc = Y1[k - 1].copy() if k <= lo else np.zeros((p, m))
-        for i in range(1, min(k, lo) + 1):
-            acc += Y2[i - 1] @ markov[k - i]
+        j = min(k, lo)
+        past = markov[k - j:k][::-1].reshape(j * p, m)
+        acc = Y2[:, :j * p] @ past
+        if k <= lo:
+            acc += Y1[k - 1]
         markov[k] = acc
     return markov
 
 
 def ridge_markov(U: Array, Y: Array, lo: int, nm: int, rhos: tuple[float, ...],
                  intercept: bool = False) -> list[tuple[Array, dict[str, Any]]]:
-    """Ridge OKID for several ``ρ`` from one SVD; ``[(markov, info), ...]``.
+    """Ridge OKID for several ``ρ`` from one factorization; ``[(markov, info), ...]``.
 
     ``intercept``: with an unpenalized constant term (centered regression), so that the
     coefficients do not depend on a constant offset of the outputs (an error in ``y_ref``,
@@ -129,22 +136,25 @@ def ridge_markov(U: Array, Y: Array, lo: int, nm: int, rhos: tuple[float, ...],
     if intercept:
         Phi = Phi - Phi.mean(axis=1, keepdims=True)
         T = T - T.mean(axis=1, keepdims=True)
-    Uo, s, Vt = np.linalg.svd(Phi, full_matrices=False)
-    TV = T @ Vt.T                                   # (p, n_unknowns)
+    # Ridge from the eigendecomposition of the Gram matrix ΦΦᵀ = W diag(s²) Wᵀ (the SVD's
+    # left factors): its rounding, ε σ_1², is far below every λ = ρ σ_1² used (ρ ≥ 1e-6).
+    e, W = np.linalg.eigh(Phi @ Phi.T)
+    e, W = np.maximum(e[::-1], 0.0), W[:, ::-1]
+    TW = (T @ Phi.T) @ W                              # (p, n_unknowns) = T V diag(s)
     den = float(np.linalg.norm(T))
     out = []
     for rho in rhos:
         if not (np.isfinite(rho) and rho > 0):
             raise ConfigError(f'OKID ridge weight must be > 0; got {rho!r}.')
-        lam = float(rho) * float(s[0]) ** 2
-        theta = (TV * (s / (s ** 2 + lam))[None, :]) @ Uo.T
+        lam = float(rho) * float(e[0])
+        theta = (TW / (e + lam)[None, :]) @ W.T
         resid = float(np.linalg.norm(T - theta @ Phi))
         markov = markov_from_observer(theta, m, p, lo, nm)
         out.append((markov, {'residual': resid / den if den > 0 else 0.0,
                              'ridge': float(rho), 'intercept': bool(intercept),
                              'n_unknowns': int(Phi.shape[0]),
-                             'effective_rank': int(np.sum(s ** 2 > lam)),
-                             'condition': float((s[0] ** 2 + lam) / (s[-1] ** 2 + lam))}))
+                             'effective_rank': int(np.sum(e > lam)),
+                             'condition': float((e[0] + lam) / (e[-1] + lam))}))
     return out
 
 
@@ -349,61 +359,86 @@ def score_orders(A_full: Array, B_full: Array, C_full: Array, D: Array, Us: Arra
     (samples before ``cut``); otherwise unstable realizations score ``inf``.
     """
     rows = []
-    for r in r_candidates:
-        A, B, C, Dr = A_full[:r, :r], B_full[:r], C_full[:, :r], D
-        if refit:
-            X, rho = modal_states(A, B, Us)
-            if X is None:
+    if refit:
+        modal = [modal_inputs(A_full[:r, :r], B_full[:r], Us) for r in r_candidates]
+        live = [x for x in modal if x[0] is not None]
+        if live:
+            Z = first_order_responses(np.concatenate([x[0] for x in live]),
+                                      np.concatenate([x[1] for x in live]))
+        at = 0
+        for r, (ev, _G, rho) in zip(r_candidates, modal):
+            if ev is None:
                 rows.append({'r': r, 'tail_error': float('inf'), 'spectral_radius': rho})
                 continue
+            X = real_modal_states(ev, Z[at:at + r])
+            at += r
             C, Dr = fit_output_map(X[:, :cut], Us[:, :cut], Ys[:, :cut])
-        else:
-            rho = float(np.max(np.abs(np.linalg.eigvals(A))))
-            if not rho < 1.0:
-                rows.append({'r': r, 'tail_error': float('inf'), 'spectral_radius': rho})
-                continue
-            X = simulate_states(A, B, Us)
-        Yh = C @ X + Dr @ Us
-        err = _rel(Yh[:, cut:], Ys[:, cut:])
+            err = _rel((C @ X + Dr @ Us)[:, cut:], Ys[:, cut:])
+            rows.append({'r': r, 'tail_error': err if np.isfinite(err) else float('inf'),
+                         'spectral_radius': rho})
+        return rows
+    for r in r_candidates:
+        A, B, C = A_full[:r, :r], B_full[:r], C_full[:, :r]
+        rho = float(np.max(np.abs(np.linalg.eigvals(A))))
+        if not rho < 1.0:
+            rows.append({'r': r, 'tail_error': float('inf'), 'spectral_radius': rho})
+            continue
+        X = simulate_states(A, B, Us)
+        err = _rel((C @ X + D @ Us)[:, cut:], Ys[:, cut:])
         rows.append({'r': r, 'tail_error': err if np.isfinite(err) else float('inf'),
                      'spectral_radius': rho})
     return rows
 
 
-def modal_states(A: Array, B: Array, U: Array) -> tuple[Array | None, float]:
-    """States of the stabilized realization (:func:`stabilize`) in real modal coordinates.
+def modal_inputs(A: Array, B: Array, U: Array
+                 ) -> tuple[NDArray[np.complex128] | None, NDArray[np.complex128] | None, float]:
+    """Eigenvalues of the stabilized ``A`` (:func:`stabilize`) and modal inputs ``V⁻¹ B U``.
 
-    Every mode is a first-order recursion ``z_{k+1} = λ z_k + g_k`` (``g = V⁻¹ B u``), run by
-    ``scipy.signal.lfilter``; a conjugate pair gives the real and imaginary parts of one of
-    its modes. The rows span the same space as the states of :func:`stabilize` ``(A)``, so a
-    refitted ``C`` gives the same outputs. Returns ``(X (r, K) or None, spectral radius)``.
+    ``(None, None, ρ)`` when ``A`` is unstable and its eigenvectors too ill conditioned.
     """
-    from scipy.signal import lfilter
     ev, V = np.linalg.eig(A)
     a = np.abs(ev)
     rho = float(np.max(a))
     if rho >= 1.0:
         if np.linalg.cond(V) > 1e8:
-            return None, rho
+            return None, None, rho
         ev = np.where(a >= 1.0, ev / a * np.minimum(1.0 / a, 1.0 - 1e-9), ev)
     try:
         G = np.linalg.solve(V, B @ U)
     except np.linalg.LinAlgError:
-        return None, rho
-    r, K = A.shape[0], U.shape[1]
-    X = np.empty((r, K))
+        return None, None, rho
+    return ev, G, rho
+
+
+def first_order_responses(ev: NDArray[np.complex128], G: NDArray[np.complex128]
+                          ) -> NDArray[np.complex128]:
+    """``z_0 = 0``, ``z_{k+1} = λ ⊙ z_k + g_k`` for many modes at once, shape (n, K)."""
+    n, K = G.shape
+    Z = np.empty((n, K), dtype=np.complex128)
+    z = np.zeros(n, dtype=np.complex128)
+    for k in range(K):
+        Z[:, k] = z
+        z = ev * z + G[:, k]
+    return Z
+
+
+def real_modal_states(ev: NDArray[np.complex128], Z: NDArray[np.complex128]) -> Array:
+    """Real regressors spanning the states of the modes ``ev`` (responses ``Z``).
+
+    A conjugate pair gives the real and imaginary parts of one of its modes (LAPACK lists a
+    pair consecutively), a real mode its response.
+    """
+    r = ev.size
+    X = np.empty((r, Z.shape[1]))
     j = 0
     while j < r:
         if ev[j].imag != 0.0 and j + 1 < r:
-            z = lfilter([0.0, 1.0], [1.0, -ev[j]], G[j])
-            X[j], X[j + 1] = z.real, z.imag
+            X[j], X[j + 1] = Z[j].real, Z[j].imag
             j += 2
         else:
-            X[j] = lfilter([0.0, 1.0], [1.0, -ev[j].real], G[j].real)
+            X[j] = Z[j].real
             j += 1
-    if not np.all(np.isfinite(X)):
-        return None, rho
-    return X, rho
+    return X
 
 
 def blas_threads(n: int | None) -> Any:
