@@ -133,13 +133,14 @@ def fit_score(make: Any, ep: Episode, Yclean: np.ndarray, *, seed: int | None = 
     if ctx is None:
         return {}
     with ctx:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         est = make().fit(train)
-        secs = time.perf_counter() - t0
+        secs, cpu = time.perf_counter() - t0, time.process_time() - c0
     model = est.model_
     Yh = predict(model, ep)
     meta = model.metadata
-    out = {'test': relative_error(Yclean[:, k:], Yh[:, k:]), 'secs': secs, 'r': model.r,
+    out = {'test': relative_error(Yclean[:, k:], Yh[:, k:]), 'secs': secs, 'cpu': cpu,
+           'r': model.r,
            'margin': model.stability_margin(), 'est': est,
            'setting': (meta.get('decimation'), meta.get('observer_order'),
                        meta.get('okid_ridge'), model.r)}
@@ -196,7 +197,11 @@ def reproducibility(name: str, make: Any, ep: Episode, Yc: np.ndarray, seeds: li
     else:
         print(f'{name}: threadpoolctl not installed: thread check skipped')
     flips = 0
+    pert_tests = []
+    train = ep.time_slice(None, T_TRAIN - 0.5 * ep.dt)
     for s in seeds:
+        moved = perturbed(train, s).Y - train.Y
+        motion = float(np.linalg.norm(moved) / np.linalg.norm(train.Y - train.Y[:, :1]))
         res = fit_score(make, ep, Yc, seed=s, n_threads=1)
         same = res['setting'] == ref['setting']
         flips += not same
@@ -204,13 +209,17 @@ def reproducibility(name: str, make: Any, ep: Episode, Yc: np.ndarray, seeds: li
             else float('inf')
         worst = max(worst, dm)
         tests.append(res['test'])
-        print(f'{name}: 1e-9 perturbation seed {s}: {fmt_setting(res["setting"])} '
-              f'({"same" if same else "CHANGED"}), Markov change {dm:.1e}, '
-              f'test {res["test"]:.5f}', flush=True)
+        pert_tests.append(res['test'])
+        print(f'{name}: 1e-9 perturbation seed {s} ({motion:.1e} of the motion '
+              f'Y - y_ref): {fmt_setting(res["setting"])} ({"same" if same else "CHANGED"}), '
+              f'Markov change {dm:.1e}, test {res["test"]:.5f}', flush=True)
     print(f'{name}: worst Markov change {worst:.1e}; selection changed in {flips} of '
-          f'{len(seeds)} perturbations; test error median {np.median(tests):.5f} '
-          f'(range {min(tests):.5f}-{max(tests):.5f})', flush=True)
-    return {'ref': ref, 'tests': tests, 'worst': worst, 'flips': flips}
+          f'{len(seeds)} perturbations; test error over all fits median {np.median(tests):.5f}'
+          f' (range {min(tests):.5f}-{max(tests):.5f}); perturbed fits only: median '
+          f'{np.median(pert_tests):.5f} (range {min(pert_tests):.5f}-{max(pert_tests):.5f})',
+          flush=True)
+    return {'ref': ref, 'tests': tests, 'pert_tests': pert_tests, 'worst': worst,
+            'flips': flips}
 
 
 def main() -> None:
@@ -235,13 +244,14 @@ def main() -> None:
                 print(f'{name}: threadpoolctl missing: {n} threads skipped')
                 continue
             free = fit_score(lambda: ERAOKID(blas_threads=None), ep, Yc, n_threads=n)
-            line = (f'{name}, {n} BLAS thread(s): new {new["secs"]:.2f} s '
-                    f'(blas_threads=None: {free["secs"]:.2f} s; test {new["test"]:.4f}, '
-                    f'{fmt_setting(new["setting"])})')
+            line = (f'{name}, {n} BLAS thread(s): new {new["secs"]:.2f} s wall '
+                    f'({new["cpu"]:.2f} s CPU; blas_threads=None: {free["secs"]:.2f} s; '
+                    f'test {new["test"]:.4f}, {fmt_setting(new["setting"])})')
             if Base is not None:
                 old = fit_score(Base, ep, Yc, n_threads=n)
-                line += (f'; baseline {old["secs"]:.2f} s (test {old["test"]:.4f}); '
-                         f'ratio baseline/new {old["secs"] / new["secs"]:.1f}x')
+                line += (f'; baseline {old["secs"]:.2f} s wall ({old["cpu"]:.2f} s CPU, test '
+                         f'{old["test"]:.4f}); ratio baseline/new {old["secs"] / new["secs"]:.1f}x'
+                         f' wall, {old["cpu"] / new["cpu"]:.1f}x CPU')
             print(line, flush=True)
 
     print('== 2. reproducibility of the defaults (1 vs 2 threads, 1e-9 perturbations)')
@@ -256,9 +266,9 @@ def main() -> None:
                           lambda: ERAOKID.from_preset('eel', r=26, blas_threads=None), eel,
                           eel.Y, pseeds)
     d_med = float(np.median(rep['eel']['tests']))
-    p_med = float(np.median(pre['tests']))
-    print(f'eel: defaults test error median {d_med:.5f} vs preset median {p_med:.5f} '
-          f'(ratio {d_med / p_med:.2f}; preset unperturbed 1 thread '
+    p_med = float(np.median(pre['pert_tests']))
+    print(f'eel: defaults test error median {d_med:.5f} vs preset median over perturbed fits '
+          f'{p_med:.5f} (ratio {d_med / p_med:.2f}; preset unperturbed 1 thread '
           f'{pre["ref"]["test"]:.5f}, ratio {d_med / pre["ref"]["test"]:.2f})')
 
     print('== 4. generic LTI: hand sweep vs defaults')
