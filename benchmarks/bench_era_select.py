@@ -144,10 +144,19 @@ def fit_score(make: Any, ep: Episode, Yclean: np.ndarray, *, seed: int | None = 
            'margin': model.stability_margin(), 'est': est,
            'setting': (meta.get('decimation'), meta.get('observer_order'),
                        meta.get('okid_ridge'), model.r)}
-    if hasattr(est, 'markov_parameters'):
-        out['markov'] = est.markov_parameters()
+    out['markov'] = physical_markov(est)
+    if 'okid_intercept' in meta:
         out['setting'] += (meta.get('okid_intercept'),)
     return out
+
+
+def physical_markov(est: Any) -> np.ndarray:
+    """OKID Markov parameters in data units (also for the baseline learner)."""
+    if hasattr(est, 'markov_parameters'):
+        return est.markov_parameters()
+    P = est.output_basis_
+    mk = est.markov_ if P is None else P @ est.markov_
+    return est.output_scale_[:, None] * mk / est.input_scale_[None, :]
 
 
 def rel(a: np.ndarray, b: np.ndarray) -> float:
@@ -259,6 +268,9 @@ def main() -> None:
     # blas_threads=None: the learner leaves the thread count to the caller (threadpoolctl).
     rep = {name: reproducibility(name, lambda: ERAOKID(blas_threads=None), ep, Yc, seeds)
            for name, (ep, Yc) in data.items()}
+    if Base is not None:
+        for name, (ep, Yc) in data.items():
+            reproducibility(f'{name} baseline', Base, ep, Yc, seeds)
 
     print("== 3. the eel preset ('eel', r = 26: the study's hand-tuned setting)")
     pseeds = list(range(200, 200 + args.preset_seeds))

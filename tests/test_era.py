@@ -86,6 +86,15 @@ def test_learner_exact_on_noise_free_data_and_unit_scaling():
     smaller = est.model_for(4)
     assert smaller.r == 4 and smaller.dt == model.dt
     assert model.metadata['observer_order'] == est.observer_order_
+    # model_for reuses the stored ERA factors: the same realization as a fit at r = 4 (the
+    # default refit: stabilized, C and D refitted), and the same Markov parameters in data
+    # units, which reproduce the true ones.
+    four = ERAOKID(r=4, n_markov=40, decimation=1, selection='none', output_rank=None).fit(
+        ep, y_ref)
+    np.testing.assert_allclose(smaller.A, four.model_.A, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(smaller.C, four.model_.C, rtol=0, atol=1e-9 * np.abs(C).max())
+    true = _markov(A, B, C, D, 40) * 1e-3
+    assert np.max(np.abs(est.markov_parameters() - true)) <= 1e-8 * np.abs(true).max()
 
 
 def test_output_rank_identifies_on_principal_outputs():
