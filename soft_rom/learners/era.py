@@ -314,10 +314,10 @@ class ERAOKID:
         OKID observer order ``l``; ``None``: selected, or (``selection='none'``) the largest
         order with two equations per unknown, capped at ``max_observer_order``.
     decimation : int or 'auto'
-        Fit at ``decimation`` times the data sample time; ``'auto'`` (default): the factor of
-        :data:`~soft_rom.learners.era_select.DECIMATION_GRID` with the lowest held-out tail
-        error. A model fitted at ``d > 1`` is resampled to the data step
-        (:func:`~soft_rom.learners.era_select.to_data_rate`: exact ``d``-th root), so it
+        Fit at ``decimation`` times the data sample time; ``'auto'`` (default): a factor of
+        :data:`~soft_rom.learners.era_select.DECIMATION_GRID`, selected with the other
+        settings by the held-out tail error. A model fitted at ``d > 1`` is resampled to the
+        data step (:func:`~soft_rom.learners.era_select.to_data_rate`: exact ``d``-th root), so it
         predicts on the data grid without interpolation; the metadata state ``decimation``,
         ``dt_fit``, ``dt_model`` and ``resampled_to_data_rate``. If no real root exists the
         model keeps ``dt = d · dt_data`` (printed by ``soft-rom fit``).
