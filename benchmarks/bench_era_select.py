@@ -31,6 +31,9 @@ Run::
     .venv/bin/python benchmarks/bench_era_select.py [--eel /tmp/era_cache/ep1.npz]
         [--seeds 3] [--preset-seeds 5] [--skip-baseline] [--threads 1 2]
 
+About 8 minutes on a loaded 2-core machine (the baseline with two BLAS threads dominates);
+``--skip-baseline --threads 1`` about 2.
+
 BLAS threads default to 1 (``OPENBLAS_NUM_THREADS`` etc. unless set): on a shared machine
 multithreaded BLAS makes these medium-sized factorizations many times slower.
 """
