@@ -42,8 +42,9 @@ ROSDEP_OF = {
     'matplotlib': 'python3-matplotlib', 'tqdm': 'python3-tqdm',
     'cvxpy': 'python3-cvxpy-pip', 'rosbags': 'python3-rosbags-pip', 'zarr': None,
 }
-# Imported lazily for extras (dask, mesh); clarabel is the cvxpy solver cvxpy installs.
-OPTIONAL = {'dask', 'distributed', 'gmsh', 'clarabel'}
+# Imported lazily for extras (dask, mesh); clarabel is the cvxpy solver cvxpy installs;
+# threadpoolctl, when installed, limits BLAS threads during ERA/OKID fits.
+OPTIONAL = {'dask', 'distributed', 'gmsh', 'clarabel', 'threadpoolctl'}
 
 
 def _exec_depends(tags: tuple[str, ...] = ('exec_depend', 'depend')) -> set[str]:

@@ -43,6 +43,10 @@ last seconds. The knobs:
 (:mod:`soft_rom.learners.era_select`, which also explains why the ridge solve is needed);
 named presets (:data:`ERA_PRESETS`) give the hand-tuned settings.
 
+About 680 lines: the learner's fit carries the search over decimations, the refit on the
+whole episode and the presets; the selection itself lives in
+:mod:`soft_rom.learners.era_select`.
+
 Unit invariance: inputs and outputs are divided by their per-channel RMS before OKID/ERA
 and the realization is scaled back (``B = B_s diag(1/s_u)``, ``C = diag(s_y) C_s``,
 ``D = diag(s_y) D_s diag(1/s_u)``); the Hankel singular values are those of the scaled data.
@@ -71,7 +75,8 @@ __all__ = ['ERA_EEL_OPTIONS', 'ERA_PRESETS', 'ERAOKID', 'decimate', 'era', 'hank
 #: identify on the 4 leading output principal components at the full rate with a 36-step
 #: observer and 500 Markov parameters (0.5 s), plain least squares (no ridge, no selection).
 ERA_EEL_OPTIONS: dict[str, Any] = {'decimation': 1, 'output_rank': 4, 'observer_order': 36,
-                                   'n_markov': 500, 'selection': 'none'}
+                                   'n_markov': 500, 'selection': 'none', 'refit': False,
+                                   'output_scale_floor': 0.0}
 
 #: Named settings for :meth:`ERAOKID.from_preset` (and ``soft-rom fit --era-preset``):
 #: ``'auto'`` the data-driven defaults; ``'eel'`` the study's hand-tuned settings;
@@ -81,7 +86,8 @@ ERA_PRESETS: dict[str, dict[str, Any]] = {
     'auto': {},
     'eel': ERA_EEL_OPTIONS,
     'legacy': {'decimation': 5, 'n_markov': 100, 'max_observer_order': 10,
-               'output_rank': None, 'selection': 'none'},
+               'output_rank': None, 'selection': 'none', 'refit': False,
+               'output_scale_floor': 0.0},
 }
 
 Array = NDArray[np.float64]
@@ -117,8 +123,8 @@ def decimate(U: ArrayLike, Y: ArrayLike, factor: int) -> tuple[Array, Array]:
 
 
 def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: int,
-                rcond: float | None = None, ridge: float | None = None
-                ) -> tuple[Array, dict[str, Any]]:
+                rcond: float | None = None, ridge: float | None = None,
+                intercept: bool = False) -> tuple[Array, dict[str, Any]]:
     """System Markov parameters from arbitrary input/output data by OKID.
 
     Parameters
@@ -138,6 +144,8 @@ def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: in
         Relative Tikhonov weight ``ρ`` (``λ = ρ σ_1(Φ)²``;
         :mod:`soft_rom.learners.era_select`): the well-posed solve. ``None``: plain least
         squares (exact data only).
+    intercept : bool
+        Ridge solve with an unpenalized constant term (insensitive to an output offset).
 
     Returns
     -------
@@ -165,7 +173,7 @@ def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: in
             f'{rows} equations ({K} samples): use observer_order <= {max(kmax, 0)}, more data, '
             'or less decimation.')
     if ridge is not None:
-        markov, info = era_select.ridge_markov(U, Y, lo, nm, (float(ridge),))[0]
+        markov, info = era_select.ridge_markov(U, Y, lo, nm, (float(ridge),), intercept)[0]
         info['rank'] = info['effective_rank']
         return markov, info
     V = np.concatenate([U, Y], axis=0)                       # (m + p, K)
@@ -186,11 +194,8 @@ def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: in
 
 def _hankel(markov: Array, start: int, rows: int, cols: int) -> Array:
     _, p, m = markov.shape
-    H = np.empty((rows * p, cols * m))
-    for i in range(rows):
-        for j in range(cols):
-            H[i * p:(i + 1) * p, j * m:(j + 1) * m] = markov[start + i + j]
-    return H
+    idx = start + np.arange(rows)[:, None] + np.arange(cols)[None, :]
+    return np.ascontiguousarray(markov[idx].transpose(0, 2, 1, 3).reshape(rows * p, cols * m))
 
 
 def hankel_rank(hsv: ArrayLike, *, tol: float = 1e-3) -> int:
@@ -212,7 +217,8 @@ def hankel_rank(hsv: ArrayLike, *, tol: float = 1e-3) -> int:
 
 def era(markov: ArrayLike, r: int | None = None, *, n_block_rows: int | None = None,
         n_block_cols: int | None = None,
-        tol: float = 1e-3) -> tuple[Array, Array, Array, Array, Array]:
+        tol: float = 1e-3, _factors: dict[str, Array] | None = None
+        ) -> tuple[Array, Array, Array, Array, Array]:
     """Eigensystem realization from Markov parameters (Juang & Pappa 1985).
 
     Parameters
@@ -261,23 +267,40 @@ def era(markov: ArrayLike, r: int | None = None, *, n_block_rows: int | None = N
     if not 1 <= r <= s.size or s[r - 1] <= 0:
         raise ConfigError(f'r must be between 1 and the numerical rank of the Hankel matrix '
                           f'({int(np.sum(s > 0))} of {s.size} singular values > 0); got {r}.')
-    sq = np.sqrt(s[:r])
-    A = (P[:, :r].T @ H1 @ Qt[:r].T) / np.outer(sq, sq)
-    B = sq[:, None] * Qt[:r, :m]
-    C = P[:p, :r] * sq[None, :]
-    return A, B, C, markov[0].copy(), s
+    R = min(max(r, _CACHED_ORDERS), int(np.sum(s > 0)))
+    factors = {'M': P[:, :R].T @ H1 @ Qt[:R].T, 's': s, 'Qm': Qt[:R, :m].copy(),
+               'Pp': P[:p, :R].copy(), 'D': markov[0].copy()}
+    if _factors is not None:
+        _factors.update(factors)
+    A, B, C, D = _era_from_factors(factors, r)
+    return A, B, C, D, s
+
+
+#: Orders whose realizations :func:`era` keeps factors for (``ERAOKID.model_for``).
+_CACHED_ORDERS = 200
+
+
+def _era_from_factors(f: dict[str, Array], r: int) -> tuple[Array, Array, Array, Array]:
+    """Order-``r`` ERA realization from the factors :func:`era` kept (``r <= R``)."""
+    sq = np.sqrt(f['s'][:r])
+    A = f['M'][:r, :r] / np.outer(sq, sq)
+    B = sq[:, None] * f['Qm'][:r]
+    C = f['Pp'][:, :r] * sq[None, :]
+    return A, B, C, f['D'].copy()
 
 
 class ERAOKID:
     """ERA/OKID learner: a discrete ROM from the inputs and outputs of one episode.
 
     Defaults (``selection='holdout'``): well-posed ridge OKID (module
-    :mod:`soft_rom.learners.era_select`), with the observer order ``l``, the ridge weight
-    ``ρ`` and the order ``r`` chosen together by the error of the ERA model on a held-out tail
-    of the episode (fit on the first 80 %), then refitted on the whole episode; the Markov
-    horizon is a third of the samples (at most 500); the data rate is kept (``decimation=1``)
-    and outputs are identified on their leading principal components. Any of ``r``,
-    ``observer_order``, ``okid_ridge`` given by hand is kept fixed in the search.
+    :mod:`soft_rom.learners.era_select`), with the decimation, the observer order ``l``, the
+    ridge weight ``ρ``, the OKID intercept and the order ``r`` chosen together by the error of
+    the stabilized, output-refitted ERA model on a held-out tail of the episode (fit on the
+    first 80 %; errors within ``tie_tol`` of the best are tied and broken by a fixed
+    preference, so tiny perturbations do not change the choice), then refitted on the whole
+    episode; the Markov horizon is a third of the samples (at most 500); outputs are
+    identified on their leading principal components. Any of ``r``, ``observer_order``,
+    ``okid_ridge`` given by hand is kept fixed in the search.
 
     Parameters
     ----------
@@ -291,10 +314,10 @@ class ERAOKID:
         OKID observer order ``l``; ``None``: selected, or (``selection='none'``) the largest
         order with two equations per unknown, capped at ``max_observer_order``.
     decimation : int or 'auto'
-        Fit at ``decimation`` times the data sample time; ``'auto'`` (default): the factor of
-        :data:`~soft_rom.learners.era_select.DECIMATION_GRID` with the lowest held-out tail
-        error. A model fitted at ``d > 1`` is resampled to the data step
-        (:func:`~soft_rom.learners.era_select.to_data_rate`: exact ``d``-th root), so it
+        Fit at ``decimation`` times the data sample time; ``'auto'`` (default): a factor of
+        :data:`~soft_rom.learners.era_select.DECIMATION_GRID`, selected with the other
+        settings by the held-out tail error. A model fitted at ``d > 1`` is resampled to the
+        data step (:func:`~soft_rom.learners.era_select.to_data_rate`: exact ``d``-th root), so it
         predicts on the data grid without interpolation; the metadata state ``decimation``,
         ``dt_fit``, ``dt_model`` and ``resampled_to_data_rate``. If no real root exists the
         model keeps ``dt = d · dt_data`` (printed by ``soft-rom fit``).
@@ -319,6 +342,19 @@ class ERAOKID:
         Data-driven settings (default) or the given ones as they are.
     holdout : float
         Fraction of the episode held out for the selection.
+    refit : bool
+        Stabilize the realization (eigenvalues outside the unit circle reflected inside) and
+        refit ``C, D`` by least squares on the simulated states (default); ``False``: the ERA
+        realization as it is (the presets).
+    tie_tol : float
+        Relative band of held-out errors treated as tied in the selection.
+    output_scale_floor : float
+        Output channels are scaled by their RMS, at least this fraction of the largest
+        channel RMS (``0``: plain per-channel RMS, as the presets).
+    blas_threads : int, optional
+        BLAS threads while fitting (needs ``threadpoolctl``; without it, or with ``None``, the
+        process's setting applies). Default 1: the many medium-sized factorizations of the
+        selection run many times slower with threads on a loaded machine.
 
     Presets: :meth:`from_preset` with a name of :data:`ERA_PRESETS` (``'eel'``: the study's
     hand-tuned settings :data:`ERA_EEL_OPTIONS`).
@@ -348,7 +384,10 @@ class ERAOKID:
                  hsv_tol: float = 1e-3, max_observer_order: int = 10,
                  output_rank: int | str | None = 'auto', okid_rcond: float | None = None,
                  okid_ridge: float | None = None, selection: str = 'holdout',
-                 holdout: float = 0.2) -> None:
+                 holdout: float = 0.2, refit: bool = True,
+                 tie_tol: float = era_select.TIE_TOL,
+                 output_scale_floor: float = era_select.OUTPUT_SCALE_FLOOR,
+                 blas_threads: int | None = 1) -> None:
         self.r = r
         self.n_markov = n_markov
         self.observer_order = observer_order
@@ -362,6 +401,10 @@ class ERAOKID:
         self.okid_ridge = okid_ridge
         self.selection = selection
         self.holdout = holdout
+        self.refit = refit
+        self.tie_tol = tie_tol
+        self.output_scale_floor = output_scale_floor
+        self.blas_threads = blas_threads
 
     @classmethod
     def from_preset(cls, name: str, **overrides: Any) -> ERAOKID:
@@ -377,7 +420,7 @@ class ERAOKID:
             input_units: Sequence[str] | None = None,
             output_units: Sequence[str] | None = None,
             metadata: dict[str, Any] | None = None) -> ERAOKID:
-        """Identify the ROM from one episode.
+        """Identify the ROM from one episode (see the class for the settings).
 
         Parameters
         ----------
@@ -391,12 +434,16 @@ class ERAOKID:
         -------
         self
         """
+        with era_select.blas_threads(self.blas_threads):
+            return self._fit(episode, y_ref, input_names=input_names,
+                             output_names=output_names, input_units=input_units,
+                             output_units=output_units, metadata=metadata)
+
+    def _fit(self, episode: Episode | Sequence[Episode], y_ref: ArrayLike | None, *,
+             input_names: Sequence[str] | None, output_names: Sequence[str] | None,
+             input_units: Sequence[str] | None, output_units: Sequence[str] | None,
+             metadata: dict[str, Any] | None) -> ERAOKID:
         t0 = time.perf_counter()
-        if self.decimation == 'auto':
-            return self._fit_auto_decimation(episode, y_ref, input_names=input_names,
-                                             output_names=output_names,
-                                             input_units=input_units,
-                                             output_units=output_units, metadata=metadata)
         ep = _one_episode(episode)
         if not ep.is_uniform():
             raise DimensionError(f'episode {ep.name!r} is not uniformly sampled.')
@@ -405,75 +452,102 @@ class ERAOKID:
         m, p = ep.U.shape[0], ep.Y.shape[0]
         y_ref = ep.Y[:, 0].copy() if y_ref is None else as_signal(
             'y_ref', np.reshape(y_ref, (-1, 1)), rows=p)[:, 0]
-        d = int(self.decimation)
-        Ud, Yd = decimate(ep.U, ep.Y - y_ref[:, None], d)
-        if Ud.shape[1] < 2 * (2 * m + 1):
-            raise DimensionError(
-                f'episode {ep.name!r} has {Ud.shape[1]} samples after decimation {d}: too few '
-                f'for OKID with m={m} inputs. Use less decimation or a longer episode.')
-        s_u = channel_scale(Ud)
-        s_y = channel_scale(Yd)
-        Us, Ys = Ud / s_u[:, None], Yd / s_y[:, None]
         if self.selection not in ('holdout', 'none'):
             raise ConfigError(f"selection must be 'holdout' or 'none'; got {self.selection!r}.")
-        P = None
-        q = self.output_rank
-        if q == 'auto':
-            sv = np.linalg.svd(Ys, compute_uv=False)
-            cum = np.cumsum(sv ** 2) / max(float(np.sum(sv ** 2)), 1e-300)
-            q = min(p, max(4, int(np.searchsorted(cum, 0.99) + 1)))
-        elif isinstance(q, str):
-            raise ConfigError(f"output_rank must be an integer, 'auto' or None; got {q!r}.")
-        if q is not None and int(q) < p:
-            q = int(q)
-            if not 1 <= q <= p:
-                raise ConfigError(f'output_rank must be between 1 and p = {p}; got {q}.')
-            P = np.linalg.svd(Ys, full_matrices=False)[0][:, :q]     # (p, q), orthonormal
-            Ys = P.T @ Ys
-        elif q is not None and not 1 <= int(q) <= p:
-            raise ConfigError(f'output_rank must be between 1 and p = {p}; got {q}.')
+        auto_d = self.decimation == 'auto'
+        selecting = self.selection == 'holdout' or auto_d
+        if auto_d:
+            grid = [d for d in era_select.DECIMATION_GRID
+                    if d == 1 or ep.n_samples // d >= 200]
+        else:
+            grid = [int(self.decimation)]
+        ridge = self.okid_ridge
+        sel = None
+        tried: list[dict[str, Any]] = []
+        prepared: dict[int, tuple[Array, Array, Array, Array, Array | None]] = {}
+        if selecting:
+            rows: list[dict[str, Any]] = []
+            per_d: dict[int, dict[str, Any]] = {}
+            for d in grid:
+                try:
+                    prepared[d] = self._prepare(ep, y_ref, d)
+                    Us, Ys = prepared[d][:2]
+                    nm_d = None if self.n_markov is None else int(self.n_markov)
+                    res = era_select.select_okid(
+                        Us, Ys, holdout=float(self.holdout),
+                        observer_orders=None if self.observer_order is None else (
+                            int(self.observer_order),),
+                        rhos=era_select.RIDGE_GRID if ridge is None else (float(ridge),),
+                        n_markov=nm_d, r_values=None if self.r is None else (int(self.r),),
+                        refit=bool(self.refit), tie_tol=float(self.tie_tol))
+                except (ConfigError, DimensionError) as err:
+                    if not auto_d:
+                        raise
+                    tried.append({'decimation': d, 'tail_error': None, 'error': str(err)})
+                    continue
+                per_d[d] = res
+                rows.extend({**row, 'decimation': d} for row in res['rows'])
+                tried.append({'decimation': d, 'tail_error': res['tail_error']})
+            if not per_d:
+                raise DimensionError(
+                    f'ERA/OKID found no usable setting for episode {ep.name!r} '
+                    f'({ep.n_samples} samples): {tried[0]["error"] if tried else ""}')
+            best = era_select.choose(rows, float(self.tie_tol))
+            d = int(best['decimation'])
+            sel = dict(per_d[d])
+            sel.update({'observer_order': int(best['observer_order']),
+                        'ridge': float(best['ridge']), 'r': int(best['r']),
+                        'tail_error': float(best['tail_error'])})
+            sel['table'] = [{**row, 'decimation': dd} for dd, res in per_d.items()
+                            for row in res['table']]
+            del sel['rows']
+            lo, ridge = sel['observer_order'], sel['ridge']
+            intercept = bool(best.get('intercept', False))
+            sel['intercept'] = intercept
+            r_sel: int | None = sel['r'] if self.r is None else int(self.r)
+        else:
+            d = grid[0]
+            r_sel = self.r
+            intercept = False
+        Us, Ys, s_u, s_y, P = prepared[d] if d in prepared else self._prepare(ep, y_ref, d)
         p_id = Ys.shape[0]
         K = Us.shape[1]
         nm = era_select.default_n_markov(K) if self.n_markov is None else int(self.n_markov)
-        r_sel = self.r
-        ridge = self.okid_ridge
-        sel = None
-        if self.selection == 'holdout':
-            sel = era_select.select_okid(
-                Us, Ys, holdout=float(self.holdout),
-                observer_orders=None if self.observer_order is None else (
-                    int(self.observer_order),),
-                rhos=era_select.RIDGE_GRID if ridge is None else (float(ridge),),
-                n_markov=None if self.n_markov is None else nm,
-                r_values=None if self.r is None else (int(self.r),))
-            lo, ridge = sel['observer_order'], sel['ridge']
-            r_sel = sel['r'] if self.r is None else self.r
-        elif self.observer_order is None:
-            # Keep at least 2 equations per unknown: near-square regressions fit the noise
-            # and give unstable Markov sequences.
-            lo = min(int(self.max_observer_order), (K // 2 - m) // (m + p_id))
-            if lo < 1:
-                raise DimensionError(
-                    f'episode {ep.name!r} has {K} samples after decimation {d}: too few for '
-                    f'OKID with m={m}, p={p_id} (needs at least {2 * (2 * m + p_id)}). Use less '
-                    'decimation or a longer episode.')
-        else:
-            lo = int(self.observer_order)
+        if sel is None:
+            if self.observer_order is None:
+                # Keep at least 2 equations per unknown: near-square regressions fit the
+                # noise and give unstable Markov sequences.
+                lo = min(int(self.max_observer_order), (K // 2 - m) // (m + p_id))
+                if lo < 1:
+                    raise DimensionError(
+                        f'episode {ep.name!r} has {K} samples after decimation {d}: too few '
+                        f'for OKID with m={m}, p={p_id} (needs at least {2 * (2 * m + p_id)}). '
+                        'Use less decimation or a longer episode.')
+            else:
+                lo = int(self.observer_order)
         markov, info = okid_markov(Us, Ys, observer_order=lo, n_markov=nm,
-                                   rcond=self.okid_rcond, ridge=ridge)
+                                   rcond=self.okid_rcond, ridge=ridge, intercept=intercept)
+        factors: dict[str, Array] = {}
         A, Bs, Cs, Ds, hsv = era(markov, r_sel, n_block_rows=self.n_block_rows,
-                                 n_block_cols=self.n_block_cols, tol=self.hsv_tol)
-        if sel is not None and np.max(np.abs(np.linalg.eigvals(A))) >= 1:
+                                 n_block_cols=self.n_block_cols, tol=self.hsv_tol,
+                                 _factors=factors)
+        refitted = stabilized = False
+        if self.refit:
+            A, Cs, Ds, refitted, stabilized = era_select.stabilize_refit(A, Bs, Cs, Ds, Us, Ys)
+        if sel is not None and not refitted and np.max(np.abs(np.linalg.eigvals(A))) >= 1:
             # The refit on the whole episode can move a lightly damped pole out of the unit
             # circle: keep the model validated on the held-out tail (fitted on the head).
             cut = int(sel['cut'])
             markov, info = okid_markov(Us[:, :cut], Ys[:, :cut], observer_order=lo,
-                                       n_markov=nm, ridge=ridge)
+                                       n_markov=nm, ridge=ridge, intercept=intercept)
             A, Bs, Cs, Ds, hsv = era(markov, r_sel, n_block_rows=self.n_block_rows,
-                                     n_block_cols=self.n_block_cols, tol=self.hsv_tol)
+                                     n_block_cols=self.n_block_cols, tol=self.hsv_tol,
+                                     _factors=factors)
             sel['refit'] = 'head (the whole-episode refit was unstable)'
         elif sel is not None:
             sel['refit'] = 'whole episode'
+        self._train = (Us, Ys)
+        self._factors = factors
         if P is not None:
             Cs, Ds = P @ Cs, P @ Ds
         self.output_basis_ = P
@@ -494,6 +568,7 @@ class ERAOKID:
         self.observer_order_ = lo
         self.okid_ridge_ = ridge
         self.selection_ = sel
+        self.decimation_ = d
         self.okid_residual_ = info['residual']
         self.y_ref_ = y_ref
         self.input_scale_ = s_u
@@ -505,10 +580,12 @@ class ERAOKID:
             'learner': 'ERAOKID', 'r': r, 'episode': ep.name,
             'decimation': d, 'dt_data': ep.dt, 'dt_fit': d * ep.dt, 'dt_model': dt,
             'resampled_to_data_rate': self.resampled_, 'n_markov': nm,
-            'okid_ridge': ridge, 'selection': self.selection,
+            'okid_ridge': ridge, 'okid_intercept': intercept, 'selection': self.selection,
             'selection_table': None if sel is None else _finite_rows(sel['table']),
             'selection_tail_error': None if sel is None else sel['tail_error'],
             'selection_refit': None if sel is None else sel.get('refit'),
+            'selection_tie_tol': None if sel is None else float(self.tie_tol),
+            'output_refit': bool(refitted), 'stabilized': bool(stabilized),
             'observer_order': lo, 'okid_residual': info['residual'],
             'okid_rank': info['rank'], 'okid_unknowns': info['n_unknowns'],
             'n_block_rows': self.n_block_rows, 'n_block_cols': self.n_block_cols,
@@ -520,49 +597,53 @@ class ERAOKID:
             'stability_margin': float(1.0 - np.max(np.abs(ev))),
             'fit_time_s': self.fit_time_,
         })
+        if auto_d:
+            meta['decimation_search'] = tried
         self.model_ = DiscreteModel(A, B, C, D, dt=dt, method='era', y_ref=y_ref,
                                     input_names=input_names, output_names=output_names,
                                     input_units=input_units, output_units=output_units,
                                     metadata=meta)
         return self
 
-    def _fit_auto_decimation(self, episode: Episode | Sequence[Episode],
-                             y_ref: ArrayLike | None, **kw: Any) -> ERAOKID:
-        """Fit at every decimation of the grid; keep the best held-out tail error."""
-        import copy
-        ep = _one_episode(episode)
-        best: ERAOKID | None = None
-        tried: list[dict[str, Any]] = []
-        for d in era_select.DECIMATION_GRID:
-            if ep.n_samples // d < 200 and d > 1:
-                continue
-            trial = copy.copy(self)
-            trial.decimation = d
-            if trial.selection == 'none':
-                trial.selection = 'holdout'
-            try:
-                trial.fit(episode, y_ref, **kw)
-            except (ConfigError, DimensionError) as err:
-                tried.append({'decimation': d, 'tail_error': None, 'error': str(err)})
-                continue
-            err_d = float((trial.selection_ or {}).get('tail_error', np.inf))
-            tried.append({'decimation': d, 'tail_error': err_d})
-            if best is None or err_d < float((best.selection_ or {}).get('tail_error', np.inf)):
-                best = trial
-        if best is None:
-            raise DimensionError(f'ERA/OKID found no usable setting for episode {ep.name!r} '
-                                 f'({ep.n_samples} samples): {tried[0]["error"] if tried else ""}')
-        self.__dict__.update({k: v for k, v in best.__dict__.items() if k.endswith('_')})
-        self.decimation_ = best.decimation
-        self.model_.metadata['decimation_search'] = tried
-        return self
+    def _prepare(self, ep: Episode, y_ref: Array, d: int
+                 ) -> tuple[Array, Array, Array, Array, Array | None]:
+        """Decimated, scaled (and output-compressed) data: ``Us, Ys, s_u, s_y, P``."""
+        m = ep.U.shape[0]
+        Ud, Yd = decimate(ep.U, ep.Y - y_ref[:, None], d)
+        if Ud.shape[1] < 2 * (2 * m + 1):
+            raise DimensionError(
+                f'episode {ep.name!r} has {Ud.shape[1]} samples after decimation {d}: too few '
+                f'for OKID with m={m} inputs. Use less decimation or a longer episode.')
+        s_u = channel_scale(Ud)
+        s_y = channel_scale(Yd)
+        s_y = np.maximum(s_y, float(self.output_scale_floor) * float(np.max(s_y)))
+        Us, Ys = Ud / s_u[:, None], Yd / s_y[:, None]
+        Ys, P = era_select.compress_outputs(Ys, self.output_rank)
+        return Us, Ys, s_u, s_y, P
+
+    def markov_parameters(self) -> Array:
+        """OKID Markov parameters in data units, shape (n_markov + 1, p, m).
+
+        ``markov[0] = D``, ``markov[k]`` the response of the outputs ``k`` model steps after a
+        unit input pulse (lifted from the output components, scales undone).
+        """
+        if not hasattr(self, 'markov_'):
+            raise NotFittedError('this ERAOKID is not fitted yet; call fit(episode) first.')
+        mk = self.markov_ if self.output_basis_ is None else self.output_basis_ @ self.markov_
+        return np.asarray(self.output_scale_[:, None] * mk / self.input_scale_[None, :])
 
     def model_for(self, r: int) -> DiscreteModel:
         """The ROM of order ``r`` from the stored Markov parameters (no new OKID solve)."""
         if not hasattr(self, 'markov_'):
             raise NotFittedError('this ERAOKID is not fitted yet; call fit(episode) first.')
-        A, Bs, Cs, Ds, _ = era(self.markov_, int(r), n_block_rows=self.n_block_rows,
-                               n_block_cols=self.n_block_cols, tol=self.hsv_tol)
+        f = getattr(self, '_factors', None)
+        if f and 1 <= int(r) <= f['M'].shape[0]:
+            A, Bs, Cs, Ds = _era_from_factors(f, int(r))
+        else:
+            A, Bs, Cs, Ds, _ = era(self.markov_, int(r), n_block_rows=self.n_block_rows,
+                                   n_block_cols=self.n_block_cols, tol=self.hsv_tol)
+        if self.refit:
+            A, Cs, Ds = era_select.stabilize_refit(A, Bs, Cs, Ds, *self._train)[:3]
         if self.output_basis_ is not None:
             Cs, Ds = self.output_basis_ @ Cs, self.output_basis_ @ Ds
         s_u, s_y = self.input_scale_, self.output_scale_

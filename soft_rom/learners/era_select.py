@@ -13,28 +13,40 @@ outputs, with the same 1.6e-6 residual). Those directions are not determined by 
 .. math:: \\Theta = \\arg\\min \\|Y - \\Theta\\Phi\\|_F^2 + \\lambda \\|\\Theta\\|_F^2, \\qquad
     \\lambda = \\rho\\, \\sigma_1(\\Phi)^2,
 
-solved from one SVD of ``Φ`` (``Θ = Y V diag(s/(s²+λ)) Uᵀ``). Its conditioning is
+solved from one factorization of ``Φ`` (``Θ = Y V diag(s/(s²+λ)) Uᵀ``, from the
+eigendecomposition of ``ΦΦᵀ``). Its conditioning is
 ``(σ_1² + λ)/λ ≤ 1/ρ + 1``, so results are reproducible (thread counts, rounding, tiny
 perturbations) when ``ρ`` is not tiny; the directions it damps are those with
-``σ_i < √ρ σ_1``, i.e. where an output error of relative size ``√ρ`` (a noise level) would
-already dominate the coefficient. ``ρ`` is therefore tied to the noise level of the data: it
-is never below ``RIDGE_FLOOR`` (``1e-5 ≈ (3e-3)²``: a relative output precision of 0.3 %,
-about as good as measured soft-robot poses get; on the eel it keeps the Markov parameters
-within 1e-8 under a 1e-9 output perturbation, where ``1e-6`` gives 1.5e-8) and is chosen
-from ``RIDGE_GRID`` by the criterion below.
+``σ_i < √ρ σ_1``, i.e. where an output error of relative size ``√ρ`` would already dominate
+the coefficient. ``ρ`` is never below ``RIDGE_FLOOR`` and is chosen from ``RIDGE_GRID``.
+The regression is tried without and with an unpenalized intercept (centered data): with it
+the coefficients do not depend on a constant output offset (the first sample of noisy data
+used as ``y_ref`` carries the noise into every deviation); without it the mean levels inform
+the static gains (exact data starting at rest). Output channels are scaled by their RMS but
+never by less than ``OUTPUT_SCALE_FLOOR`` of the largest: a nearly static channel (next to a
+clamp) would otherwise be blown up to unit size with its perturbations.
 
-**The criterion.** Every candidate ``(l, ρ)`` is fitted on the head of the training episode
-(``1 - holdout``, default 80 %); its ERA model (a randomized truncated SVD of the Hankel
-matrix, for speed) is simulated from rest over the whole episode for every even order up to
-``r_max``, unstable realizations rejected, and scored by the relative output error on the
-held-out tail: the quantity the ROM is used for (prediction on new times). The best
-``(l, ρ, r)`` is refitted on the whole episode with the exact ERA. The Markov horizon is
-``n_markov = min(K // 3, MAX_MARKOV)``: long enough for the slow modes of a soft body at
-1 kHz, with two thirds of the samples left as OKID equations.
+**The criterion.** Every candidate ``(d, l, ρ, intercept)`` is fitted on the head of the
+training episode (``1 - holdout``, default 80 %); its ERA model (a randomized truncated SVD of
+the Hankel matrix) is, for every order of ``R_GRID``, stabilized (eigenvalues outside the unit
+circle reflected inside, :func:`stabilize`), simulated from rest over the whole episode, its
+``C, D`` refitted by least squares on the head (:func:`fit_output_map`), and scored by the
+relative output error on the held-out tail: the quantity the ROM is used for (prediction at
+new times). The refit makes the realization an output-error fit for the ERA poles, which is
+what corrects the bias the ridge puts on the Markov parameters.
+
+**Stable choice.** Errors within ``TIE_TOL`` (3 %) of the best are tied and the tie is
+broken by a fixed preference (:func:`choose`: largest ``ρ``, intercept, smallest ``r``,
+smallest ``l``, smallest ``d``), so a perturbation of the data that moves the errors by far
+less than 3 % cannot change the settings (before: nearly equal errors of neighbouring ``r``
+flipped the choice under a 1e-9 perturbation). The chosen ``(d, l, ρ, intercept, r)`` is
+refitted on the whole episode with the exact ERA, stabilized and its ``C, D`` refitted. The
+Markov horizon is ``n_markov = min(K // 3, MAX_MARKOV)``.
 """
 
 from __future__ import annotations
 
+import contextlib
 from typing import Any
 
 import numpy as np
@@ -42,19 +54,31 @@ from numpy.typing import NDArray
 
 from soft_rom.errors import ConfigError
 
-__all__ = ['MAX_MARKOV', 'OBSERVER_GRID', 'RIDGE_FLOOR', 'RIDGE_GRID', 'default_n_markov',
-           'fir_response', 'okid_regression', 'ridge_markov', 'select_okid']
+__all__ = ['blas_threads', 'choose', 'compress_outputs', 'default_n_markov', 'fir_response',
+           'first_order_responses', 'fit_output_map', 'MAX_MARKOV', 'modal_inputs',
+           'OBSERVER_GRID', 'okid_regression', 'OUTPUT_SCALE_FLOOR', 'R_GRID', 'R_MAX',
+           'real_modal_states', 'RIDGE_FLOOR', 'RIDGE_GRID', 'ridge_markov', 'score_orders',
+           'select_okid', 'simulate_states', 'stabilize', 'stabilize_refit', 'TIE_TOL']
 
 Array = NDArray[np.float64]
 
 #: Smallest relative ridge weight (a relative output precision of about 3e-3).
-RIDGE_FLOOR = 1e-5
+RIDGE_FLOOR = 1e-6
 #: Candidate relative ridge weights ``ρ``.
-RIDGE_GRID = (1e-5, 1e-4, 1e-3)
+RIDGE_GRID = (1e-6, 1e-5, 1e-4, 1e-3)
+#: Output channels are scaled by their RMS, but never by less than this fraction of the
+#: largest channel RMS (nearly static channels would otherwise amplify their perturbations).
+OUTPUT_SCALE_FLOOR = 0.1
+#: Orders tried by the selection (up to ``r_max``).
+R_GRID = (2, 4, 6, 8, 10, 12, 16, 20, 24, 28, 32, 40, 48, 56)
 #: Candidate observer orders (those that fit the data are tried).
 OBSERVER_GRID = (8, 16, 32, 64)
 #: Cap of the automatic Markov horizon.
 MAX_MARKOV = 500
+#: Largest order tried by the selection.
+R_MAX = 40
+#: Relative band of held-out errors treated as tied (:func:`choose`).
+TIE_TOL = 0.03
 
 
 def default_n_markov(K: int) -> int:
@@ -78,40 +102,59 @@ def okid_regression(U: Array, Y: Array, lo: int) -> tuple[Array, Array]:
 
 
 def markov_from_observer(theta: Array, m: int, p: int, lo: int, nm: int) -> Array:
-    """System Markov parameters ``(nm + 1, p, m)`` from the observer coefficients."""
-    D = theta[:, :m]
-    Y1 = [theta[:, m + (i - 1) * (m + p): m + (i - 1) * (m + p) + m] for i in range(1, lo + 1)]
-    Y2 = [theta[:, m + (i - 1) * (m + p) + m: m + i * (m + p)] for i in range(1, lo + 1)]
+    """System Markov parameters ``(nm + 1, p, m)`` from the observer coefficients.
+
+    ``Y_k = Ȳ⁽¹⁾_k + [Ȳ⁽²⁾_1 … Ȳ⁽²⁾_j] [Y_{k-1}; …; Y_{k-j}]``, ``j = min(k, l)``: one
+    matrix product per ``k``.
+    """
+    blocks = theta[:, m:].reshape(p, lo, m + p)
+    Y1 = blocks[:, :, :m].transpose(1, 0, 2)                   # (lo, p, m)
+    Y2 = np.ascontiguousarray(blocks[:, :, m:]).reshape(p, lo * p)   # [Ȳ2_1 … Ȳ2_lo]
     markov = np.zeros((nm + 1, p, m))
-    markov[0] = D
+    markov[0] = theta[:, :m]
     for k in range(1, nm + 1):
-        acc = Y1[k - 1].copy() if k <= lo else np.zeros((p, m))
-        for i in range(1, min(k, lo) + 1):
-            acc += Y2[i - 1] @ markov[k - i]
+        j = min(k, lo)
+        past = markov[k - j:k][::-1].reshape(j * p, m)
+        acc = Y2[:, :j * p] @ past
+        if k <= lo:
+            acc += Y1[k - 1]
         markov[k] = acc
     return markov
 
 
-def ridge_markov(U: Array, Y: Array, lo: int, nm: int, rhos: tuple[float, ...]
-                 ) -> list[tuple[Array, dict[str, Any]]]:
-    """Ridge OKID for several ``ρ`` from one SVD; ``[(markov, info), ...]``."""
+def ridge_markov(U: Array, Y: Array, lo: int, nm: int, rhos: tuple[float, ...],
+                 intercept: bool = False) -> list[tuple[Array, dict[str, Any]]]:
+    """Ridge OKID for several ``ρ`` from one factorization; ``[(markov, info), ...]``.
+
+    ``intercept``: with an unpenalized constant term (centered regression), so that the
+    coefficients do not depend on a constant offset of the outputs (an error in ``y_ref``,
+    the first sample of noisy data); without it the mean levels of the data inform the static
+    gains (exact data starting at rest).
+    """
     m, p = U.shape[0], Y.shape[0]
     Phi, T = okid_regression(U, Y, lo)
-    Uo, s, Vt = np.linalg.svd(Phi, full_matrices=False)
-    TV = T @ Vt.T                                   # (p, n_unknowns)
+    if intercept:
+        Phi = Phi - Phi.mean(axis=1, keepdims=True)
+        T = T - T.mean(axis=1, keepdims=True)
+    # Ridge from the eigendecomposition of the Gram matrix ΦΦᵀ = W diag(s²) Wᵀ (the SVD's
+    # left factors): its rounding, ε σ_1², is far below every λ = ρ σ_1² used (ρ ≥ 1e-6).
+    e, W = np.linalg.eigh(Phi @ Phi.T)
+    e, W = np.maximum(e[::-1], 0.0), W[:, ::-1]
+    TW = (T @ Phi.T) @ W                              # (p, n_unknowns) = T V diag(s)
     den = float(np.linalg.norm(T))
     out = []
     for rho in rhos:
         if not (np.isfinite(rho) and rho > 0):
             raise ConfigError(f'OKID ridge weight must be > 0; got {rho!r}.')
-        lam = float(rho) * float(s[0]) ** 2
-        theta = (TV * (s / (s ** 2 + lam))[None, :]) @ Uo.T
+        lam = float(rho) * float(e[0])
+        theta = (TW / (e + lam)[None, :]) @ W.T
         resid = float(np.linalg.norm(T - theta @ Phi))
         markov = markov_from_observer(theta, m, p, lo, nm)
         out.append((markov, {'residual': resid / den if den > 0 else 0.0,
-                             'ridge': float(rho), 'n_unknowns': int(Phi.shape[0]),
-                             'effective_rank': int(np.sum(s ** 2 > lam)),
-                             'condition': float((s[0] ** 2 + lam) / (s[-1] ** 2 + lam))}))
+                             'ridge': float(rho), 'intercept': bool(intercept),
+                             'n_unknowns': int(Phi.shape[0]),
+                             'effective_rank': int(np.sum(e > lam)),
+                             'condition': float((e[0] + lam) / (e[-1] + lam))}))
     return out
 
 
@@ -159,10 +202,75 @@ def era_truncated(markov: Array, rmax: int, *, seed: int = 0
     return A, B, C, markov[0].copy(), sv
 
 
+def stabilize(A: Array) -> Array | None:
+    """``A`` with every eigenvalue outside the unit circle reflected inside (``λ → λ/|λ|²``).
+
+    A stable ``A`` is returned as it is. Otherwise ``A' = Re(V diag(λ') V⁻¹)`` (conjugate
+    pairs stay conjugate, so ``A'`` is real); ``None`` when the eigenvectors are too ill
+    conditioned (``cond(V) > 1e8``) for that to be accurate.
+    """
+    ev, V = np.linalg.eig(A)
+    a = np.abs(ev)
+    if np.all(a < 1.0):
+        return A
+    if np.linalg.cond(V) > 1e8:
+        return None
+    ev2 = np.where(a >= 1.0, ev / np.maximum(a, 1e-300) * np.minimum(1.0 / a, 1.0 - 1e-9), ev)
+    As = np.real(V @ np.diag(ev2) @ np.linalg.inv(V))
+    if not np.max(np.abs(np.linalg.eigvals(As))) < 1.0:
+        return None
+    return np.asarray(As, dtype=np.float64)
+
+
+def simulate_states(A: Array, B: Array, U: Array) -> Array:
+    """States ``x_0 .. x_{K-1}`` from rest, shape (r, K)."""
+    K = U.shape[1]
+    X = np.empty((A.shape[0], K))
+    BU = B @ U
+    x = np.zeros(A.shape[0])
+    for k in range(K):
+        X[:, k] = x
+        x = A @ x + BU[:, k]
+    return X
+
+
+def fit_output_map(X: Array, U: Array, Y: Array) -> tuple[Array, Array]:
+    """Least-squares ``C, D`` of ``Y ≈ C X + D U`` (ridge ``1e-10 σ_1²``, well posed)."""
+    Z = np.concatenate([X, U], axis=0)
+    G = Z @ Z.T
+    lam = 1e-10 * max(float(np.max(np.diag(G))), 1e-300) * Z.shape[0]
+    G[np.diag_indices_from(G)] += lam
+    CD = np.linalg.solve(G, Z @ Y.T).T
+    r = X.shape[0]
+    return CD[:, :r], CD[:, r:]
+
+
+def choose(rows: list[dict[str, Any]], tie_tol: float = TIE_TOL) -> dict[str, Any]:
+    """The selected candidate: the preferred one among those tied with the best.
+
+    Candidates whose held-out error is within ``tie_tol`` (relative) of the best are tied;
+    among them the preference is fixed: the largest ridge weight, then the regression with an
+    intercept, then the smallest order ``r``, then the smallest observer order, then the
+    smallest decimation. A perturbation of
+    the data that moves the errors by much less than ``tie_tol`` cannot change the choice
+    unless an error sits within that perturbation of the band's edge.
+    """
+    ok = [row for row in rows if np.isfinite(row['tail_error'])]
+    if not ok:
+        raise ConfigError('no OKID setting gave a stable ERA realization on these data; give '
+                          'observer_order, okid_ridge and r by hand.')
+    best = min(row['tail_error'] for row in ok)
+    tied = [row for row in ok if row['tail_error'] <= best * (1.0 + tie_tol)]
+    return min(tied, key=lambda row: (-row['ridge'], not row.get('intercept', False), row['r'],
+                                      row['observer_order'], row.get('decimation', 1)))
+
+
 def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
                 observer_orders: tuple[int, ...] | None = None,
                 rhos: tuple[float, ...] = RIDGE_GRID, n_markov: int | None = None,
-                r_max: int = 40, r_values: tuple[int, ...] | None = None) -> dict[str, Any]:
+                r_max: int = R_MAX, r_values: tuple[int, ...] | None = None,
+                refit: bool = True, tie_tol: float = TIE_TOL,
+                intercepts: tuple[bool, ...] = (False, True)) -> dict[str, Any]:
     """Choose ``(l, ρ, r)`` by the held-out tail error of the ERA/OKID model.
 
     Parameters
@@ -185,12 +293,21 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
         Largest order tried (when ``r_values`` is not given: even orders 2 ... ``r_max``).
     r_values : tuple of int, optional
         Orders tried.
+    refit : bool
+        Score the stabilized realization with ``C, D`` refitted on the head
+        (:func:`stabilize`, :func:`fit_output_map`); ``False``: the ERA realization as it
+        is, unstable ones rejected.
+    tie_tol : float
+        Relative band of tied errors (:func:`choose`).
+    intercepts : tuple of bool
+        OKID regressions tried without / with an intercept (:func:`ridge_markov`).
 
     Returns
     -------
     dict
-        ``observer_order``, ``ridge``, ``r``, ``tail_error``, ``table`` (best ``r`` of every
-        candidate), ``cut`` (samples in the head), ``n_markov``.
+        ``observer_order``, ``ridge``, ``r``, ``tail_error`` (of the chosen candidate),
+        ``rows`` (every ``(l, ρ, r)`` tried), ``table`` (best ``r`` of every ``(l, ρ)``),
+        ``cut`` (samples in the head), ``n_markov``.
     """
     if not 0.0 < holdout < 0.9:
         raise ConfigError(f'holdout must be in (0, 0.9); got {holdout!r}.')
@@ -207,61 +324,172 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
         cands = [l_max]
     nm = default_n_markov(cut) if n_markov is None else int(n_markov)
     rhos = tuple(max(float(x), RIDGE_FLOOR) for x in rhos)
+    rows: list[dict[str, Any]] = []
     table: list[dict[str, Any]] = []
-    for lo in cands:
-        for markov, info in ridge_markov(Us[:, :cut], Ys[:, :cut], lo, nm, rhos):
-            row: dict[str, Any] = {'observer_order': lo, 'ridge': info['ridge'], 'r': None,
-                                   'tail_error': float('inf'),
-                                   'effective_rank': info['effective_rank']}
+    for lo, icpt in ((lo, icpt) for lo in cands for icpt in intercepts):
+        for markov, info in ridge_markov(Us[:, :cut], Ys[:, :cut], lo, nm, rhos, icpt):
+            base = {'observer_order': lo, 'ridge': info['ridge'], 'intercept': icpt}
             try:
                 rr = max(r_values) if r_values else r_max
                 A, B, C, D, _ = era_truncated(markov, rr)
-                cand_r = [r for r in (r_values or tuple(range(2, rr + 1, 2)))
-                          if r <= A.shape[0]]
-                r, rows = select_order(A, B, C, D, Us, Ys, cut, cand_r)
-                row['r'] = r
-                row['tail_error'] = min(x['tail_error'] for x in rows)
+                cand_r = [r for r in (r_values or R_GRID) if r <= min(rr, A.shape[0])]
+                found = score_orders(A, B, C, D, Us, Ys, cut, cand_r, refit=refit)
             except (ConfigError, np.linalg.LinAlgError):
-                pass
-            table.append(row)
-    ok = [row for row in table if np.isfinite(row['tail_error'])]
-    if not ok:
-        raise ConfigError('no OKID setting gave a stable ERA realization on these data; give '
-                          'observer_order, okid_ridge and r by hand.')
-    best = min(ok, key=lambda row: row['tail_error'])
+                found = []
+            found = [{**base, **row} for row in found]
+            rows.extend(found)
+            fin = [row for row in found if np.isfinite(row['tail_error'])]
+            table.append(min(fin, key=lambda row: row['tail_error']) if fin else
+                         {**base, 'r': None, 'tail_error': float('inf')})
+    best = choose(rows, tie_tol)
     return {'observer_order': int(best['observer_order']), 'ridge': float(best['ridge']),
-            'r': int(best['r']), 'tail_error': float(best['tail_error']), 'table': table,
-            'cut': cut, 'n_markov': nm}
+            'intercept': bool(best['intercept']), 'r': int(best['r']),
+            'tail_error': float(best['tail_error']), 'rows': rows,
+            'table': table, 'cut': cut, 'n_markov': nm}
 
 
-def select_order(A_full: Array, B_full: Array, C_full: Array, D: Array, Us: Array, Ys: Array,
-                 cut: int, r_candidates: list[int]) -> tuple[int, list[dict[str, float]]]:
-    """The ``r`` whose ERA model simulates the tail best (unstable ones rejected).
+def score_orders(A_full: Array, B_full: Array, C_full: Array, D: Array, Us: Array,
+                 Ys: Array, cut: int, r_candidates: list[int], *, refit: bool = True
+                 ) -> list[dict[str, Any]]:
+    """Held-out tail error of every order ``r`` (simulated from rest over the episode).
 
     ``A_full, B_full, C_full`` are the balanced realization of the largest candidate order;
     the leading ``r`` states of a balanced ERA realization are the order-``r`` realization.
+    With ``refit`` the realization is stabilized and ``C, D`` are refitted on the head
+    (samples before ``cut``); otherwise unstable realizations score ``inf``.
     """
     rows = []
+    if refit:
+        modal = [modal_inputs(A_full[:r, :r], B_full[:r], Us) for r in r_candidates]
+        live = [x for x in modal if x[0] is not None]
+        if live:
+            Z = first_order_responses(np.concatenate([x[0] for x in live]),
+                                      np.concatenate([x[1] for x in live]))
+        at = 0
+        for r, (ev, _G, rho) in zip(r_candidates, modal):
+            if ev is None:
+                rows.append({'r': r, 'tail_error': float('inf'), 'spectral_radius': rho})
+                continue
+            X = real_modal_states(ev, Z[at:at + r])
+            at += r
+            C, Dr = fit_output_map(X[:, :cut], Us[:, :cut], Ys[:, :cut])
+            err = _rel((C @ X + Dr @ Us)[:, cut:], Ys[:, cut:])
+            rows.append({'r': r, 'tail_error': err if np.isfinite(err) else float('inf'),
+                         'spectral_radius': rho})
+        return rows
     for r in r_candidates:
         A, B, C = A_full[:r, :r], B_full[:r], C_full[:, :r]
         rho = float(np.max(np.abs(np.linalg.eigvals(A))))
         if not rho < 1.0:
             rows.append({'r': r, 'tail_error': float('inf'), 'spectral_radius': rho})
             continue
-        x = np.zeros(r)
-        K = Us.shape[1]
-        Yh = np.empty((C.shape[0], K))
-        BU = B @ Us
-        for k in range(K):
-            Yh[:, k] = C @ x
-            x = A @ x + BU[:, k]
-        Yh += D @ Us
-        rows.append({'r': r, 'tail_error': _rel(Yh[:, cut:], Ys[:, cut:]),
+        X = simulate_states(A, B, Us)
+        err = _rel((C @ X + D @ Us)[:, cut:], Ys[:, cut:])
+        rows.append({'r': r, 'tail_error': err if np.isfinite(err) else float('inf'),
                      'spectral_radius': rho})
-    ok = [row for row in rows if np.isfinite(row['tail_error'])]
-    if not ok:
-        raise ConfigError('every ERA order gave an unstable realization on these data.')
-    return int(min(ok, key=lambda row: row['tail_error'])['r']), rows
+    return rows
+
+
+def modal_inputs(A: Array, B: Array, U: Array
+                 ) -> tuple[NDArray[np.complex128] | None, NDArray[np.complex128] | None, float]:
+    """Eigenvalues of the stabilized ``A`` (:func:`stabilize`) and modal inputs ``V⁻¹ B U``.
+
+    ``(None, None, ρ)`` when ``A`` is unstable and its eigenvectors too ill conditioned.
+    """
+    ev, V = np.linalg.eig(A)
+    a = np.abs(ev)
+    rho = float(np.max(a))
+    if rho >= 1.0:
+        if np.linalg.cond(V) > 1e8:
+            return None, None, rho
+        ev = np.where(a >= 1.0, ev / a * np.minimum(1.0 / a, 1.0 - 1e-9), ev)
+    try:
+        G = np.linalg.solve(V, B @ U)
+    except np.linalg.LinAlgError:
+        return None, None, rho
+    return ev, G, rho
+
+
+def first_order_responses(ev: NDArray[np.complex128], G: NDArray[np.complex128]
+                          ) -> NDArray[np.complex128]:
+    """``z_0 = 0``, ``z_{k+1} = λ ⊙ z_k + g_k`` for many modes at once, shape (n, K)."""
+    n, K = G.shape
+    Z = np.empty((n, K), dtype=np.complex128)
+    z = np.zeros(n, dtype=np.complex128)
+    for k in range(K):
+        Z[:, k] = z
+        z = ev * z + G[:, k]
+    return Z
+
+
+def real_modal_states(ev: NDArray[np.complex128], Z: NDArray[np.complex128]) -> Array:
+    """Real regressors spanning the states of the modes ``ev`` (responses ``Z``).
+
+    A conjugate pair gives the real and imaginary parts of one of its modes (LAPACK lists a
+    pair consecutively), a real mode its response.
+    """
+    r = ev.size
+    X = np.empty((r, Z.shape[1]))
+    j = 0
+    while j < r:
+        if ev[j].imag != 0.0 and j + 1 < r:
+            X[j], X[j + 1] = Z[j].real, Z[j].imag
+            j += 2
+        else:
+            X[j] = Z[j].real
+            j += 1
+    return X
+
+
+def blas_threads(n: int | None) -> Any:
+    """Limit BLAS threads to ``n`` while fitting (threadpoolctl, when installed)."""
+    if n is None:
+        return contextlib.nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # optional: without it the process's BLAS settings apply
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=int(n), user_api='blas')
+
+
+def stabilize_refit(A: Array, B: Array, C: Array, D: Array, Us: Array, Ys: Array
+                     ) -> tuple[Array, Array, Array, bool, bool]:
+    """Stabilized ``A`` and least-squares ``C, D`` on the data (``refit=True``).
+
+    Returns ``A, C, D, refitted, stabilized`` (the inputs unchanged when the eigenvectors are
+    too ill conditioned to move the unstable eigenvalues).
+    """
+    As = stabilize(A)
+    if As is None:
+        return A, C, D, False, False
+    X = simulate_states(As, B, Us)
+    C2, D2 = fit_output_map(X, Us, Ys)
+    return As, C2, D2, True, As is not A
+
+
+def compress_outputs(Ys: Array, rank: int | str | None) -> tuple[Array, Array | None]:
+    """Leading principal components ``P`` (p, q) of the scaled outputs: ``(Pᵀ Y_s, P)``.
+
+    ``rank``: ``q``; ``'auto'``: the components holding 99 % of the energy, at least
+    ``min(p, 4)``; ``None`` (or ``q = p``): the outputs as they are (``P = None``).
+    """
+    p = Ys.shape[0]
+    q = rank
+    if q == 'auto':
+        sv = np.linalg.svd(Ys, compute_uv=False)
+        cum = np.cumsum(sv ** 2) / max(float(np.sum(sv ** 2)), 1e-300)
+        q = min(p, max(4, int(np.searchsorted(cum, 0.99) + 1)))
+    elif isinstance(q, str):
+        raise ConfigError(f"output_rank must be an integer, 'auto' or None; got {q!r}.")
+    if q is None:
+        return Ys, None
+    q = int(q)
+    if not 1 <= q <= p:
+        raise ConfigError(f'output_rank must be between 1 and p = {p}; got {q}.')
+    if q == p:
+        return Ys, None
+    P = np.linalg.svd(Ys, full_matrices=False)[0][:, :q]         # (p, q), orthonormal
+    return P.T @ Ys, P
 
 
 #: Decimation factors tried by ``ERAOKID(decimation='auto')``.
