@@ -29,10 +29,14 @@ Rows of the table, for each ``r``:
   model), ``K, C, B`` kept; ``--parity`` restricts ``G, H`` to the entries allowed by the
   eel's mirror symmetry (a mode is odd when ``E`` maps it mostly to the lateral ``z``
   outputs; ``V(q)`` even in the odd modes);
+* ``oe-joint``: every operator (``K, C, B, G, H``) on the simulation error, with ridge
+  ``--joint-lambda`` on ``G, H`` and on the change of ``K, C, B`` from the linear fit;
 * ``oe-lin``: the same output-error fit of the *linear* operators ``K, C, B`` (``G = H = 0``),
   to separate what the fitting criterion gives from what the nonlinearity gives;
-* ``capacity`` (``--capacity``): ``oe`` fitted on all six episodes, test episodes included.
-  Not a valid model (it has seen the test data): it bounds what the model class can do.
+* ``capacity``, ``capacity-joint``, ``capacity-lin`` (``--capacity``): ``oe``, ``oe-joint``
+  (ridge ``--oe-lambda`` on ``G, H`` only) and ``oe-lin`` fitted on all six episodes, test
+  episodes included. Not valid models (they have seen the test data): they show what each
+  model class can do when the data pin it down.
 
 Run::
 
@@ -60,7 +64,8 @@ from soft_rom.metrics import relative_deviation_error
 from soft_rom.models_cubic import CubicSecondOrderModel, symmetric_entries
 
 TRAIN, TESTS = (1, 2), (3, 4, 5, 6)
-VARIANTS = ('library', 'correction', 'oe', 'oe-lin', 'capacity')
+VARIANTS = ('library', 'correction', 'oe', 'oe-lin', 'oe-joint', 'capacity', 'capacity-joint',
+            'capacity-lin')
 
 
 # ------------------------------------------------------------------------------ data
@@ -123,7 +128,7 @@ class Data:
         if not np.all(np.isfinite(Y)):
             return 'NOT finite (blow-up)'
         peak = float(np.max(np.abs(Y - self.y_ref[:, None]))) / dev_train
-        return f'{"bounded" if peak <= 10 else "BLOW-UP"} ({peak:.2f} x training max)'
+        return f'{"bounded" if peak <= 10 else "BLOW-UP"} ({peak:.3g} x training max)'
 
 
 def scaled(data: Data, lin: LOpInf, eps: tuple[int, ...]) -> tuple[np.ndarray, ...]:
@@ -195,7 +200,9 @@ def correction(data: Data, lin: LOpInf, lams: tuple[float, ...] = (1e-4, 1e-3, 1
     g = parts[1][1] + parts[2][1]
     G, H = tensors(N, g, parts[1][2] + parts[2][2], best)
     table = ', '.join(f'{lam:g}: {s:.3f}' for lam, s in zip(lams, scores))
-    return cubic_model(lin, G, H), f'λ = {best:g} (cross-episode error {table})'
+    t4 = lc.quartic_lower_bound(H, target=0.0)[0]
+    return cubic_model(lin, G, H), (f'λ = {best:g} (worst cross-episode error {table}); '
+                                    f'quartic bound {t4:.3g}')
 
 
 class OutputError:
@@ -207,9 +214,10 @@ class OutputError:
     """
 
     def __init__(self, data: Data, lin: LOpInf, which: str, lam: float,
-                 eps: tuple[int, ...], keep: tuple[np.ndarray, np.ndarray] | None) -> None:
+                 eps: tuple[int, ...], keep: tuple[np.ndarray, np.ndarray] | None,
+                 lam_lin: float = 0.0) -> None:
         r, m = data.r, lin.model_.n_inputs
-        self.r, self.h, self.lam = r, data.dt, lam
+        self.r, self.h, self.lam, self.lam_lin = r, data.dt, lam, lam_lin
         self.lay = lay = lc._Layout(r, m)
         o = lay.t_off
         self.P = lay.n_theta
@@ -220,7 +228,13 @@ class OutputError:
         th[o['C']:o['B']] = symmetric_entries(mod.C)
         th[o['B']:] = (mod.B * lin.input_scale_[None, :] / lin.state_scale_).ravel()
         self.theta = th
-        if which == 'nl':
+        self.w_lin = np.zeros(self.P)
+        self.w_lin[o['K']:o['G']] = lay.tensor_weights('K')
+        self.w_lin[o['C']:o['B']] = lay.tensor_weights('C')
+        self.w_lin[o['B']:] = 1.0
+        if which == 'all':
+            free = np.arange(self.P)
+        elif which == 'nl':
             free = np.arange(o['G'], o['C'])
             if keep is not None:
                 free = free[np.concatenate(keep)]
@@ -291,13 +305,16 @@ class OutputError:
         if Xq is None:
             return np.inf, None, None
         e = np.einsum('ab,kbn->kna', self.Wc, Xq - self.Qt.transpose(2, 1, 0))   # (k, nb, r)
-        lamk = self.lam * self.Qt.shape[0] * self.Qt.shape[2]
-        J = float(np.sum(e ** 2)) + lamk * float(self.w @ th ** 2)
+        n = self.Qt.shape[0] * self.Qt.shape[2]
+        w = self.lam * n * self.w + self.lam_lin * n * self.w_lin    # ridge weights
+        ref = np.where(self.w > 0, 0.0, self.theta)                   # G, H -> 0; K, C, B -> fit
+        J = float(np.sum(e ** 2)) + float(w @ (th - ref) ** 2)
         if not sens:
             return J, None, None
         Jt = np.einsum('ab,knbp->knap', self.Wc, Sq).reshape(-1, len(self.free))
-        JTJ = Jt.T @ Jt + lamk * np.diag(self.w[self.free])
-        g = Jt.T @ e.reshape(-1) + lamk * self.w[self.free] * th[self.free]
+        f = self.free
+        JTJ = Jt.T @ Jt + np.diag(w[f])
+        g = Jt.T @ e.reshape(-1) + w[f] * (th - ref)[f]
         return J, JTJ, g
 
     def fit(self, iters: int) -> tuple[np.ndarray, str]:
@@ -324,15 +341,18 @@ class OutputError:
 
 
 def oe(data: Data, lin: LOpInf, which: str, lam: float, iters: int,
-       eps: tuple[int, ...] = TRAIN, keep: tuple[np.ndarray, np.ndarray] | None = None
-       ) -> tuple[CubicSecondOrderModel | Any, str]:
-    fit = OutputError(data, lin, which, lam, eps, keep)
+       eps: tuple[int, ...] = TRAIN, keep: tuple[np.ndarray, np.ndarray] | None = None,
+       lam_lin: float = 0.0) -> tuple[CubicSecondOrderModel | Any, str]:
+    fit = OutputError(data, lin, which, lam, eps, keep, lam_lin)
     th, how = fit.fit(iters)
     K, C, G, H, Bs = fit.lay.unpack(th)
     C = 0.5 * (C + C.T)
     lam_k, lam_c = np.linalg.eigvalsh(K)[0], np.linalg.eigvalsh(C)[0]
-    t4 = lc.quartic_lower_bound(H, target=0.0)[0] if which == 'nl' else 0.0
+    t4 = lc.quartic_lower_bound(H, target=0.0)[0] if which != 'lin' else 0.0
     how += f'; min eig K {lam_k:.3g}, C {lam_c:.3g}; quartic bound {t4:.3g}'
+    if which == 'all':
+        how += f'; ridge {lam:g} on G, H and {lam_lin:g} on the change of K, C, B'
+        return cubic_model(lin, G, H, K, C, Bs), how
     if which == 'nl':
         return cubic_model(lin, G, H), how
     from soft_rom.models import SecondOrderModel
@@ -352,13 +372,16 @@ def main() -> None:
                     choices=VARIANTS)
     ap.add_argument('--oe-lambda', type=float, default=1e-8)
     ap.add_argument('--oe-iters', type=int, default=8)
+    ap.add_argument('--joint-lambda', type=float, default=1e-5,
+                    help='oe-joint: ridge on G, H and on the change of K, C, B')
     ap.add_argument('--parity', action='store_true', help='mirror-symmetric G, H in oe')
     ap.add_argument('--capacity', action='store_true', help='add the capacity row')
     args = ap.parse_args()
     if not args.data.exists():
         args.data.parent.mkdir(parents=True, exist_ok=True)
         build_data(args.data)
-    variants = list(args.variants) + (['capacity'] if args.capacity else [])
+    variants = list(args.variants) + (['capacity', 'capacity-joint', 'capacity-lin']
+                                      if args.capacity else [])
     from soft_rom.dataset import TrainingSet  # noqa: F401  (the study's reader; import check)
     from soft_rom.study.run import CUBIC_EEL_OPTIONS
     for r in args.r:
@@ -389,9 +412,18 @@ def main() -> None:
                     model, how = oe(data, lin, 'nl', args.oe_lambda, args.oe_iters, keep=keep)
                 elif v == 'oe-lin':
                     model, how = oe(data, lin, 'lin', 0.0, args.oe_iters)
-                else:
+                elif v == 'oe-joint':
+                    model, how = oe(data, lin, 'all', args.joint_lambda, args.oe_iters,
+                                    lam_lin=args.joint_lambda)
+                elif v == 'capacity':
                     model, how = oe(data, lin, 'nl', args.oe_lambda, args.oe_iters,
                                     eps=TRAIN + TESTS, keep=keep)
+                elif v == 'capacity-joint':
+                    model, how = oe(data, lin, 'all', args.oe_lambda, args.oe_iters,
+                                    eps=TRAIN + TESTS)
+                else:
+                    model, how = oe(data, lin, 'lin', 0.0, args.oe_iters, eps=TRAIN + TESTS)
+                if v.startswith('capacity'):
                     how += ' [trained on the test episodes too]'
             how += f' ({time.perf_counter() - t0:.0f} s)'
             rows.append((v, data.dev_errors(model), data.long_inputs(model), how))
