@@ -40,7 +40,7 @@ Rows of the table, for each ``r``:
 
 Run::
 
-    .venv/bin/python benchmarks/bench_cubic_eel.py [--r 4 6] [--variants library correction oe]
+    .venv/bin/python benchmarks/bench_cubic_eel.py [--r 4 6] [--capacity] [--parity] [--variants ...]
 
 Output of one run (two busy cores, 2026-12-02) is quoted in docs/methods_variants.md.
 """
@@ -368,7 +368,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--data', type=Path, default=Path('/tmp/cubic_cache/eel_reduced.npz'))
     ap.add_argument('--r', type=int, nargs='+', default=[4, 6])
-    ap.add_argument('--variants', nargs='+', default=['library', 'correction', 'oe', 'oe-lin'],
+    ap.add_argument('--variants', nargs='+',
+                    default=['library', 'correction', 'oe', 'oe-joint', 'oe-lin'],
                     choices=VARIANTS)
     ap.add_argument('--oe-lambda', type=float, default=1e-8)
     ap.add_argument('--oe-iters', type=int, default=8)
