@@ -40,7 +40,8 @@ Rows of the table, for each ``r``:
 
 Run::
 
-    .venv/bin/python benchmarks/bench_cubic_eel.py [--r 4 6] [--capacity] [--parity] [--variants ...]
+    .venv/bin/python benchmarks/bench_cubic_eel.py [--r 4 6] [--capacity] [--parity]
+        [--variants library correction oe oe-joint oe-lin]
 
 Output of one run (two busy cores, 2026-12-02) is quoted in docs/methods_variants.md.
 """
