@@ -65,8 +65,8 @@ from soft_rom.metrics import relative_deviation_error
 from soft_rom.models_cubic import CubicSecondOrderModel, symmetric_entries
 
 TRAIN, TESTS = (1, 2), (3, 4, 5, 6)
-VARIANTS = ('library', 'correction', 'oe', 'oe-lin', 'oe-joint', 'capacity', 'capacity-joint',
-            'capacity-lin')
+VARIANTS = ('library', 'correction', 'oe', 'oe-lin', 'oe-joint', 'oe-structured', 'capacity',
+            'capacity-joint', 'capacity-lin', 'capacity-structured')
 
 
 # ------------------------------------------------------------------------------ data
@@ -364,6 +364,121 @@ def oe(data: Data, lin: LOpInf, which: str, lam: float, iters: int,
                             dt=mod.dt, y_ref=mod.y_ref), how
 
 
+def _dgram(L: np.ndarray) -> np.ndarray:
+    """``d vec(L Lᵀ) / d vec(L)`` (row-major vec), shape (n², n²)."""
+    n = L.shape[0]
+    eye = np.eye(n)
+    comm = np.zeros((n * n, n * n))
+    for a in range(n):
+        for b in range(n):
+            comm[a * n + b, b * n + a] = 1.0
+    return np.kron(eye, L) + np.kron(L, eye) @ comm
+
+
+class StructuredOutputError(OutputError):
+    """:class:`OutputError` of every operator with the library's structure built in.
+
+    ``K = L_K L_Kᵀ + eps I``, ``C = L_C L_Cᵀ + eps I`` (lower-triangular factors) and
+    ``H(q⁴) = wᵀ(P Pᵀ + t I)w`` over the scaled quadratic monomials ``w`` (``|w|² = |q|⁴``),
+    ``t = eps4 · λ_max(K₀)``: ``K, C ⪰ eps`` and the quartic is a certified sum of squares
+    at every iterate. Gauss-Newton in the factors: ``J_φ = J_θ dθ/dφ``.
+    """
+
+    def __init__(self, data: Data, lin: LOpInf, lam: float, eps: tuple[int, ...],
+                 lam_lin: float, eps_spd: float = 1e-6, eps4: float = 1e-6) -> None:
+        super().__init__(data, lin, 'all', lam, eps, None, lam_lin)
+        r, o = self.r, self.lay.t_off
+        K0, C0, G0, _H0, B0 = self.lay.unpack(self.theta)
+        self.eps_spd = eps_spd
+        self.t4 = eps4 * float(np.linalg.eigvalsh(K0)[-1])
+        self.Tg, self.ns = lc._gram_map(r)
+        self.Tg = self.Tg.toarray()
+        self.tri_r = np.tril_indices(r)
+        self.tri_s = np.tril_indices(self.ns)
+        self.sym = [r * a + b for a, b in lc.symmetric_index(r, 2)]   # K entries in vec(K)
+        lk = np.linalg.cholesky(K0 - eps_spd * np.eye(r))[self.tri_r]
+        lcf = np.linalg.cholesky(0.5 * (C0 + C0.T) - eps_spd * np.eye(r))[self.tri_r]
+        p0 = 0.1 * np.eye(self.ns)[self.tri_s]
+        self.phi = np.concatenate([lk, lcf, B0.ravel(), symmetric_entries(G0), p0])
+        self.n_tri = len(lk)
+        self.o = o
+
+    def _split(self, phi: np.ndarray) -> tuple[np.ndarray, ...]:
+        r, nt = self.r, self.n_tri
+        nB, nG = r * self.Ut.shape[1], len(self.lay.idx[3])
+        Lk = np.zeros((r, r))
+        Lk[self.tri_r] = phi[:nt]
+        Lc = np.zeros((r, r))
+        Lc[self.tri_r] = phi[nt:2 * nt]
+        B = phi[2 * nt:2 * nt + nB]
+        G = phi[2 * nt + nB:2 * nt + nB + nG]
+        P = np.zeros((self.ns, self.ns))
+        P[self.tri_s] = phi[2 * nt + nB + nG:]
+        return Lk, Lc, B, G, P
+
+    def theta_of(self, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``θ(φ)`` and ``dθ/dφ``."""
+        r, o = self.r, self.o
+        Lk, Lc, B, G, P = self._split(phi)
+        eye_r = np.eye(r)
+        th = np.zeros(self.P)
+        th[o['K']:o['G']] = (Lk @ Lk.T + self.eps_spd * eye_r).ravel()[self.sym]
+        th[o['C']:o['B']] = (Lc @ Lc.T + self.eps_spd * eye_r).ravel()[self.sym]
+        th[o['B']:] = B
+        th[o['G']:o['H']] = G
+        X = P @ P.T + self.t4 * np.eye(self.ns)
+        th[o['H']:o['C']] = self.Tg @ X.ravel()
+        D = np.zeros((self.P, len(phi)))
+        cols_r = self.tri_r[0] * r + self.tri_r[1]
+        cols_s = self.tri_s[0] * self.ns + self.tri_s[1]
+        nt, nB, nG = self.n_tri, len(B), len(G)
+        D[o['K']:o['G'], :nt] = _dgram(Lk)[np.ix_(self.sym, cols_r)]
+        D[o['C']:o['B'], nt:2 * nt] = _dgram(Lc)[np.ix_(self.sym, cols_r)]
+        D[o['B']:, 2 * nt:2 * nt + nB] = np.eye(nB)
+        D[o['G']:o['H'], 2 * nt + nB:2 * nt + nB + nG] = np.eye(nG)
+        D[o['H']:o['C'], 2 * nt + nB + nG:] = self.Tg @ _dgram(P)[:, cols_s]
+        return th, D
+
+    def fit(self, iters: int) -> tuple[np.ndarray, str]:
+        phi = self.phi.copy()
+        th, D = self.theta_of(phi)
+        J0, JTJ, g = self.cost(th)
+        J = J0
+        A, b = D.T @ JTJ @ D, D.T @ g
+        mu = 1e-3 * float(np.trace(A)) / len(phi)
+        steps = 0
+        for _ in range(iters):
+            Dg = np.diag(np.diag(A)) + 1e-12 * float(np.trace(A)) / len(phi) * np.eye(len(phi))
+            Jn = np.inf
+            while mu < 1e12:
+                trial = phi + np.linalg.solve(A + mu * Dg, -b)
+                Jn = self.cost(self.theta_of(trial)[0], sens=False)[0]
+                if Jn < J:
+                    phi, mu = trial, max(mu / 3.0, 1e-12)
+                    steps += 1
+                    break
+                mu *= 4.0
+            if mu >= 1e12 or J - Jn < 1e-6 * J:
+                break
+            th, D = self.theta_of(phi)
+            J, JTJ, g = self.cost(th)
+            A, b = D.T @ JTJ @ D, D.T @ g
+        return self.theta_of(phi)[0], f'{steps} LM steps, cost {J0:.4g} -> {J:.4g}'
+
+
+def oe_structured(data: Data, lin: LOpInf, lam: float, iters: int,
+                  eps: tuple[int, ...] = TRAIN, lam_lin: float = 0.0
+                  ) -> tuple[CubicSecondOrderModel, str]:
+    fit = StructuredOutputError(data, lin, lam, eps, lam_lin)
+    th, how = fit.fit(iters)
+    K, C, G, H, Bs = fit.lay.unpack(th)
+    t4 = lc.quartic_lower_bound(H, target=0.0)[0]
+    how += (f'; min eig K {np.linalg.eigvalsh(K)[0]:.3g}, C {np.linalg.eigvalsh(C)[0]:.3g}; '
+            f'quartic bound {t4:.3g} (floor {fit.t4:.3g}); ridge {lam:g} on G, H and '
+            f'{lam_lin:g} on the change of K, C, B')
+    return cubic_model(lin, G, H, K, C, Bs), how
+
+
 # ------------------------------------------------------------------------------ main
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
@@ -417,6 +532,12 @@ def main() -> None:
                 elif v == 'oe-joint':
                     model, how = oe(data, lin, 'all', args.joint_lambda, args.oe_iters,
                                     lam_lin=args.joint_lambda)
+                elif v == 'oe-structured':
+                    model, how = oe_structured(data, lin, args.joint_lambda, args.oe_iters,
+                                               lam_lin=args.joint_lambda)
+                elif v == 'capacity-structured':
+                    model, how = oe_structured(data, lin, args.oe_lambda, args.oe_iters,
+                                               eps=TRAIN + TESTS)
                 elif v == 'capacity':
                     model, how = oe(data, lin, 'nl', args.oe_lambda, args.oe_iters,
                                     eps=TRAIN + TESTS, keep=keep)
