@@ -493,7 +493,8 @@ def main() -> None:
                              'oe-lin'],
                     choices=VARIANTS)
     ap.add_argument('--oe-lambda', type=float, default=1e-8)
-    ap.add_argument('--oe-iters', type=int, default=8)
+    ap.add_argument('--oe-iters', type=int, default=8, help='LM steps of the Ep 1 + 2 fits')
+    ap.add_argument('--capacity-iters', type=int, default=20, help='LM steps, capacity rows')
     ap.add_argument('--joint-lambda', type=float, default=1e-5,
                     help='oe-joint: ridge on G, H and on the change of K, C, B')
     ap.add_argument('--parity', action='store_true', help='mirror-symmetric G, H in oe')
@@ -541,16 +542,17 @@ def main() -> None:
                     model, how = oe_structured(data, lin, args.joint_lambda, args.oe_iters,
                                                lam_lin=args.joint_lambda)
                 elif v == 'capacity-structured':
-                    model, how = oe_structured(data, lin, args.oe_lambda, args.oe_iters,
+                    model, how = oe_structured(data, lin, args.oe_lambda, args.capacity_iters,
                                                eps=TRAIN + TESTS)
                 elif v == 'capacity':
-                    model, how = oe(data, lin, 'nl', args.oe_lambda, args.oe_iters,
+                    model, how = oe(data, lin, 'nl', args.oe_lambda, args.capacity_iters,
                                     eps=TRAIN + TESTS, keep=keep)
                 elif v == 'capacity-joint':
-                    model, how = oe(data, lin, 'all', args.oe_lambda, args.oe_iters,
+                    model, how = oe(data, lin, 'all', args.oe_lambda, args.capacity_iters,
                                     eps=TRAIN + TESTS)
                 else:
-                    model, how = oe(data, lin, 'lin', 0.0, args.oe_iters, eps=TRAIN + TESTS)
+                    model, how = oe(data, lin, 'lin', 0.0, args.capacity_iters,
+                                    eps=TRAIN + TESTS)
                 if v.startswith('capacity'):
                     how += ' [trained on the test episodes too]'
             how += f' ({time.perf_counter() - t0:.0f} s)'
