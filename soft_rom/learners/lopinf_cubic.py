@@ -208,7 +208,7 @@ def quartic_lower_bound(H: Array, *, target: float | None = None, sdp: bool = Tr
     except ImportError:                                 # pragma: no cover - declared dep
         return t_gram, 'gram'
     G, ns = _gram_map(r)
-    mult = np.array([_mult(b) for b in symmetric_index(r, 4)])
+    mult = np.array([_mult(b) for b in symmetric_index(r, 4)], dtype=np.float64)
     Aeq = sp.diags(mult) @ G                        # rows in the coefficients' own scale
     h = mult * np.array([H[b] for b in symmetric_index(r, 4)])
     scale = max(float(np.max(np.abs(h))), 1e-300)
