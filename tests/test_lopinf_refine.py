@@ -16,8 +16,12 @@ from soft_rom.data import Episode
 from soft_rom.ddt import SavitzkyGolay
 from soft_rom.errors import ConfigError
 from soft_rom.learners.lopinf import LOpInf
-from soft_rom.learners.lopinf_refine import (_frechet_rows, _Problem, initial_states,
-                                             refine_output_error)
+from soft_rom.learners.lopinf_refine import (
+    _frechet_rows,
+    _Problem,
+    initial_states,
+    refine_output_error,
+)
 from soft_rom.metrics import relative_deviation_error
 
 R, M_IN, DT = 3, 2, 0.01

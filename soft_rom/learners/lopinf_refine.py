@@ -138,7 +138,7 @@ class _Problem:
     # -- normal equations ------------------------------------------------------------
     def normal(self, p: Array) -> tuple[Array, Array, float]:
         """``JᵀJ``, ``Jᵀres`` and the cost at ``p``."""
-        r, m, n = self.r, self.m, 2 * self.r
+        r, n = self.r, 2 * self.r
         K, C, B, Lk, Lc, x0s = self.unpack(p)
         F, dF = _frechet_rows(self._augmented(K, C, B), r, n, self.dt)
         Ad, Bd = F[:n, :n], F[:n, n:]
@@ -210,9 +210,10 @@ def _frechet_rows(M: Array, r: int, n: int, dt: float) -> tuple[Array, Array]:
     is taken by composite 8-point Gauss–Legendre quadrature on ``⌈‖A‖₁⌉`` panels, ``A =
     M[:n, :n]`` (the held inputs' columns of ``M`` have zero rows below, so they enter
     ``e^{sM}`` linearly; on each panel the integrand's Taylor series in ``s`` converges like
-    ``(‖A‖₁/panels)ᵏ/k!``: exact to rounding for these entire functions). No eigendecomposition is involved, so
-    defective or nearly defective ``M`` (a slow mode beside the held inputs' zero
-    eigenvalues) is no harder than any other.
+    ``(‖A‖₁/panels)ᵏ/k!``: exact to rounding for these entire functions). No
+    eigendecomposition is involved, so defective or nearly defective ``M`` (a slow mode
+    beside the held inputs' zero eigenvalues) is no harder than any other. Above
+    ``‖A‖₁ = 64`` the directions are taken one by one by :func:`scipy.linalg.expm_frechet`.
 
     Returns
     -------
@@ -257,12 +258,14 @@ def _factor(S: Array) -> Array:
     scale = max(float(np.max(np.abs(np.diag(S)))), 1e-300)
     for jitter in (0.0, 1e-12, 1e-10, 1e-8):
         try:
-            return np.linalg.cholesky(S + jitter * scale * np.eye(S.shape[0]))
+            return np.asarray(np.linalg.cholesky(S + jitter * scale * np.eye(S.shape[0])),
+                              dtype=np.float64)
         except np.linalg.LinAlgError:
             continue
     lam, W = np.linalg.eigh(S)
     half = W * np.sqrt(np.clip(lam, 0.0, None))
-    return np.linalg.cholesky(half @ half.T + 1e-8 * scale * np.eye(S.shape[0]))
+    return np.asarray(np.linalg.cholesky(half @ half.T + 1e-8 * scale * np.eye(S.shape[0])),
+                      dtype=np.float64)
 
 
 def _run(Ad: Array, BU: Array, x0: Array) -> Array:
@@ -345,9 +348,9 @@ def refine_output_error(K: Array, C: Array, B: Array, episodes: Sequence[tuple[A
     cost0 = prob.cost(p)
     cost = cost0
     lam = 1e-3
-    it = 0
+    iterations = 0
     status = 'max_iter'
-    for it in range(1, max_iter + 1):
+    for iterations in range(1, max_iter + 1):  # noqa: B007 (reported after the loop)
         JtJ, Jtr, cost = prob.normal(p)
         d = np.diag(JtJ).copy()
         d[d <= 0] = max(float(np.max(d)), 1.0) * 1e-12
@@ -375,7 +378,7 @@ def refine_output_error(K: Array, C: Array, B: Array, episodes: Sequence[tuple[A
             break
     Kr, Cr, Br, _, _, _ = prob.unpack(p)
     Kr, Cr = 0.5 * (Kr + Kr.T), 0.5 * (Cr + Cr.T)
-    info = {'criterion': 'output-error', 'iterations': it, 'status': status,
+    info = {'criterion': 'output-error', 'iterations': iterations, 'status': status,
             'cost_start': cost0, 'cost': cost,
             'improvement': 1.0 - float(np.sqrt(cost / cost0)) if cost0 > 0 else 0.0,
             'parameters': prob.P, 'seconds': time.perf_counter() - t0}
