@@ -136,5 +136,14 @@ def test_user_sequence_lopinf_beats_unconstrained_fit(lab, monkeypatch, capsys):
         lines.append(f'era r={r}: {got[f"lab_era_r{r}.npz"]["relative_deviation_error"]:.4f}')
         assert got[f'lab_era_r{r}.npz']['relative_deviation_error'] < 0.3
     print('\n'.join(lines))
+    # the refinement is said by info; asked for with cubic forces it is refused, nothing written
+    capsys.readouterr()
+    assert main(['info', 'm/lab_lopinf_r4.npz']) == 0
+    assert 'refined by output error' in capsys.readouterr().out
+    assert main(['fit', 'lab.zarr', '--method', 'lopinf', '--r', '2', '--episodes', 'lab1',
+                 '-o', 'mc', '--forces', 'cubic', '--refine', 'output-error',
+                 '--no-progress']) == 2
+    assert "--refine must be 'none' or 'output-error'" in capsys.readouterr().err
+    assert not list(Path('mc').glob('*.npz')) if Path('mc').exists() else True
     # a model on output coordinates replays a recording unchanged
     assert main(['replay', 'm/lab_lopinf_r4.npz', 'lab3', '-o', 'pred']) == 0
