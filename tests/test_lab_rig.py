@@ -135,7 +135,6 @@ def test_user_sequence_lopinf_beats_unconstrained_fit(lab, monkeypatch, capsys):
     for r in (4, 8, 12):
         lines.append(f'era r={r}: {got[f"lab_era_r{r}.npz"]["relative_deviation_error"]:.4f}')
         assert got[f'lab_era_r{r}.npz']['relative_deviation_error'] < 0.3
-    print('\n'.join(lines))
     # the refinement is said by info; asked for with cubic forces it is refused, nothing written
     capsys.readouterr()
     assert main(['info', 'm/lab_lopinf_r4.npz']) == 0
@@ -147,3 +146,5 @@ def test_user_sequence_lopinf_beats_unconstrained_fit(lab, monkeypatch, capsys):
     assert not list(Path('mc').glob('*.npz')) if Path('mc').exists() else True
     # a model on output coordinates replays a recording unchanged
     assert main(['replay', 'm/lab_lopinf_r4.npz', 'lab3', '-o', 'pred']) == 0
+    with capsys.disabled():
+        print('\n' + '\n'.join(lines))

@@ -77,14 +77,16 @@ def test_frechet_rows_match_scipy_also_when_nearly_defective():
 def test_gradient_matches_finite_differences():
     data = episodes(0, k=300, noise=0.01)
     Lt = np.eye(R) + 0.2 * np.triu(np.ones((R, R)), 1)
-    prob = _Problem(data, DT, Lt, {'alpha': 0.2, 'beta': 0.005, 'eps_K': 0.5})
-    p = prob.pack(1.1 * K_TRUE, 1.2 * C_TRUE, 0.9 * B_TRUE, initial_states(data, Lt, DT))
-    _, Jtr, cost = prob.normal(p)
-    assert cost == pytest.approx(prob.cost(p), rel=1e-12)
-    h = 1e-6 * np.maximum(1.0, np.abs(p))
-    fd = np.array([(prob.cost(p + h[i] * e) - prob.cost(p - h[i] * e)) / (4 * h[i])
-                   for i, e in enumerate(np.eye(p.size))])
-    assert np.max(np.abs(fd - Jtr)) <= 1e-5 * np.max(np.abs(Jtr))
+    for free_mass in (False, True):
+        prob = _Problem(data, DT, Lt, {'alpha': 0.2, 'beta': 0.005, 'eps_K': 0.5},
+                        free_mass=free_mass)
+        p = prob.pack(1.1 * K_TRUE, 1.2 * C_TRUE, 0.9 * B_TRUE, initial_states(data, Lt, DT))
+        _, Jtr, cost = prob.normal(p)
+        assert cost == pytest.approx(prob.cost(p), rel=1e-12)
+        h = 1e-6 * np.maximum(1.0, np.abs(p))
+        fd = np.array([(prob.cost(p + h[i] * e) - prob.cost(p - h[i] * e)) / (4 * h[i])
+                       for i, e in enumerate(np.eye(p.size))])
+        assert np.max(np.abs(fd - Jtr)) <= 1e-5 * np.max(np.abs(Jtr))
 
 
 def test_exact_data_recovers_the_operators_from_a_wrong_start():

@@ -365,7 +365,13 @@ class LOpInf:
                 K, C, Bs, refined = refine_output_error(
                     K, C, Bs, [(np.asarray(q) / s_q, np.asarray(u) / s_u[:, None])
                                for q, u in zip(Qhat, U)], dt, Lt=self.mass_factor_,
+                    free_mass=self.mass_factor_ is not None,
                     margin=sol_info.get('margin'), eps=self.eps)
+                Lt_new = refined.pop('mass_factor')
+                if self.mass_factor_ is not None:   # the coordinates z = Lt q moved with it
+                    T = Lt_new @ np.linalg.inv(self.mass_factor_)
+                    Qs, Qd, Qdd, all_q = T @ Qs, T @ Qd, T @ Qdd, T @ all_q
+                    self.mass_factor_ = Lt_new
             residual = float(np.linalg.norm(Qdd + C @ Qd + K @ Qs - Bs @ Us))
         else:
             raise ConfigError(f"forces must be 'linear' or 'cubic'; got {self.forces!r}.")

@@ -66,7 +66,7 @@ class _Problem:
     """The parametrization, the simulation and the normal equations (module docstring)."""
 
     def __init__(self, episodes: Sequence[tuple[Array, Array]], dt: float, Lt: Array,
-                 margin: dict[str, float]) -> None:
+                 margin: dict[str, float], free_mass: bool = False) -> None:
         self.Q = [np.asarray(q, dtype=np.float64) for q, _ in episodes]
         self.U = [np.asarray(u, dtype=np.float64) for _, u in episodes]
         self.dt = float(dt)
@@ -81,7 +81,11 @@ class _Problem:
         self.il = np.tril_indices(r)
         self.nl = len(self.il[0])
         self.n_op = 2 * self.nl + r * self.m
-        self.P = self.n_op + 2 * r * len(self.Q)
+        # the mass factor's upper triangle (z = Lt q), when it is refined too
+        self.iu = np.triu_indices(r)
+        self.n_mass = len(self.iu[0]) if free_mass else 0
+        self.n_shared = self.n_op + self.n_mass
+        self.P = self.n_shared + 2 * r * len(self.Q)
 
     # -- parameters ------------------------------------------------------------------
     def pack(self, K: Array, C: Array, B: Array, x0s: Sequence[Array]) -> Array:
@@ -89,7 +93,16 @@ class _Problem:
         eye = np.eye(r)
         Lk = _factor(K - self.eps_k * eye)
         Lc = _factor(C - self.alpha * eye - self.beta * K)
-        return np.concatenate([Lk[self.il], Lc[self.il], B.ravel(), *x0s])
+        mass = [self.Lt[self.iu]] if self.n_mass else []
+        return np.concatenate([Lk[self.il], Lc[self.il], B.ravel(), *mass, *x0s])
+
+    def mass_factor(self, p: Array) -> tuple[Array, Array]:
+        """``Lt`` and its inverse at ``p``."""
+        if not self.n_mass:
+            return self.Lt, self.Lt_inv
+        Lt = np.zeros((self.r, self.r))
+        Lt[self.iu] = p[self.n_op:self.n_shared]
+        return Lt, np.linalg.inv(Lt)
 
     def unpack(self, p: Array) -> tuple[Array, Array, Array, Array, Array, list[Array]]:
         r, nl, m = self.r, self.nl, self.m
@@ -101,7 +114,8 @@ class _Problem:
         eye = np.eye(r)
         K = self.eps_k * eye + Lk @ Lk.T
         C = self.alpha * eye + self.beta * K + Lc @ Lc.T
-        x0s = [p[self.n_op + 2 * r * i:self.n_op + 2 * r * (i + 1)] for i in range(len(self.Q))]
+        o = self.n_shared
+        x0s = [p[o + 2 * r * i:o + 2 * r * (i + 1)] for i in range(len(self.Q))]
         return K, C, B, Lk, Lc, x0s
 
     def _augmented(self, K: Array, C: Array, B: Array) -> Array:
@@ -125,6 +139,9 @@ class _Problem:
         if (float(np.linalg.eigvalsh(K)[-1]) > getattr(self, 'k_cap', np.inf)
                 or float(np.linalg.eigvalsh(C)[-1]) > getattr(self, 'c_cap', np.inf)):
             return float('inf')
+        Lt, Lt_inv = self.mass_factor(p)
+        if np.min(np.abs(np.diag(Lt))) <= 1e-8 * np.max(np.abs(np.diag(Lt))):
+            return float('inf')
         with np.errstate(all='ignore'):
             F = sla.expm(self._augmented(K, C, B))
         n = 2 * self.r
@@ -132,7 +149,7 @@ class _Problem:
         total = 0.0
         for q, u, x0 in zip(self.Q, self.U, x0s):
             X = _run(Ad, Bd @ u, x0)
-            total += float(np.sum((self.Lt_inv @ X[:self.r] - q) ** 2))
+            total += float(np.sum((Lt_inv @ X[:self.r] - q) ** 2))
         return total if np.isfinite(total) else float('inf')
 
     # -- normal equations ------------------------------------------------------------
@@ -140,11 +157,13 @@ class _Problem:
         """``JᵀJ``, ``Jᵀres`` and the cost at ``p``."""
         r, n = self.r, 2 * self.r
         K, C, B, Lk, Lc, x0s = self.unpack(p)
+        _, Lt_inv = self.mass_factor(p)
         F, dF = _frechet_rows(self._augmented(K, C, B), r, n, self.dt)
         Ad, Bd = F[:n, :n], F[:n, n:]
         # d(Ad, Bd) / d(operator parameters): (n, n + m, n_op)
         dFG = np.tensordot(dF, self._chain(K, Lk, Lc), axes=([0], [0]))
-        n_op = self.n_op
+        n_op, n_sh = self.n_op, self.n_shared
+        ia, ib = self.iu
         JtJ = np.zeros((self.P, self.P))
         Jtr = np.zeros(self.P)
         total = 0.0
@@ -152,13 +171,14 @@ class _Problem:
         for i, (q, u, x0) in enumerate(zip(self.Q, self.U, x0s)):
             k = q.shape[1]
             X = _run(Ad, Bd @ u, x0)                        # (n, k)
-            res = self.Lt_inv @ X[:r] - q                   # (r, k)
+            Qsim = Lt_inv @ X[:r]
+            res = Qsim - q                                  # (r, k)
             total += float(np.sum(res ** 2))
             XU = np.vstack([X, u])
             # S: sensitivities of the state to [operator parameters, x0 of this episode]
             S = np.zeros((n, n_op + n))
             S[:, n_op:] = np.eye(n)
-            cols = np.r_[np.arange(n_op), n_op + 2 * r * i + np.arange(n)]
+            cols = np.r_[np.arange(n_sh), n_sh + 2 * r * i + np.arange(n)]
             JtJ_i = np.zeros((cols.size, cols.size))
             Jtr_i = np.zeros(cols.size)
             for j0 in range(0, k, block):
@@ -169,7 +189,12 @@ class _Problem:
                     Sb[j] = S
                     S = Ad @ S
                     S[:, :n_op] += D[j]
-                Jb = np.matmul(self.Lt_inv, Sb[:, :r, :]).reshape(-1, cols.size)
+                Jq = np.matmul(Lt_inv, Sb[:, :r, :])                  # (kb, r, n_op + n)
+                if self.n_mass:
+                    # q = Lt⁻¹ z: d q / d Lt[a, b] = -Lt⁻¹[:, a] q[b]
+                    Jm = -Lt_inv[None, :, ia] * Qsim[ib, j0:j1].T[:, None, :]
+                    Jq = np.concatenate([Jq[:, :, :n_op], Jm, Jq[:, :, n_op:]], axis=2)
+                Jb = Jq.reshape(-1, cols.size)
                 JtJ_i += Jb.T @ Jb
                 Jtr_i += Jb.T @ res[:, j0:j1].T.ravel()
             JtJ[np.ix_(cols, cols)] += JtJ_i
@@ -293,7 +318,7 @@ def initial_states(episodes: Sequence[tuple[Array, Array]], Lt: Array, dt: float
 
 
 def refine_output_error(K: Array, C: Array, B: Array, episodes: Sequence[tuple[Array, Array]],
-                        dt: float, *, Lt: Array | None = None,
+                        dt: float, *, Lt: Array | None = None, free_mass: bool = False,
                         margin: dict[str, Any] | None = None, eps: float = 1e-6,
                         max_iter: int = 30, tol: float = 1e-6
                         ) -> tuple[Array, Array, Array, dict[str, Any]]:
@@ -311,7 +336,10 @@ def refine_output_error(K: Array, C: Array, B: Array, episodes: Sequence[tuple[A
     dt : float
         Sample time (s); inputs are held over each sample.
     Lt : ndarray, shape (r, r), optional
-        ``z = Lt q`` (the learned mass factor); default the identity.
+        ``z = Lt q`` (the learned mass factor, upper triangular); default the identity.
+    free_mass : bool
+        Refine ``Lt`` too (its upper triangle; the mass ``M = Lt^T Lt`` stays SPD while its
+        diagonal keeps its sign); the refined factor is ``info['mass_factor']``.
     margin : dict, optional
         ``alpha``, ``beta``, ``eps_K`` of the constraints; default ``eps`` for both
         floors and ``beta = 0``.
@@ -338,7 +366,7 @@ def refine_output_error(K: Array, C: Array, B: Array, episodes: Sequence[tuple[A
               'eps_K': float(bd.get('eps_K', eps))}
     if not floors.get('alpha') or floors['alpha'] <= 0:
         floors['alpha'] = float(eps)
-    prob = _Problem(episodes, dt, Lt_a, floors)
+    prob = _Problem(episodes, dt, Lt_a, floors, free_mass=free_mass)
     if prob.P > MAX_PARAMETERS:
         raise ConfigError(f'output-error refinement would have {prob.P} parameters (at most '
                           f'{MAX_PARAMETERS}); use a smaller r or fewer episodes, or '
@@ -352,10 +380,12 @@ def refine_output_error(K: Array, C: Array, B: Array, episodes: Sequence[tuple[A
     status = 'max_iter'
     for iterations in range(1, max_iter + 1):  # noqa: B007 (reported after the loop)
         JtJ, Jtr, cost = prob.normal(p)
+        # Marquardt scaling with a relative floor: a factor at a constraint's boundary (an
+        # active damping margin) has a vanishing column, which must still be damped
         d = np.diag(JtJ).copy()
-        d[d <= 0] = max(float(np.max(d)), 1.0) * 1e-12
+        d = np.maximum(d, 1e-6 * max(float(np.max(d)), 1e-300))
         accepted = False
-        for _ in range(12):
+        for _ in range(20):
             try:
                 step = np.linalg.solve(JtJ + lam * np.diag(d), -Jtr)
             except np.linalg.LinAlgError:
@@ -377,9 +407,11 @@ def refine_output_error(K: Array, C: Array, B: Array, episodes: Sequence[tuple[A
             status = 'converged'
             break
     Kr, Cr, Br, _, _, _ = prob.unpack(p)
+    Lt_r, _ = prob.mass_factor(p)
     Kr, Cr = 0.5 * (Kr + Kr.T), 0.5 * (Cr + Cr.T)
     info = {'criterion': 'output-error', 'iterations': iterations, 'status': status,
             'cost_start': cost0, 'cost': cost,
             'improvement': 1.0 - float(np.sqrt(cost / cost0)) if cost0 > 0 else 0.0,
-            'parameters': prob.P, 'seconds': time.perf_counter() - t0}
+            'parameters': prob.P, 'seconds': time.perf_counter() - t0,
+            'mass_refined': bool(free_mass), 'mass_factor': Lt_r}
     return Kr, Cr, Br, info
