@@ -11,8 +11,8 @@ test on 1.5-2 s. ``LOpInf(r).fit`` does its own POD of the (noisy) training stat
 ``y_ref``. Every fit is simulated from rest on the whole episode's inputs
 (:func:`soft_rom.evaluation.predict`, as the study does) and scored with
 :func:`soft_rom.metrics.relative_deviation_error` against the *clean* outputs, on the
-training part (``train dev.``) and the test part (``test dev.``). The noise is drawn once
-(``--seed``) and is the same for every row.
+training part (``train dev.``) and the test part (``test dev.``). The noise is drawn per seed
+(``--seeds``, the same draws for every row); noisy rows show the median and range.
 
 Rows: the repository's estimators (``FiniteDifference(8)``, the library default;
 ``SavitzkyGolay()``, the CLI's ``--ddt savgol`` = window 31, degree 5; ``SavitzkyGolay(41,
@@ -28,7 +28,7 @@ one, simulated with the study's own pipeline (minutes).
 
 Run::
 
-    .venv/bin/python benchmarks/bench_lopinf_noise.py [--r 10] [--sigma 5e-4] [--seed 0]
+    .venv/bin/python benchmarks/bench_lopinf_noise.py [--r 10] [--sigma 5e-4] [--seeds 0 1 2]
         [--zarr /tmp/cubic/data.zarr] [--rows fd8 savgol savgol41 refine]
 
 About 2-4 minutes on a loaded 2-core machine (the output-error refinements dominate).
@@ -118,68 +118,85 @@ def main() -> None:
     ap.add_argument('--zarr', type=Path, default=None)
     ap.add_argument('--r', type=int, default=10)
     ap.add_argument('--sigma', type=float, default=5e-4, help='noise std in metres')
-    ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--seeds', type=int, nargs='+', default=[0, 1, 2])
     ap.add_argument('--rows', nargs='+', choices=GROUPS, default=list(GROUPS))
     args = ap.parse_args()
 
     d = load(args.data, args.zarr)
     t, U, Y, Q, q_ref, y_ref = (d[k] for k in ('t', 'U', 'Y', 'Q', 'q_ref', 'y_ref'))
     dt = float(t[1] - t[0])
-    rng = np.random.default_rng(args.seed)
-    Qn = Q + args.sigma * rng.standard_normal(Q.shape)
-    Yn = Y + args.sigma * rng.standard_normal(Y.shape)
     clean = Episode(t=t, U=U, Y=Y, Q=Q, name='ep1')
     k = int(np.searchsorted(t, T_TRAIN - 1e-12))
-    train = {False: clean.slice(0, k),
-             True: Episode(t=t, U=U, Y=Yn, Q=Qn, name='ep1').slice(0, k)}
     dev_rms = float(np.sqrt(np.mean((Y - y_ref[:, None]) ** 2)))
     print(f'eel Ep 1: n = {Q.shape[0]}, p = {Y.shape[0]}, m = {U.shape[0]}, dt = {dt:g} s, '
           f'train t < {T_TRAIN} s ({k} samples), test {k * dt:g}-{t[-1] + dt:g} s; r = {args.r}; '
-          f'noise sigma = {args.sigma:g} m on Q and Y (seed {args.seed}); RMS output '
+          f'noise sigma = {args.sigma:g} m on Q and Y (seeds {args.seeds}); RMS output '
           f'deviation {dev_rms:.3g} m')
 
-    results: list[dict[str, Any]] = []
-    for label, est, noisy, reg, refine in rows(tuple(args.rows)):
+    def noisy_train(seed: int) -> Episode:
+        rng = np.random.default_rng(seed)
+        Qn = Q + args.sigma * rng.standard_normal(Q.shape)
+        Yn = Y + args.sigma * rng.standard_normal(Y.shape)
+        return Episode(t=t, U=U, Y=Yn, Q=Qn, name='ep1').slice(0, k, name=f'seed {seed}')
+
+    def run(label: str, est: Any, ep: Episode, reg: str | None, refine: str
+            ) -> dict[str, Any]:
         t0 = time.perf_counter()
         learner = LOpInf(r=args.r, ddt=est, regularization=reg, refine=refine)
         with warnings.catch_warnings():
             warnings.simplefilter('ignore')
-            learner.fit(train[noisy], q_ref=q_ref, y_ref=y_ref)
+            learner.fit(ep, q_ref=q_ref, y_ref=y_ref)
             with np.errstate(all='ignore'):
                 Yh = predict(learner.model_, clean)
-        seconds = time.perf_counter() - t0
         ok = bool(np.all(np.isfinite(Yh)))
         tr = relative_deviation_error(Y[:, :k], Yh[:, :k], y_ref) if ok else np.inf
         te = relative_deviation_error(Y[:, k:], Yh[:, k:], y_ref) if ok else np.inf
-        diag = learner.diagnostics_.get('regularization') or {}
-        gamma = diag.get('gamma') if isinstance(diag, dict) else None
-        results.append(dict(label=label, noisy=noisy, reg=reg, refine=refine, train=tr,
-                            test=te, gamma=gamma, seconds=seconds, est=repr(est)))
-        print(f'  fitted {label:45s} noisy={noisy!s:5s} reg={reg!s:5s} refine={refine:12s} '
-              f'train {tr:.4g} test {te:.4g} gamma {gamma} ({seconds:.1f} s)', flush=True)
+        diag = learner.diagnostics_
+        gamma = (diag.get('regularization') or {}).get('gamma')
+        ref = diag.get('refinement') or {}
+        how = (f"{ref.get('status')}, {ref.get('iterations')} it., training sim. error "
+               f"-{100 * ref.get('improvement', 0.0):.0f} %" if refine != 'none' else '')
+        print(f'  {label:43s} {ep.name:9s} reg={reg!s:5s} refine={refine:12s} '
+              f'train {tr:.4g} test {te:.4g} gamma {gamma:g} {how} '
+              f'({time.perf_counter() - t0:.1f} s)', flush=True)
+        return dict(train=tr, test=te, gamma=gamma)
 
-    base = {(r['est'], r['refine']): r['test'] for r in results
-            if not r['noisy'] and r['reg'] is None}
-    base_plain = {r['est']: r['test'] for r in results
-                  if not r['noisy'] and r['reg'] is None and r['refine'] == 'none'}
+    table: list[tuple[str, Any, bool, str | None, str, list[dict[str, Any]]]] = []
+    for label, est, noisy, reg, refine in rows(tuple(args.rows)):
+        if noisy:
+            res = []
+            for seed in args.seeds:
+                ep = noisy_train(seed)
+                res.append(run(label, est, ep, reg, refine))
+        else:
+            ep = clean.slice(0, k, name='clean')
+            res = [run(label, est, ep, reg, refine)]
+        table.append((label, repr(est), noisy, reg, refine, res))
+
+    base = {est: res[0]['test'] for _l, est, noisy, reg, refine, res in table
+            if not noisy and reg is None and refine == 'none'}
+    many = len(args.seeds) > 1
     print()
     print('| derivatives | refine | noise | regularization | train dev. | test dev. | '
           'test / noise-free |')
     print('|---|---|---|---|---:|---:|---:|')
-    for r in results:
-        reg = 'none' if r['reg'] is None else (
-            f'auto (γ = {r["gamma"]:g})' if isinstance(r['gamma'], (int, float))
-            else str(r['reg']))
-        ref = base_plain.get(r['est'], np.nan)
-        ratio = r['test'] / ref
-        also = ''
-        if r['refine'] != 'none' and (r['est'], r['refine']) in base:
-            also = f' ({r["test"] / base[(r["est"], r["refine"])]:.2f} of refined)'
-        print(f'| {r["label"]} | {r["refine"]} | '
-              f'{f"{args.sigma * 1e3:g} mm" if r["noisy"] else "none"} | {reg} | '
-              f'{r["train"]:.3f} | {r["test"]:.3f} | {ratio:.2f}{also} |')
-    print('\nratio: test error over the same estimator\'s noise-free fit without regularization '
-          'or refinement; acceptance: noisy + auto <= 1.2')
+    for label, est, noisy, reg, refine, res in table:
+        tr = np.array([x['train'] for x in res])
+        te = np.array([x['test'] for x in res])
+        gam = sorted({float(x['gamma']) for x in res})
+        regs = 'none' if reg is None else 'auto (γ = ' + ', '.join(f'{g:g}' for g in gam) + ')'
+        ratio = te / base.get(est, np.nan)
+
+        def fmt(a: np.ndarray, digits: str = '.3f') -> str:
+            if a.size == 1:
+                return f'{a[0]:{digits}}'
+            return f'{np.median(a):{digits}} [{a.min():{digits}}–{a.max():{digits}}]'
+
+        print(f'| {label} | {refine} | {f"{args.sigma * 1e3:g} mm" if noisy else "none"} | '
+              f'{regs} | {fmt(tr)} | {fmt(te)} | {fmt(ratio, ".2f")} |')
+    print("\ntest / noise-free: over the same estimator's noise-free fit without regularization "
+          'or refinement' + ('; noisy rows: median [min–max] over the seeds' if many else '')
+          + '. Acceptance: noisy + auto <= 1.2.')
 
 
 if __name__ == '__main__':
