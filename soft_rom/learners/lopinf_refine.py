@@ -152,6 +152,21 @@ class _Problem:
             total += float(np.sum((Lt_inv @ X[:self.r] - q) ** 2))
         return total if np.isfinite(total) else float('inf')
 
+    def tail_error(self, p: Array, heads: Sequence[int]) -> float:
+        """Relative simulation error on the samples after ``heads[i]`` of every episode."""
+        K, C, B, _, _, x0s = self.unpack(p)
+        _, Lt_inv = self.mass_factor(p)
+        n = 2 * self.r
+        with np.errstate(all='ignore'):
+            F = sla.expm(self._augmented(K, C, B))
+            num = den = 0.0
+            for q, u, x0, h in zip(self.Q, self.U, x0s, heads):
+                X = _run(F[:n, :n], F[:n, n:] @ u, x0)
+                num += float(np.sum((Lt_inv @ X[:self.r, h:] - q[:, h:]) ** 2))
+                den += float(np.sum(q[:, h:] ** 2))
+        val = float(np.sqrt(num / max(den, 1e-300)))
+        return val if np.isfinite(val) else float('inf')
+
     # -- normal equations ------------------------------------------------------------
     def normal(self, p: Array) -> tuple[Array, Array, float]:
         """``JᵀJ``, ``Jᵀres`` and the cost at ``p``."""
@@ -277,6 +292,67 @@ def _frechet_rows_direct(M: Array, r: int, n: int, dt: float) -> tuple[Array, Ar
     return F, dF
 
 
+def _levenberg_marquardt(prob: _Problem, p: Array, max_iter: int, tol: float
+                         ) -> tuple[Array, int, str]:
+    """Levenberg–Marquardt from ``p``: a step is taken only if it lowers the cost."""
+    cost = prob.cost(p)
+    lam = 1e-3
+    iterations = 0
+    status = 'max_iter'
+    for iterations in range(1, max_iter + 1):  # noqa: B007 (reported after the loop)
+        JtJ, Jtr, cost = prob.normal(p)
+        # Marquardt scaling with a relative floor: a factor at a constraint's boundary (an
+        # active damping margin) has a vanishing column, which must still be damped
+        d = np.diag(JtJ).copy()
+        d = np.maximum(d, 1e-6 * max(float(np.max(d)), 1e-300))
+        accepted = False
+        for _ in range(20):
+            try:
+                step = np.linalg.solve(JtJ + lam * np.diag(d), -Jtr)
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            new = p + step
+            c_new = prob.cost(new)
+            if c_new < cost:
+                accepted = True
+                break
+            lam *= 4.0
+        if not accepted:
+            status = 'no_descent'
+            break
+        rel = (cost - c_new) / max(cost, 1e-300)
+        p, cost = new, c_new
+        lam = max(lam / 3.0, 1e-12)
+        if rel < tol:
+            status = 'converged'
+            break
+    return p, iterations, status
+
+
+def _best_x0(prob: _Problem, p: Array) -> Array:
+    """``p`` with each episode's initial state the least-squares best for its operators."""
+    K, C, B, _, _, _ = prob.unpack(p)
+    _, Lt_inv = prob.mass_factor(p)
+    n, r = 2 * prob.r, prob.r
+    with np.errstate(all='ignore'):
+        F = sla.expm(prob._augmented(K, C, B))
+    Ad, Bd = F[:n, :n], F[:n, n:]
+    out = p.copy()
+    for i, (q, u) in enumerate(zip(prob.Q, prob.U)):
+        k = q.shape[1]
+        forced = Lt_inv @ _run(Ad, Bd @ u, np.zeros(n))[:r]
+        Phi = np.empty((r, k, n))                 # free responses to unit initial states
+        S = np.eye(n)
+        for j in range(k):
+            Phi[:, j, :] = Lt_inv @ S[:r]
+            S = Ad @ S
+        x0, *_ = np.linalg.lstsq(Phi.reshape(-1, n), (q - forced).ravel(), rcond=None)
+        o = prob.n_shared + 2 * r * i
+        out[o:o + n] = x0
+    return out
+
+
 def _factor(S: Array) -> Array:
     """Lower-triangular ``L`` with ``L Lᵀ = S`` for a symmetric PSD ``S`` (jittered if needed)."""
     S = 0.5 * (S + S.T)
@@ -320,7 +396,7 @@ def initial_states(episodes: Sequence[tuple[Array, Array]], Lt: Array, dt: float
 def refine_output_error(K: Array, C: Array, B: Array, episodes: Sequence[tuple[Array, Array]],
                         dt: float, *, Lt: Array | None = None, free_mass: bool = False,
                         margin: dict[str, Any] | None = None, eps: float = 1e-6,
-                        max_iter: int = 30, tol: float = 1e-6
+                        max_iter: int = 30, tol: float = 1e-6, holdout: float = 0.2
                         ) -> tuple[Array, Array, Array, dict[str, Any]]:
     """Refine SPD second-order operators by their simulation error (module docstring).
 
@@ -349,6 +425,11 @@ def refine_output_error(K: Array, C: Array, B: Array, episodes: Sequence[tuple[A
         Levenberg–Marquardt iterations (each: one sensitivity pass).
     tol : float
         Stop when an iteration lowers the cost by less than this relative amount.
+    holdout : float
+        Validation: the refinement is first fitted on the first ``1 - holdout`` of every
+        episode; if it then predicts the held-out tails worse than the start (with its best
+        initial states), the start is returned (``status`` ``'rejected_on_holdout'``);
+        otherwise the whole episodes are fitted from there. ``0``: no validation.
 
     Returns
     -------
@@ -372,46 +453,37 @@ def refine_output_error(K: Array, C: Array, B: Array, episodes: Sequence[tuple[A
                           f'{MAX_PARAMETERS}); use a smaller r or fewer episodes, or '
                           "refine='none'.")
     prob.set_caps(K, C)
-    p = prob.pack(K, C, B, initial_states(episodes, Lt_a, dt))
-    cost0 = prob.cost(p)
-    cost = cost0
-    lam = 1e-3
-    iterations = 0
-    status = 'max_iter'
-    for iterations in range(1, max_iter + 1):  # noqa: B007 (reported after the loop)
-        JtJ, Jtr, cost = prob.normal(p)
-        # Marquardt scaling with a relative floor: a factor at a constraint's boundary (an
-        # active damping margin) has a vanishing column, which must still be damped
-        d = np.diag(JtJ).copy()
-        d = np.maximum(d, 1e-6 * max(float(np.max(d)), 1e-300))
-        accepted = False
-        for _ in range(20):
-            try:
-                step = np.linalg.solve(JtJ + lam * np.diag(d), -Jtr)
-            except np.linalg.LinAlgError:
-                lam *= 10.0
-                continue
-            new = p + step
-            c_new = prob.cost(new)
-            if c_new < cost:
-                accepted = True
-                break
-            lam *= 4.0
-        if not accepted:
-            status = 'no_descent'
-            break
-        rel = (cost - c_new) / max(cost, 1e-300)
-        p, cost = new, c_new
-        lam = max(lam / 3.0, 1e-12)
-        if rel < tol:
-            status = 'converged'
-            break
+    p0 = prob.pack(K, C, B, initial_states(episodes, Lt_a, dt))
+    cost0 = prob.cost(p0)
+    p, iterations, status = p0, 0, 'max_iter'
+    check: dict[str, Any] = {'holdout': float(holdout)}
+    lengths = [int(np.asarray(q).shape[1]) for q, _ in episodes]
+    heads = [int(round(k * (1.0 - holdout))) for k in lengths]
+    if holdout > 0 and all(h >= 32 and k - h >= 8 for h, k in zip(heads, lengths)):
+        # fit on the heads, keep it only if it predicts the held-out tails better than the start
+        head = _Problem([(np.asarray(q)[:, :h], np.asarray(u)[:, :h])
+                         for (q, u), h in zip(episodes, heads)], dt, Lt_a, floors,
+                        free_mass=free_mass)
+        head.set_caps(K, C)
+        p_head, it_head, _ = _levenberg_marquardt(head, p0, max_iter, tol)
+        tail_start = prob.tail_error(_best_x0(head, p0), heads)
+        tail_refined = prob.tail_error(p_head, heads)
+        check.update(tail_error_start=tail_start, tail_error_refined=tail_refined,
+                     iterations_head=it_head)
+        if not tail_refined <= tail_start:
+            status = 'rejected_on_holdout'
+        else:
+            p, iterations, status = _levenberg_marquardt(prob, p_head, max_iter, tol)
+    else:
+        check['holdout'] = 0.0
+        p, iterations, status = _levenberg_marquardt(prob, p0, max_iter, tol)
+    cost = prob.cost(p) if p is not p0 else cost0
     Kr, Cr, Br, _, _, _ = prob.unpack(p)
     Lt_r, _ = prob.mass_factor(p)
     Kr, Cr = 0.5 * (Kr + Kr.T), 0.5 * (Cr + Cr.T)
     info = {'criterion': 'output-error', 'iterations': iterations, 'status': status,
             'cost_start': cost0, 'cost': cost,
             'improvement': 1.0 - float(np.sqrt(cost / cost0)) if cost0 > 0 else 0.0,
-            'parameters': prob.P, 'seconds': time.perf_counter() - t0,
+            'parameters': prob.P, 'seconds': time.perf_counter() - t0, 'validation': check,
             'mass_refined': bool(free_mass), 'mass_factor': Lt_r}
     return Kr, Cr, Br, info
