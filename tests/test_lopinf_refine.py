@@ -133,3 +133,25 @@ def test_refine_is_refused_with_cubic_forces_and_unknown_names():
         LOpInf(r=2, refine='simulation').fit_reduced(
             [np.ones((2, 50)) * np.linspace(0, 1, 50)], [np.ones((1, 50))],
             [np.ones((2, 50))], 0.01)
+
+
+def test_a_refinement_that_predicts_the_held_out_tails_worse_is_rejected():
+    # the last 20 % of every episode come from another system (inputs act with the opposite
+    # sign), which the start describes: fitted on the heads, the refinement learns the
+    # heads' system, predicts the tails worse than the start, and the start is returned
+    rng = np.random.default_rng(7)
+    data = []
+    for _ in range(2):
+        U = np.repeat(rng.uniform(-1, 1, (M_IN, 21)), 40, axis=1)[:, :800]
+        head = simulate(K_TRUE, C_TRUE, B_TRUE, U)
+        tail = simulate(K_TRUE, C_TRUE, -B_TRUE, U)
+        data.append((np.hstack([head[:, :640], tail[:, 640:]]), U))
+    K, C, B, info = refine_output_error(K_TRUE, C_TRUE, -B_TRUE, data, DT)
+    assert info['status'] == 'rejected_on_holdout'
+    val = info['validation']
+    assert val['tail_error_refined'] > val['tail_error_start']
+    assert np.array_equal(B, -B_TRUE) and np.allclose(K, K_TRUE, rtol=1e-9)
+    assert info['improvement'] == 0.0
+    # without validation the same data are fitted (and the heads' system wins)
+    _, _, _, info = refine_output_error(K_TRUE, C_TRUE, -B_TRUE, data, DT, holdout=0.0)
+    assert info['status'] != 'rejected_on_holdout' and info['improvement'] > 0
