@@ -73,7 +73,7 @@ class _Problem:
         self.r = int(Lt.shape[0])
         self.m = int(self.U[0].shape[0])
         self.Lt = np.asarray(Lt, dtype=np.float64)
-        self.Lt_inv = np.linalg.inv(self.Lt)
+        self.Lt_inv: Array = np.asarray(np.linalg.inv(self.Lt), dtype=np.float64)
         self.alpha = float(margin['alpha'])
         self.beta = float(margin['beta'])
         self.eps_k = float(margin['eps_K'])
@@ -85,6 +85,7 @@ class _Problem:
         self.iu = np.triu_indices(r)
         self.n_mass = len(self.iu[0]) if free_mass else 0
         self.n_shared = self.n_op + self.n_mass
+        self._iu_diag = np.flatnonzero(self.iu[0] == self.iu[1])
         self.P = self.n_shared + 2 * r * len(self.Q)
 
     # -- parameters ------------------------------------------------------------------
@@ -102,7 +103,7 @@ class _Problem:
             return self.Lt, self.Lt_inv
         Lt = np.zeros((self.r, self.r))
         Lt[self.iu] = p[self.n_op:self.n_shared]
-        return Lt, np.linalg.inv(Lt)
+        return Lt, np.asarray(np.linalg.inv(Lt), dtype=np.float64)
 
     def unpack(self, p: Array) -> tuple[Array, Array, Array, Array, Array, list[Array]]:
         r, nl, m = self.r, self.nl, self.m
@@ -139,9 +140,11 @@ class _Problem:
         if (float(np.linalg.eigvalsh(K)[-1]) > getattr(self, 'k_cap', np.inf)
                 or float(np.linalg.eigvalsh(C)[-1]) > getattr(self, 'c_cap', np.inf)):
             return float('inf')
+        if self.n_mass:
+            diag = np.abs(p[self.n_op:self.n_shared][self._iu_diag])
+            if not np.min(diag) > 1e-8 * np.max(diag):     # a singular mass factor
+                return float('inf')
         Lt, Lt_inv = self.mass_factor(p)
-        if np.min(np.abs(np.diag(Lt))) <= 1e-8 * np.max(np.abs(np.diag(Lt))):
-            return float('inf')
         with np.errstate(all='ignore'):
             F = sla.expm(self._augmented(K, C, B))
         n = 2 * self.r
