@@ -189,6 +189,11 @@ def fit_models(ts: Any, method: str, *, r_values: tuple[int, ...] | None,
                           'pod_singular_values': pod.singular_values_[:100].tolist()},
                 **names)
             t_fit = time.perf_counter() - t0 - t_basis
+            ref = learner.diagnostics_.get('refinement')
+            if isinstance(ref, dict) and ref.get('status') == 'skipped_too_large':
+                print(f'note: lopinf r = {r_fit}: the output-error refinement is too large '
+                      'to run here and was skipped (the model is the equation-error fit).',
+                      file=sys.stderr)
             for r in (r_values or (pod.r_,)):
                 t1 = time.perf_counter()
                 model = learner.model_for(r, energy_captured=float(pod.energy_[r - 1]))

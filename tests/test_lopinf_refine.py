@@ -155,3 +155,12 @@ def test_a_refinement_that_predicts_the_held_out_tails_worse_is_rejected():
     # without validation the same data are fitted (and the heads' system wins)
     _, _, _, info = refine_output_error(K_TRUE, C_TRUE, -B_TRUE, data, DT, holdout=0.0)
     assert info['status'] != 'rejected_on_holdout' and info['improvement'] > 0
+
+
+def test_a_problem_too_large_to_refine_here_is_skipped_and_said(monkeypatch):
+    import soft_rom.learners.lopinf_refine as lr
+    data = episodes(8, k=300)
+    monkeypatch.setattr(lr, 'MAX_WORK', 1e3)
+    K, C, B, info = lr.refine_output_error(1.2 * K_TRUE, C_TRUE, B_TRUE, data, DT)
+    assert info['status'] == 'skipped_too_large' and info['improvement'] == 0.0
+    assert np.array_equal(K, 1.2 * K_TRUE) and np.array_equal(B, B_TRUE)

@@ -46,8 +46,6 @@ import numpy as np
 from numpy.typing import NDArray
 import scipy.linalg as sla
 
-from soft_rom.errors import ConfigError
-
 __all__ = ['REFINE_CHOICES', 'refine_output_error']
 
 Array = NDArray[np.float64]
@@ -58,8 +56,9 @@ REFINE_CHOICES = ('none', 'output-error')
 #: Most parameters x samples x coordinates held at once (time blocks are cut to this).
 _BLOCK_BUDGET = 4_000_000
 
-#: Most Levenberg–Marquardt parameters (the normal matrix is dense, P x P).
-MAX_PARAMETERS = 4000
+#: Most work of one Levenberg–Marquardt iteration, samples x r x parameters² (about a
+#: second here); a larger problem is not refined (``status`` ``'skipped_too_large'``).
+MAX_WORK = 3e10
 
 
 class _Problem:
@@ -451,10 +450,12 @@ def refine_output_error(K: Array, C: Array, B: Array, episodes: Sequence[tuple[A
     if not floors.get('alpha') or floors['alpha'] <= 0:
         floors['alpha'] = float(eps)
     prob = _Problem(episodes, dt, Lt_a, floors, free_mass=free_mass)
-    if prob.P > MAX_PARAMETERS:
-        raise ConfigError(f'output-error refinement would have {prob.P} parameters (at most '
-                          f'{MAX_PARAMETERS}); use a smaller r or fewer episodes, or '
-                          "refine='none'.")
+    work = float(sum(np.asarray(q).shape[1] for q, _ in episodes)) * r * prob.P ** 2
+    if work > MAX_WORK:
+        info = {'criterion': 'output-error', 'iterations': 0, 'status': 'skipped_too_large',
+                'parameters': prob.P, 'improvement': 0.0, 'seconds': time.perf_counter() - t0,
+                'mass_refined': False, 'mass_factor': Lt_a}
+        return K, C, B, info
     prob.set_caps(K, C)
     p0 = prob.pack(K, C, B, initial_states(episodes, Lt_a, dt))
     cost0 = prob.cost(p0)
