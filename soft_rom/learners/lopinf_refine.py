@@ -438,8 +438,11 @@ def refine_output_error(K: Array, C: Array, B: Array, episodes: Sequence[tuple[A
     K, C, B : ndarray
         The refined operators (same constraints as the start).
     info : dict
-        ``criterion``, ``iterations``, ``cost_start``, ``cost``, ``improvement`` (relative
-        reduction of the training simulation error), ``seconds``, ``parameters``.
+        ``criterion``, ``status`` (``converged``, ``max_iter``, ``no_descent``,
+        ``rejected_on_holdout``, ``skipped_too_large``), ``iterations``, ``cost_start``,
+        ``cost``, ``improvement`` (relative reduction of the training simulation error),
+        ``validation`` (the tail errors of the start and the refinement), ``seconds``,
+        ``parameters``, ``mass_refined``, ``mass_factor``.
     """
     t0 = time.perf_counter()
     r = int(K.shape[0])
