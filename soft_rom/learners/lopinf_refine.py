@@ -46,6 +46,8 @@ import numpy as np
 from numpy.typing import NDArray
 import scipy.linalg as sla
 
+from soft_rom.models import run_states
+
 __all__ = ['REFINE_CHOICES', 'refine_output_error']
 
 Array = NDArray[np.float64]
@@ -150,7 +152,7 @@ class _Problem:
         Ad, Bd = F[:n, :n], F[:n, n:]
         total = 0.0
         for q, u, x0 in zip(self.Q, self.U, x0s):
-            X = _run(Ad, Bd @ u, x0)
+            X = run_states(Ad, Bd, x0, u)[:, :-1]
             total += float(np.sum((Lt_inv @ X[:self.r] - q) ** 2))
         return total if np.isfinite(total) else float('inf')
 
@@ -163,7 +165,7 @@ class _Problem:
             F = sla.expm(self._augmented(K, C, B))
             num = den = 0.0
             for q, u, x0, h in zip(self.Q, self.U, x0s, heads):
-                X = _run(F[:n, :n], F[:n, n:] @ u, x0)
+                X = run_states(F[:n, :n], F[:n, n:], x0, u)[:, :-1]
                 num += float(np.sum((Lt_inv @ X[:self.r, h:] - q[:, h:]) ** 2))
                 den += float(np.sum(q[:, h:] ** 2))
         val = float(np.sqrt(num / max(den, 1e-300)))
@@ -187,7 +189,7 @@ class _Problem:
         block = max(8, _BLOCK_BUDGET // max(1, n * (n_op + n)))
         for i, (q, u, x0) in enumerate(zip(self.Q, self.U, x0s)):
             k = q.shape[1]
-            X = _run(Ad, Bd @ u, x0)                        # (n, k)
+            X = run_states(Ad, Bd, x0, u)[:, :-1]                        # (n, k)
             Qsim = Lt_inv @ X[:r]
             res = Qsim - q                                  # (r, k)
             total += float(np.sum(res ** 2))
@@ -343,7 +345,7 @@ def _best_x0(prob: _Problem, p: Array) -> Array:
     out = p.copy()
     for i, (q, u) in enumerate(zip(prob.Q, prob.U)):
         k = q.shape[1]
-        forced = Lt_inv @ _run(Ad, Bd @ u, np.zeros(n))[:r]
+        forced = Lt_inv @ run_states(Ad, Bd, np.zeros(n), u)[:r, :-1]
         Phi = np.empty((r, k, n))                 # free responses to unit initial states
         S = np.eye(n)
         for j in range(k):
@@ -369,16 +371,6 @@ def _factor(S: Array) -> Array:
     half = W * np.sqrt(np.clip(lam, 0.0, None))
     return np.asarray(np.linalg.cholesky(half @ half.T + 1e-8 * scale * np.eye(S.shape[0])),
                       dtype=np.float64)
-
-
-def _run(Ad: Array, BU: Array, x0: Array) -> Array:
-    k = BU.shape[1]
-    X = np.empty((Ad.shape[0], k))
-    x = np.asarray(x0, dtype=np.float64).copy()
-    for j in range(k):
-        X[:, j] = x
-        x = Ad @ x + BU[:, j]
-    return X
 
 
 def initial_states(episodes: Sequence[tuple[Array, Array]], Lt: Array, dt: float) -> list[Array]:
