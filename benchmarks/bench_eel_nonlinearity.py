@@ -1,0 +1,173 @@
+"""Diagnostic: what kind of nonlinearity separates the eel FOM from every linear ROM.
+
+Three measurements, on the study's default eel (mesh resolution 1, 50 kPa antagonistic
+random pressures, 1 ms):
+
+1. **Amplitude scan.** Test episode Ep 3's pressures scaled by ``s``, simulated with the
+   nonlinear FOM and with its linearization about rest (``EelModel.simulate(linear=True)``):
+   relative distance of the centerline deviations ``|Y_lin - Y| / |Y - y_ref|`` (``x`` and
+   ``z`` of the 20 points, as the study's outputs), and the exponent ``p`` of
+   ``distance ∝ s^p`` between neighbouring amplitudes. ``p ≈ 2`` means a smooth polynomial
+   nonlinearity whose lowest term is cubic in the displacements (a quadratic one would give
+   ``p ≈ 1``).
+2. **Follower loads.** The same episode at ``s = 1`` with dead pressure loads
+   (``follower=False``, a constant ``B``) against the default follower loads: how much of the
+   nonlinearity a configuration-dependent input matrix carries.
+3. **Which terms explain the linear ROM's equation residual.** The study's linear LOpInf
+   (``r`` reduced coordinates, trained on Ep 1 + Ep 2) leaves the acceleration residual
+   ``q̈ + C q̇ + K q - B u`` (8th-order differences of the projected FEM states). Each family
+   of candidate terms is regressed on it (ridge, the weight best on the test episodes, so an
+   upper bound of what the family can explain), after a zero-phase low-pass filter applied
+   to both sides (``--cutoff`` Hz; filtering commutes with the linear regression), and the
+   fraction of the residual explained (R²) on the training and on the test episodes
+   (Ep 3 - 6) is printed. Families: ``q³`` (the gradient of a quartic potential, what
+   ``forces='cubic'`` adds), ``u q`` and ``u q²`` (a configuration-dependent input matrix),
+   ``u² q`` (a pressure-dependent stiffness), ``u³``, and velocity terms.
+
+The reduced episodes come from ``--data`` (default ``/tmp/cubic_cache/eel_reduced.npz``,
+made by ``bench_cubic_eel.py`` with the study's pipeline when missing; never inside the
+repository). The FEM runs take about 15 s.
+
+Run::
+
+    .venv/bin/python benchmarks/bench_eel_nonlinearity.py [--r 6] [--cutoff 5]
+
+Figures of one run are quoted in docs/methods_variants.md (cubic LOpInf section).
+"""
+
+from __future__ import annotations
+
+import argparse
+from itertools import combinations_with_replacement
+from pathlib import Path
+import sys
+import time
+
+import numpy as np
+import scipy.signal as ss
+
+from soft_rom.ddt import FiniteDifference
+from soft_rom.metrics import relative_deviation_error
+from soft_rom.sim.eel import EelModel
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_cubic_eel as bce  # noqa: E402
+
+FAMILIES = ('linear', 'q3', 'uq', 'uq2', 'u2q', 'u3', 'q2v', 'v3')
+
+
+def _outputs(result: object) -> np.ndarray:
+    """``x1..x20, z1..z20`` rows of a simulation's centerline (the study's outputs)."""
+    c = np.asarray(result.centerline)              # type: ignore[attr-defined]
+    return np.concatenate([c[:, 0], c[:, 2]], axis=0)
+
+
+def amplitude_scan(U: np.ndarray, scales: tuple[float, ...]) -> None:
+    model, dead = EelModel(), EelModel(follower=False)
+    n = U.shape[1]
+    print('1. FOM against its linearization, Ep 3 pressures scaled by s')
+    prev: tuple[float, float] | None = None
+    for s in scales:
+        Y = _outputs(model.simulate(U * s, n, 1e-3))
+        Yl = _outputs(model.simulate(U * s, n, 1e-3, linear=True))
+        ref = Y[:, 0]
+        d = relative_deviation_error(Y, Yl, ref)
+        peak = float(np.max(np.abs(Y - ref[:, None])))
+        peak_l = float(np.max(np.abs(Yl - ref[:, None])))
+        slope = '' if prev is None else \
+            f', exponent p = {np.log(prev[1] / d) / np.log(prev[0] / s):.2f}'
+        print(f'   s = {s:5.2f}: |Y_lin - Y| / |Y - y_ref| = {d:.4f}; peak deviation '
+              f'{peak * 1e3:.2f} mm (linearization {peak_l * 1e3:.2f} mm){slope}')
+        prev = (s, d)
+    Y = _outputs(model.simulate(U, n, 1e-3))
+    Yd = _outputs(dead.simulate(U, n, 1e-3))
+    Yl = _outputs(model.simulate(U, n, 1e-3, linear=True))
+    ref = Y[:, 0]
+    print('2. Follower against dead pressure loads, s = 1: '
+          f'|Y_dead - Y| / |Y - y_ref| = {relative_deviation_error(Y, Yd, ref):.4f} '
+          f'(linearization: {relative_deviation_error(Y, Yl, ref):.4f})')
+
+
+def _monomials(X: np.ndarray, degree: int) -> np.ndarray:
+    return np.array([np.prod(X[list(c)], axis=0)
+                     for c in combinations_with_replacement(range(X.shape[0]), degree)])
+
+
+def residual_families(data: bce.Data, cutoff: float) -> None:
+    lin = data.linear()
+    m = lin.model_
+    b, a = ss.butter(4, cutoff, fs=1.0 / data.dt)
+
+    def prep(eps: tuple[int, ...]) -> tuple[list[np.ndarray], ...]:
+        Q, Qd, Qdd, (U,) = FiniteDifference(order=8).episodes(
+            [data.Q[i] for i in eps], data.dt, [[data.U[i] for i in eps]])
+        Q, Qd, Qdd, U = ([x] if isinstance(x, np.ndarray) else list(x)
+                         for x in (Q, Qd, Qdd, U))
+        R = [qdd + m.C @ qd + m.K @ q - m.B @ u for q, qd, qdd, u in zip(Q, Qd, Qdd, U)]
+        return Q, Qd, [u[0::2] for u in U], R     # antagonistic pairs: one drive per segment
+
+    tr, te = prep(bce.TRAIN), prep(bce.TESTS)
+    cat = np.concatenate
+    qs = np.sqrt(np.mean(cat(tr[0], axis=1) ** 2, axis=1))[:, None]
+    vs = np.sqrt(np.mean(cat(tr[1], axis=1) ** 2, axis=1))[:, None]
+    us = np.sqrt(np.mean(cat(tr[2], axis=1) ** 2, axis=1))[:, None]
+
+    def features(q: np.ndarray, v: np.ndarray, u: np.ndarray, fam: str) -> np.ndarray:
+        q, v, u = q / qs, v / vs, u / us
+        if fam == 'linear':
+            return np.vstack([q, v, u])
+        if fam == 'q3':
+            return _monomials(q, 3)
+        if fam == 'uq':
+            return np.array([uk * qi for uk in u for qi in q])
+        if fam == 'uq2':
+            return np.array([uk * p for uk in u for p in _monomials(q, 2)])
+        if fam == 'u2q':
+            return np.array([p * qi for p in _monomials(u, 2) for qi in q])
+        if fam == 'u3':
+            return _monomials(u, 3)
+        if fam == 'q2v':
+            return np.array([p * vi for p in _monomials(q, 2) for vi in v])
+        return _monomials(v, 3)
+
+    def stacked(parts: tuple[list[np.ndarray], ...], fam: str) -> tuple[np.ndarray, np.ndarray]:
+        F = [ss.filtfilt(b, a, features(q, v, u, fam), axis=1)
+             for q, v, u, _ in zip(*parts)]
+        R = [ss.filtfilt(b, a, r_, axis=1) for r_ in parts[3]]
+        return cat(F, axis=1), cat(R, axis=1)
+
+    print(f'3. Linear LOpInf (r = {data.r}) equation residual, low-passed at {cutoff:g} Hz: '
+          'fraction explained by each family (ridge weight best on the test episodes)')
+    for fam in FAMILIES:
+        Ftr, Rtr = stacked(tr, fam)
+        Fte, Rte = stacked(te, fam)
+        G, g = Ftr @ Ftr.T, Ftr @ Rtr.T
+        best = (-np.inf, 0.0, 0.0)
+        for lam in (1e-6, 1e-4, 1e-2, 1.0, 1e2):
+            W = np.linalg.solve(G + lam * np.trace(G) / len(G) * np.eye(len(G)), g)
+            r2_te = 1 - np.sum((Rte - W.T @ Fte) ** 2) / np.sum(Rte ** 2)
+            r2_tr = 1 - np.sum((Rtr - W.T @ Ftr) ** 2) / np.sum(Rtr ** 2)
+            if r2_te > best[0]:
+                best = (r2_te, r2_tr, lam)
+        print(f'   {fam:7s} {Ftr.shape[0]:4d} terms: R² train {best[1]:.3f}, test {best[0]:.3f} '
+              f'(ridge {best[2]:g})')
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
+    ap.add_argument('--data', type=Path, default=Path('/tmp/cubic_cache/eel_reduced.npz'))
+    ap.add_argument('--r', type=int, default=6)
+    ap.add_argument('--cutoff', type=float, default=5.0, help='low-pass cut-off (Hz)')
+    args = ap.parse_args()
+    if not args.data.exists():
+        args.data.parent.mkdir(parents=True, exist_ok=True)
+        bce.build_data(args.data)
+    data = bce.Data(args.data, args.r)
+    t0 = time.perf_counter()
+    amplitude_scan(data.U[3], (1.0, 0.3, 0.1, 0.01))
+    residual_families(data, args.cutoff)
+    print(f'({time.perf_counter() - t0:.0f} s)')
+
+
+if __name__ == '__main__':
+    main()
