@@ -34,6 +34,10 @@ Rows of the table, for each ``r``:
 * ``oe-structured``: ``oe-joint`` with the library's structure at every iterate:
   ``K = L Lᵀ + eps I``, ``C`` likewise, and ``H(q⁴) = wᵀ(P Pᵀ + t I)w`` (a sum of squares
   above the floor ``t = 1e-6 λ_max(K)``), Gauss-Newton in the factors;
+* ``ms-oe``, ``ms-structured``: ``oe-joint`` and ``oe-structured`` by multiple shooting:
+  the training episodes cut into windows of ``--window`` steps, each simulated from the
+  true (projected) state, so the criterion is the prediction error over the window
+  (between the equation error, one step, and the whole-episode simulation error);
 * ``oe-lin``: the same output-error fit of the *linear* operators ``K, C, B`` (``G = H = 0``),
   to separate what the fitting criterion gives from what the nonlinearity gives;
 * ``capacity``, ``capacity-joint``, ``capacity-structured``, ``capacity-lin``
@@ -45,7 +49,8 @@ Rows of the table, for each ``r``:
 Run::
 
     .venv/bin/python benchmarks/bench_cubic_eel.py [--r 4 6] [--capacity] [--parity]
-        [--variants library correction oe oe-joint oe-lin]
+        [--variants library correction oe oe-joint oe-lin ms-oe ms-structured]
+        [--window 250]
 
 Output of one run (two busy cores, 2026-12-02) is quoted in docs/methods_variants.md.
 """
@@ -69,7 +74,8 @@ from soft_rom.metrics import relative_deviation_error
 from soft_rom.models_cubic import CubicSecondOrderModel, symmetric_entries
 
 TRAIN, TESTS = (1, 2), (3, 4, 5, 6)
-VARIANTS = ('library', 'correction', 'oe', 'oe-lin', 'oe-joint', 'oe-structured', 'capacity',
+VARIANTS = ('library', 'correction', 'oe', 'oe-lin', 'oe-joint', 'oe-structured', 'ms-oe',
+            'ms-structured', 'capacity',
             'capacity-joint', 'capacity-lin', 'capacity-structured')
 
 
@@ -254,13 +260,35 @@ class OutputError:
         s, su = lin.state_scale_, lin.input_scale_
         self.Qt = np.stack([data.Q[i] / s for i in eps])              # (nb, r, k)
         self.Ut = np.stack([data.U[i] / su[:, None] for i in eps])    # (nb, m, k)
+        self.X0: np.ndarray | None = None                             # (2r, nb); None: rest
+
+    def use_windows(self, data: Data, lin: LOpInf, eps: tuple[int, ...], length: int) -> None:
+        """Multiple shooting: fit on windows of ``length`` steps, each from the true state.
+
+        The windows tile every episode of ``eps``; each starts at the projected FEM state
+        (velocity by 8th-order differences), so the simulation error measures the prediction
+        over ``length`` steps instead of over the whole episode.
+        """
+        s, su = lin.state_scale_, lin.input_scale_
+        Qs, V0, Us = [], [], []
+        for i in eps:
+            q = data.Q[i] / s
+            _, Qd, _ = FiniteDifference(order=8).episodes([q], data.dt)[:3]
+            qd = Qd if isinstance(Qd, np.ndarray) else Qd[0]
+            u = data.U[i] / su[:, None]
+            for a in range(0, q.shape[1] - length + 1, length):
+                Qs.append(q[:, a:a + length])
+                V0.append(qd[:, a])
+                Us.append(u[:, a:a + length])
+        self.Qt, self.Ut = np.stack(Qs), np.stack(Us)
+        self.X0 = np.vstack([self.Qt[:, :, 0].T, np.stack(V0).T])
 
     def _simulate(self, th: np.ndarray, sens: bool) -> tuple[np.ndarray | None, Any]:
         r, h, lay = self.r, self.h, self.lay
         K, C, G, H, B = lay.unpack(th)
         nb, _, k = self.Qt.shape
         nf = len(self.free)
-        x = np.zeros((2 * r, nb))
+        x = np.zeros((2 * r, nb)) if self.X0 is None else self.X0.copy()
         S = np.zeros((nb, 2 * r, nf))
         Xq = np.empty((k, r, nb))
         Sq = np.empty((k, nb, r, nf)) if sens else None
@@ -347,9 +375,13 @@ class OutputError:
 
 def oe(data: Data, lin: LOpInf, which: str, lam: float, iters: int,
        eps: tuple[int, ...] = TRAIN, keep: tuple[np.ndarray, np.ndarray] | None = None,
-       lam_lin: float = 0.0) -> tuple[CubicSecondOrderModel | Any, str]:
+       lam_lin: float = 0.0, window: int = 0) -> tuple[CubicSecondOrderModel | Any, str]:
     fit = OutputError(data, lin, which, lam, eps, keep, lam_lin)
+    if window:
+        fit.use_windows(data, lin, eps, window)
     th, how = fit.fit(iters)
+    if window:
+        how += f'; {fit.Qt.shape[0]} windows of {window} steps'
     K, C, G, H, Bs = fit.lay.unpack(th)
     C = 0.5 * (C + C.T)
     lam_k, lam_c = np.linalg.eigvalsh(K)[0], np.linalg.eigvalsh(C)[0]
@@ -471,10 +503,14 @@ class StructuredOutputError(OutputError):
 
 
 def oe_structured(data: Data, lin: LOpInf, lam: float, iters: int,
-                  eps: tuple[int, ...] = TRAIN, lam_lin: float = 0.0
+                  eps: tuple[int, ...] = TRAIN, lam_lin: float = 0.0, window: int = 0
                   ) -> tuple[CubicSecondOrderModel, str]:
     fit = StructuredOutputError(data, lin, lam, eps, lam_lin)
+    if window:
+        fit.use_windows(data, lin, eps, window)
     th, how = fit.fit(iters)
+    if window:
+        how += f'; {fit.Qt.shape[0]} windows of {window} steps'
     K, C, G, H, Bs = fit.lay.unpack(th)
     t4 = lc.quartic_lower_bound(H, target=0.0)[0]
     how += (f'; min eig K {np.linalg.eigvalsh(K)[0]:.3g}, C {np.linalg.eigvalsh(C)[0]:.3g}; '
@@ -498,6 +534,8 @@ def main() -> None:
     ap.add_argument('--joint-lambda', type=float, default=1e-5,
                     help='oe-joint: ridge on G, H and on the change of K, C, B')
     ap.add_argument('--parity', action='store_true', help='mirror-symmetric G, H in oe')
+    ap.add_argument('--window', type=int, default=250,
+                    help='ms-oe, ms-structured: steps per multiple-shooting window')
     ap.add_argument('--capacity', action='store_true', help='add the capacity row')
     args = ap.parse_args()
     if not args.data.exists():
@@ -541,6 +579,13 @@ def main() -> None:
                 elif v == 'oe-structured':
                     model, how = oe_structured(data, lin, args.joint_lambda, args.oe_iters,
                                                lam_lin=args.joint_lambda)
+                elif v == 'ms-oe':
+                    model, how = oe(data, lin, 'all', args.joint_lambda, args.capacity_iters,
+                                    lam_lin=args.joint_lambda, window=args.window)
+                elif v == 'ms-structured':
+                    model, how = oe_structured(data, lin, args.joint_lambda,
+                                               args.capacity_iters, lam_lin=args.joint_lambda,
+                                               window=args.window)
                 elif v == 'capacity-structured':
                     model, how = oe_structured(data, lin, args.oe_lambda, args.capacity_iters,
                                                eps=TRAIN + TESTS)
