@@ -54,8 +54,8 @@ from numpy.typing import NDArray
 
 from soft_rom.errors import ConfigError
 
-__all__ = ['blas_threads', 'choose', 'compress_outputs', 'default_n_markov', 'fir_response',
-           'first_order_responses', 'fit_output_map', 'MAX_MARKOV', 'modal_inputs',
+__all__ = ['blas_threads', 'choose', 'compress_inputs', 'compress_outputs', 'cv_folds', 'default_n_markov', 'fir_response',
+           'first_order_responses', 'fit_output_map', 'fold_errors', 'INPUT_RANK_TOL', 'MAX_MARKOV', 'modal_inputs',
            'OBSERVER_GRID', 'okid_regression', 'OUTPUT_SCALE_FLOOR', 'R_GRID', 'R_MAX',
            'real_modal_states', 'RIDGE_FLOOR', 'RIDGE_GRID', 'ridge_markov', 'score_orders',
            'select_okid', 'simulate_states', 'stabilize', 'stabilize_refit', 'TIE_TOL']
@@ -63,9 +63,9 @@ __all__ = ['blas_threads', 'choose', 'compress_outputs', 'default_n_markov', 'fi
 Array = NDArray[np.float64]
 
 #: Smallest relative ridge weight (a relative output precision of about 3e-3).
-RIDGE_FLOOR = 1e-6
+RIDGE_FLOOR = 1e-10
 #: Candidate relative ridge weights ``ρ``.
-RIDGE_GRID = (1e-6, 1e-5, 1e-4, 1e-3)
+RIDGE_GRID = (1e-10, 1e-9, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3)
 #: Output channels are scaled by their RMS, but never by less than this fraction of the
 #: largest channel RMS (nearly static channels would otherwise amplify their perturbations).
 OUTPUT_SCALE_FLOOR = 0.1
@@ -123,8 +123,12 @@ def markov_from_observer(theta: Array, m: int, p: int, lo: int, nm: int) -> Arra
 
 
 def ridge_markov(U: Array, Y: Array, lo: int, nm: int, rhos: tuple[float, ...],
-                 intercept: bool = False) -> list[tuple[Array, dict[str, Any]]]:
+                 intercept: bool = False, rows: NDArray[np.bool_] | None = None
+                 ) -> list[tuple[Array, dict[str, Any]]]:
     """Ridge OKID for several ``ρ`` from one factorization; ``[(markov, info), ...]``.
+
+    ``rows``: boolean mask of shape (K,) of the samples ``k`` whose observer equations are
+    used (default all ``k >= l``; a cross-validation fold leaves a block out).
 
     ``intercept``: with an unpenalized constant term (centered regression), so that the
     coefficients do not depend on a constant offset of the outputs (an error in ``y_ref``,
@@ -133,11 +137,14 @@ def ridge_markov(U: Array, Y: Array, lo: int, nm: int, rhos: tuple[float, ...],
     """
     m, p = U.shape[0], Y.shape[0]
     Phi, T = okid_regression(U, Y, lo)
+    if rows is not None:
+        keep = np.asarray(rows, dtype=bool)[lo:]
+        Phi, T = Phi[:, keep], T[:, keep]
     if intercept:
         Phi = Phi - Phi.mean(axis=1, keepdims=True)
         T = T - T.mean(axis=1, keepdims=True)
     # Ridge from the eigendecomposition of the Gram matrix ΦΦᵀ = W diag(s²) Wᵀ (the SVD's
-    # left factors): its rounding, ε σ_1², is far below every λ = ρ σ_1² used (ρ ≥ 1e-6).
+    # left factors): its rounding, ε σ_1², is far below every λ = ρ σ_1² used (ρ ≥ 1e-10).
     e, W = np.linalg.eigh(Phi @ Phi.T)
     e, W = np.maximum(e[::-1], 0.0), W[:, ::-1]
     TW = (T @ Phi.T) @ W                              # (p, n_unknowns) = T V diag(s)
@@ -265,13 +272,36 @@ def choose(rows: list[dict[str, Any]], tie_tol: float = TIE_TOL) -> dict[str, An
                                       row['observer_order'], row.get('decimation', 1)))
 
 
+def cv_folds(K: int, lo: int, holdout: float, criterion: str = 'blocked'
+             ) -> list[tuple[NDArray[np.bool_], NDArray[np.bool_]]]:
+    """Validation folds ``[(rows, test), ...]``: boolean masks of shape (K,).
+
+    ``rows``: the samples whose observer equations are fitted; ``test``: the samples scored
+    (the output map ``C, D`` is refitted on the others). ``'tail'``: one fold, the last
+    ``holdout`` of the episode. ``'blocked'``: ``n = round(1 / holdout)`` contiguous blocks,
+    each left out once; the ``l`` equations after a block are dropped as well, since their
+    regressors are the block's outputs (hv-block cross-validation).
+    """
+    if criterion not in ('blocked', 'tail'):
+        raise ConfigError(f"criterion must be 'blocked' or 'tail'; got {criterion!r}.")
+    idx = np.arange(K)
+    if criterion == 'tail':
+        cut = int(round(K * (1.0 - holdout)))
+        return [(idx < cut, idx >= cut)]
+    n = max(int(round(1.0 / holdout)), 2)
+    edges = np.round(np.linspace(0, K, n + 1)).astype(int)
+    return [(~((idx >= a) & (idx < b + lo)), (idx >= a) & (idx < b))
+            for a, b in zip(edges[:-1], edges[1:])]
+
+
 def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
                 observer_orders: tuple[int, ...] | None = None,
                 rhos: tuple[float, ...] = RIDGE_GRID, n_markov: int | None = None,
                 r_max: int = R_MAX, r_values: tuple[int, ...] | None = None,
                 refit: bool = True, tie_tol: float = TIE_TOL,
-                intercepts: tuple[bool, ...] = (False, True)) -> dict[str, Any]:
-    """Choose ``(l, ρ, r)`` by the held-out tail error of the ERA/OKID model.
+                intercepts: tuple[bool, ...] = (False, True),
+                criterion: str = 'blocked') -> dict[str, Any]:
+    """Choose ``(l, ρ, r)`` by the held-out error of the ERA/OKID model.
 
     Parameters
     ----------
@@ -280,34 +310,38 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
     Ys : ndarray, shape (p, K)
         Scaled output deviations (or their principal components).
     holdout : float
-        Fraction of the episode held out at its end.
+        Fraction of the episode held out in each fold (:func:`cv_folds`).
     observer_orders : tuple of int, optional
         Candidates (default :data:`OBSERVER_GRID` and the largest order with two equations
-        per unknown on the head, each if it fits): at high sample rates the observer must
+        per unknown in a fold, each if it fits): at high sample rates the observer must
         span many samples to see slow modes.
     rhos : tuple of float
         Candidate ridge weights (each at least :data:`RIDGE_FLOOR`).
     n_markov : int, optional
-        Markov horizon (default :func:`default_n_markov` of the head).
+        Markov horizon (default :func:`default_n_markov` of the samples of a fold).
     r_max : int
-        Largest order tried (when ``r_values`` is not given: even orders 2 ... ``r_max``).
+        Largest order tried (when ``r_values`` is not given: the orders of :data:`R_GRID`
+        up to ``r_max``).
     r_values : tuple of int, optional
         Orders tried.
     refit : bool
-        Score the stabilized realization with ``C, D`` refitted on the head
+        Score the stabilized realization with ``C, D`` refitted on the fold's other samples
         (:func:`stabilize`, :func:`fit_output_map`); ``False``: the ERA realization as it
         is, unstable ones rejected.
     tie_tol : float
         Relative band of tied errors (:func:`choose`).
     intercepts : tuple of bool
         OKID regressions tried without / with an intercept (:func:`ridge_markov`).
+    criterion : {'blocked', 'tail'}
+        Blocked cross-validation (default) or the last ``holdout`` only (:func:`cv_folds`).
 
     Returns
     -------
     dict
-        ``observer_order``, ``ridge``, ``r``, ``tail_error`` (of the chosen candidate),
-        ``rows`` (every ``(l, ρ, r)`` tried), ``table`` (best ``r`` of every ``(l, ρ)``),
-        ``cut`` (samples in the head), ``n_markov``.
+        ``observer_order``, ``ridge``, ``intercept``, ``r``, ``tail_error`` (held-out
+        relative error of the chosen candidate, pooled over the folds), ``rows`` (every
+        candidate tried), ``table`` (best ``r`` of every ``(l, ρ, intercept)``), ``cut``
+        (samples before the last fold), ``n_markov``, ``folds``.
     """
     if not 0.0 < holdout < 0.9:
         raise ConfigError(f'holdout must be in (0, 0.9); got {holdout!r}.')
@@ -324,19 +358,41 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
         cands = [l_max]
     nm = default_n_markov(cut) if n_markov is None else int(n_markov)
     rhos = tuple(max(float(x), RIDGE_FLOOR) for x in rhos)
+    rr = max(r_values) if r_values else r_max
+    grid_r = [r for r in (r_values or R_GRID) if r <= rr]
     rows: list[dict[str, Any]] = []
     table: list[dict[str, Any]] = []
+    n_folds = 0
     for lo, icpt in ((lo, icpt) for lo in cands for icpt in intercepts):
-        for markov, info in ridge_markov(Us[:, :cut], Ys[:, :cut], lo, nm, rhos, icpt):
-            base = {'observer_order': lo, 'ridge': info['ridge'], 'intercept': icpt}
-            try:
-                rr = max(r_values) if r_values else r_max
-                A, B, C, D, _ = era_truncated(markov, rr)
-                cand_r = [r for r in (r_values or R_GRID) if r <= min(rr, A.shape[0])]
-                found = score_orders(A, B, C, D, Us, Ys, cut, cand_r, refit=refit)
-            except (ConfigError, np.linalg.LinAlgError):
-                found = []
-            found = [{**base, **row} for row in found]
+        folds = cv_folds(K, lo, holdout, criterion)
+        n_folds = len(folds)
+        err = np.zeros((len(rhos), len(grid_r)))
+        ref = 0.0
+        radius = np.zeros((len(rhos), len(grid_r)))
+        for fit_rows, test in folds:
+            ref += float(np.sum(Ys[:, test] ** 2))
+            for i, (markov, _info) in enumerate(ridge_markov(Us, Ys, lo, nm, rhos, icpt,
+                                                             rows=fit_rows)):
+                try:
+                    A, B, C, D, _ = era_truncated(markov, rr)
+                    cand_r = [r for r in grid_r if r <= A.shape[0]]
+                    found = {row['r']: row for row in fold_errors(
+                        A, B, C, D, Us, Ys, test, cand_r, refit=refit)}
+                except (ConfigError, np.linalg.LinAlgError):
+                    found = {}
+                for j, r in enumerate(grid_r):
+                    row = found.get(r)
+                    err[i, j] += row['sq_error'] if row is not None else float('inf')
+                    radius[i, j] = max(radius[i, j], row['spectral_radius']
+                                       if row is not None else float('inf'))
+        for i, rho in enumerate(rhos):
+            base = {'observer_order': lo, 'ridge': rho, 'intercept': icpt}
+            found = []
+            for j, r in enumerate(grid_r):
+                e = float(np.sqrt(err[i, j] / ref)) if ref > 0 else float('inf')
+                found.append({**base, 'r': r,
+                              'tail_error': e if np.isfinite(e) else float('inf'),
+                              'spectral_radius': float(radius[i, j])})
             rows.extend(found)
             fin = [row for row in found if np.isfinite(row['tail_error'])]
             table.append(min(fin, key=lambda row: row['tail_error']) if fin else
@@ -345,20 +401,23 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
     return {'observer_order': int(best['observer_order']), 'ridge': float(best['ridge']),
             'intercept': bool(best['intercept']), 'r': int(best['r']),
             'tail_error': float(best['tail_error']), 'rows': rows,
-            'table': table, 'cut': cut, 'n_markov': nm}
+            'table': table, 'cut': cut, 'n_markov': nm, 'folds': n_folds,
+            'criterion': criterion}
 
 
-def score_orders(A_full: Array, B_full: Array, C_full: Array, D: Array, Us: Array,
-                 Ys: Array, cut: int, r_candidates: list[int], *, refit: bool = True
-                 ) -> list[dict[str, Any]]:
-    """Held-out tail error of every order ``r`` (simulated from rest over the episode).
+def fold_errors(A_full: Array, B_full: Array, C_full: Array, D: Array, Us: Array,
+                Ys: Array, test: NDArray[np.bool_], r_candidates: list[int], *,
+                refit: bool = True) -> list[dict[str, Any]]:
+    """Squared output error on the samples ``test`` of every order ``r`` (from rest).
 
     ``A_full, B_full, C_full`` are the balanced realization of the largest candidate order;
-    the leading ``r`` states of a balanced ERA realization are the order-``r`` realization.
-    With ``refit`` the realization is stabilized and ``C, D`` are refitted on the head
-    (samples before ``cut``); otherwise unstable realizations score ``inf``.
+    the leading ``r`` states of a balanced ERA realization are the order-``r`` realization,
+    simulated from rest over the whole episode. With ``refit`` it is stabilized and ``C, D``
+    are refitted on the other samples; otherwise unstable realizations score ``inf``.
+    Rows: ``r``, ``sq_error``, ``spectral_radius``.
     """
     rows = []
+    fit = ~test
     if refit:
         modal = [modal_inputs(A_full[:r, :r], B_full[:r], Us) for r in r_candidates]
         live = [x for x in modal if x[0] is not None]
@@ -368,26 +427,38 @@ def score_orders(A_full: Array, B_full: Array, C_full: Array, D: Array, Us: Arra
         at = 0
         for r, (ev, _G, rho) in zip(r_candidates, modal):
             if ev is None:
-                rows.append({'r': r, 'tail_error': float('inf'), 'spectral_radius': rho})
+                rows.append({'r': r, 'sq_error': float('inf'), 'spectral_radius': rho})
                 continue
             X = real_modal_states(ev, Z[at:at + r])
             at += r
-            C, Dr = fit_output_map(X[:, :cut], Us[:, :cut], Ys[:, :cut])
-            err = _rel((C @ X + Dr @ Us)[:, cut:], Ys[:, cut:])
-            rows.append({'r': r, 'tail_error': err if np.isfinite(err) else float('inf'),
+            C, Dr = fit_output_map(X[:, fit], Us[:, fit], Ys[:, fit])
+            e = float(np.sum((C @ X[:, test] + Dr @ Us[:, test] - Ys[:, test]) ** 2))
+            rows.append({'r': r, 'sq_error': e if np.isfinite(e) else float('inf'),
                          'spectral_radius': rho})
         return rows
     for r in r_candidates:
         A, B, C = A_full[:r, :r], B_full[:r], C_full[:, :r]
         rho = float(np.max(np.abs(np.linalg.eigvals(A))))
         if not rho < 1.0:
-            rows.append({'r': r, 'tail_error': float('inf'), 'spectral_radius': rho})
+            rows.append({'r': r, 'sq_error': float('inf'), 'spectral_radius': rho})
             continue
         X = simulate_states(A, B, Us)
-        err = _rel((C @ X + D @ Us)[:, cut:], Ys[:, cut:])
-        rows.append({'r': r, 'tail_error': err if np.isfinite(err) else float('inf'),
+        e = float(np.sum((C @ X[:, test] + D @ Us[:, test] - Ys[:, test]) ** 2))
+        rows.append({'r': r, 'sq_error': e if np.isfinite(e) else float('inf'),
                      'spectral_radius': rho})
     return rows
+
+
+def score_orders(A_full: Array, B_full: Array, C_full: Array, D: Array, Us: Array,
+                 Ys: Array, cut: int, r_candidates: list[int], *, refit: bool = True
+                 ) -> list[dict[str, Any]]:
+    """Relative output error on the tail ``k >= cut`` of every order ``r`` (:func:`fold_errors`)."""
+    test = np.arange(Us.shape[1]) >= cut
+    den = float(np.linalg.norm(Ys[:, test]))
+    return [{'r': row['r'], 'spectral_radius': row['spectral_radius'],
+             'tail_error': float(np.sqrt(row['sq_error'])) / max(den, 1e-300)}
+            for row in fold_errors(A_full, B_full, C_full, D, Us, Ys, test, r_candidates,
+                                   refit=refit)]
 
 
 def modal_inputs(A: Array, B: Array, U: Array
@@ -490,6 +561,43 @@ def compress_outputs(Ys: Array, rank: int | str | None) -> tuple[Array, Array | 
         return Ys, None
     P = np.linalg.svd(Ys, full_matrices=False)[0][:, :q]         # (p, q), orthonormal
     return P.T @ Ys, P
+
+
+#: Input directions whose singular value is below this fraction of the largest are not
+#: excited by the data (:func:`compress_inputs`).
+INPUT_RANK_TOL = 1e-8
+
+
+def compress_inputs(Us: Array, rank: int | str | None) -> tuple[Array, Array | None]:
+    """The input directions the data excite: ``(P_uᵀ U_s, P_u)``, ``P_u`` (m, m_e) orthonormal.
+
+    Inputs driven in fixed combinations (antagonistic actuator pairs: ``u_2 = -u_1``) span
+    fewer than ``m`` directions; the responses to the directions they never take are not
+    determined by the data, and a least-squares or weakly regularized OKID fills them with
+    whatever rounding makes them (on the eel, 3 of 6 pressure directions: their share of the
+    Markov parameters changed by 3e-4 under a 1e-9 output perturbation at ``ρ = 1e-9``).
+    Identifying on the excited directions gives those responses exactly zero (the
+    minimum-norm answer); the model is lifted back with ``B = B_e P_uᵀ``, ``D = D_e P_uᵀ``.
+
+    ``rank``: ``m_e``; ``'auto'``: the singular values above :data:`INPUT_RANK_TOL` times the
+    largest; ``None`` (or ``m_e = m``): the inputs as they are (``P_u = None``).
+    """
+    m = Us.shape[0]
+    if rank is None:
+        return Us, None
+    Pu, sv, _ = np.linalg.svd(Us, full_matrices=False)
+    if rank == 'auto':
+        q = max(int(np.sum(sv > INPUT_RANK_TOL * sv[0])), 1) if sv[0] > 0 else m
+    elif isinstance(rank, str):
+        raise ConfigError(f"input_rank must be an integer, 'auto' or None; got {rank!r}.")
+    else:
+        q = int(rank)
+        if not 1 <= q <= m:
+            raise ConfigError(f'input_rank must be between 1 and m = {m}; got {q}.')
+    if q == m:
+        return Us, None
+    P = np.ascontiguousarray(Pu[:, :q])
+    return P.T @ Us, P
 
 
 #: Decimation factors tried by ``ERAOKID(decimation='auto')``.
