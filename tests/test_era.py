@@ -10,6 +10,7 @@ from soft_rom.data import Episode
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
 from soft_rom.evaluation import evaluate, predict
 from soft_rom.learners.era import decimate, era, ERAOKID, hankel_rank, okid_markov
+from soft_rom.learners.era_select import RIDGE_FLOOR
 
 
 def _lti(n=6, m=2, p=2, seed=1, rho=0.95):
@@ -198,7 +199,7 @@ def test_defaults_on_realistic_lightly_damped_data():
     # data step (resampled if identified at a coarser one). Former defaults (decimation 5,
     # 100 Markov parameters, observer 3): 3-3.7 % test error on deviations.
     assert est.model_.dt == pytest.approx(h)
-    assert est.selection_ is not None and est.okid_ridge_ >= 1e-6
+    assert est.selection_ is not None and est.okid_ridge_ >= RIDGE_FLOOR
     assert ev.get('*', 'train')['relative_deviation_error'] < 0.08
     assert ev.get('*', 'test')['relative_deviation_error'] < 0.08
     assert est.model_.stability_margin() > 0

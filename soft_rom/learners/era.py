@@ -193,9 +193,13 @@ def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: in
 
 
 def _hankel(markov: Array, start: int, rows: int, cols: int) -> Array:
+    """Block Hankel matrix ``[Y_{start+i+j}]`` (rows · p, cols · m), from a strided view."""
     _, p, m = markov.shape
-    idx = start + np.arange(rows)[:, None] + np.arange(cols)[None, :]
-    return np.ascontiguousarray(markov[idx].transpose(0, 2, 1, 3).reshape(rows * p, cols * m))
+    mk = np.ascontiguousarray(markov[start:start + rows + cols - 1])
+    s0, s1, s2 = mk.strides
+    view = np.lib.stride_tricks.as_strided(mk, shape=(rows, p, cols, m),
+                                           strides=(s0, s1, s0, s2), writeable=False)
+    return np.ascontiguousarray(view.reshape(rows * p, cols * m))
 
 
 def hankel_rank(hsv: ArrayLike, *, tol: float = 1e-3) -> int:

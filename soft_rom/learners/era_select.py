@@ -65,16 +65,20 @@ Array = NDArray[np.float64]
 #: Smallest relative ridge weight (a relative output precision of about 3e-3).
 RIDGE_FLOOR = 1e-10
 #: Candidate relative ridge weights ``ρ``.
-RIDGE_GRID = (1e-10, 1e-9, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4, 1e-3)
+RIDGE_GRID = (1e-10, 1e-9, 1e-8, 1e-7, 1e-6, 1e-4)
 #: Output channels are scaled by their RMS, but never by less than this fraction of the
 #: largest channel RMS (nearly static channels would otherwise amplify their perturbations).
 OUTPUT_SCALE_FLOOR = 0.1
 #: Orders tried by the selection (up to ``r_max``).
 R_GRID = (2, 4, 6, 8, 10, 12, 16, 20, 24, 28, 32, 40, 48, 56)
+#: OKID regressions tried without / with an intercept (:func:`ridge_markov`).
+INTERCEPTS = (False, True)
 #: Candidate observer orders (those that fit the data are tried).
 OBSERVER_GRID = (8, 16, 32, 64)
 #: Cap of the automatic Markov horizon.
 MAX_MARKOV = 500
+#: Power iterations of the randomized truncated SVD in the search (:func:`era_truncated`).
+POWER_ITERATIONS = 2
 #: Largest order tried by the selection.
 R_MAX = 40
 #: Relative band of held-out errors treated as tied (:func:`choose`).
@@ -197,9 +201,12 @@ def era_truncated(markov: Array, rmax: int, *, seed: int = 0
     k = min(rmax + 20, min(H0.shape))
     rng = np.random.default_rng(seed)
     Qm = np.linalg.qr(H0 @ rng.standard_normal((H0.shape[1], k)))[0]
-    for _ in range(2):
+    for _ in range(POWER_ITERATIONS):
         Qm = np.linalg.qr(H0 @ (H0.T @ Qm))[0]
-    Ub, sv, Vt = np.linalg.svd(Qm.T @ H0, full_matrices=False)
+    # SVD of the small (k, n) matrix Qᵀ H0 through the QR of its transpose.
+    Qt, Rt = np.linalg.qr((Qm.T @ H0).T)
+    Ub, sv, Wt = np.linalg.svd(Rt.T)
+    Vt = (Qt @ Wt.T).T
     P = Qm @ Ub
     r = int(min(rmax, int(np.sum(sv > 1e-12 * sv[0]))))
     sq = np.sqrt(sv[:r])
@@ -299,7 +306,7 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
                 rhos: tuple[float, ...] = RIDGE_GRID, n_markov: int | None = None,
                 r_max: int = R_MAX, r_values: tuple[int, ...] | None = None,
                 refit: bool = True, tie_tol: float = TIE_TOL,
-                intercepts: tuple[bool, ...] = (False, True),
+                intercepts: tuple[bool, ...] | None = None,
                 criterion: str = 'blocked') -> dict[str, Any]:
     """Choose ``(l, ρ, r)`` by the held-out error of the ERA/OKID model.
 
@@ -358,6 +365,7 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
         cands = [l_max]
     nm = default_n_markov(cut) if n_markov is None else int(n_markov)
     rhos = tuple(max(float(x), RIDGE_FLOOR) for x in rhos)
+    intercepts = INTERCEPTS if intercepts is None else intercepts
     rr = max(r_values) if r_values else r_max
     grid_r = [r for r in (r_values or R_GRID) if r <= rr]
     rows: list[dict[str, Any]] = []
