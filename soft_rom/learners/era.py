@@ -298,12 +298,13 @@ class ERAOKID:
 
     Defaults (``selection='holdout'``): well-posed ridge OKID (module
     :mod:`soft_rom.learners.era_select`), with the decimation, the observer order ``l``, the
-    ridge weight ``ρ``, the OKID intercept and the order ``r`` chosen together by the error of
-    the stabilized, output-refitted ERA model on a held-out tail of the episode (fit on the
-    first 80 %; errors within ``tie_tol`` of the best are tied and broken by a fixed
-    preference, so tiny perturbations do not change the choice), then refitted on the whole
-    episode; the Markov horizon is a third of the samples (at most 500); outputs are
-    identified on their leading principal components. Any of ``r``, ``observer_order``,
+    ridge weight ``ρ``, the OKID intercept and the order ``r`` chosen together by the held-out
+    error of the stabilized, output-refitted ERA model in a blocked cross-validation over the
+    episode (5 blocks, each predicted by a model fitted without it; errors within ``tie_tol``
+    of the best are tied and broken by a fixed preference, so tiny perturbations do not change
+    the choice), then refitted on the whole episode; the Markov horizon is a third of the
+    samples (at most 500); outputs are identified on their leading principal components and
+    inputs on the directions the data excite. Any of ``r``, ``observer_order``,
     ``okid_ridge`` given by hand is kept fixed in the search.
 
     Parameters
@@ -351,7 +352,11 @@ class ERAOKID:
     selection : {'holdout', 'none'}
         Data-driven settings (default) or the given ones as they are.
     holdout : float
-        Fraction of the episode held out for the selection.
+        Fraction of the episode held out in each fold of the selection (``1 / holdout``
+        blocks).
+    criterion : {'blocked', 'tail'}
+        Blocked cross-validation (default) or the former single held-out tail
+        (:func:`~soft_rom.learners.era_select.cv_folds`).
     refit : bool
         Stabilize the realization (eigenvalues outside the unit circle reflected inside) and
         refit ``C, D`` by least squares on the simulated states (default); ``False``: the ERA
@@ -605,6 +610,8 @@ class ERAOKID:
             'selection_tail_error': None if sel is None else sel['tail_error'],
             'selection_refit': None if sel is None else sel.get('refit'),
             'selection_tie_tol': None if sel is None else float(self.tie_tol),
+            'selection_criterion': None if sel is None else sel.get('criterion'),
+            'selection_folds': None if sel is None else sel.get('folds'),
             'output_refit': bool(refitted), 'stabilized': bool(stabilized),
             'observer_order': lo, 'okid_residual': info['residual'],
             'okid_rank': info['rank'], 'okid_unknowns': info['n_unknowns'],
