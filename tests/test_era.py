@@ -371,3 +371,7 @@ def test_blocked_cross_validation_folds_and_order():
                       Y / np.std(Y0, axis=1, keepdims=True), observer_orders=(4, 8))
     assert res['folds'] == 5 and res['r'] == 4
     assert res['tail_error'] <= 1.5e-3
+    # Candidates whose folds were skipped (exact pruning) carry a lower bound above the band.
+    pruned = [row for row in res['rows'] if not row['complete']]
+    best = min(row['tail_error'] for row in res['rows'] if row['complete'])
+    assert pruned and min(row['tail_error'] for row in pruned) > best * 1.03
