@@ -39,11 +39,11 @@ last seconds. The knobs:
   ``decimation`` samples and inputs averaged over each block (the input held over one model
   step); the model is then resampled to the data step when possible.
 
-:class:`ERAOKID` chooses them from the data by the error on a held-out tail of the episode
-(:mod:`soft_rom.learners.era_select`, which also explains why the ridge solve is needed);
-named presets (:data:`ERA_PRESETS`) give the hand-tuned settings.
+:class:`ERAOKID` chooses them from the data by the held-out error of a cross-validation
+over blocks of the episode (:mod:`soft_rom.learners.era_select`, which also explains why the
+ridge solve is needed); named presets (:data:`ERA_PRESETS`) give the hand-tuned settings.
 
-About 680 lines: the learner's fit carries the search over decimations, the refit on the
+About 710 lines: the learner's fit carries the search over decimations, the refit on the
 whole episode and the presets; the selection itself lives in
 :mod:`soft_rom.learners.era_select`.
 
@@ -321,7 +321,7 @@ class ERAOKID:
     decimation : int or 'auto'
         Fit at ``decimation`` times the data sample time; ``'auto'`` (default): a factor of
         :data:`~soft_rom.learners.era_select.DECIMATION_GRID`, selected with the other
-        settings by the held-out tail error. A model fitted at ``d > 1`` is resampled to the
+        settings by the cross-validated error. A model fitted at ``d > 1`` is resampled to the
         data step (:func:`~soft_rom.learners.era_select.to_data_rate`: exact ``d``-th root), so it
         predicts on the data grid without interpolation; the metadata state ``decimation``,
         ``dt_fit``, ``dt_model`` and ``resampled_to_data_rate``. If no real root exists the
