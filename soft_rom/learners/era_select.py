@@ -67,7 +67,7 @@ at ``ρ = 1e-4 … 1e-3`` (models no better than predicting no motion) and 15-20
 selected ``ρ = 1e-9``, while the predicted outputs move by far less (the test error is the
 same to five digits).
 
-About 670 lines: the search (folds, candidates, orders) and its numerical kernels, which
+About 700 lines: the search (folds, candidates, orders) and its numerical kernels, which
 belong together.
 """
 
