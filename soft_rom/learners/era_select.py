@@ -402,46 +402,49 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
     # The scored samples do not depend on l: one reference for every candidate.
     ref = float(sum(np.sum(Ys[:, test] ** 2) for _, test in cv_folds(K, 1, holdout,
                                                                       criterion)))
-    # Exact pruning: the pooled squared error only grows from fold to fold, so a ridge weight
-    # whose partial error at every order already exceeds the band of the best complete
-    # candidate (``best (1 + tie_tol)``) can be neither chosen nor tied; its folds are skipped
-    # and its rows carry that lower bound (``complete: False``). The choice is the same.
+    # Exact pruning: the pooled squared error only grows from fold to fold, so an order (and a
+    # ridge weight, once all its orders are out) whose partial error already exceeds the band
+    # of the best complete candidate (``best (1 + tie_tol)``) can be neither chosen nor tied;
+    # its remaining folds are skipped and its rows carry that lower bound
+    # (``complete: False``). Each order is scored independently, so the choice is the same.
     bound = float('inf')
     pairs = [(lo, icpt) for lo in cands for icpt in intercepts]
     folds = {lo: cv_folds(K, lo, holdout, criterion) for lo in cands}
     n_folds = len(folds[cands[0]])
     err = {c: np.zeros((len(rhos), len(grid_r))) for c in pairs}
     radius = {c: np.zeros((len(rhos), len(grid_r))) for c in pairs}
-    alive = {c: np.ones(len(rhos), dtype=bool) for c in pairs}
+    alive = {c: np.ones((len(rhos), len(grid_r)), dtype=bool) for c in pairs}
 
     def run_fold(c: tuple[int, bool], fold: tuple[NDArray[np.bool_], NDArray[np.bool_]]
                  ) -> None:
         lo, icpt = c
-        live = np.flatnonzero(alive[c])
+        live = np.flatnonzero(alive[c].any(axis=1))
         fits = ridge_markov(Us, Ys, lo, nm, tuple(rhos[i] for i in live), icpt,
                             rows=fold[0])
         for i, (markov, _info) in zip(live, fits):
             try:
                 A, B, C, D, _ = era_truncated(markov, rr)
-                cand_r = [r for r in grid_r if r <= A.shape[0]]
+                cand_r = [r for j, r in enumerate(grid_r)
+                          if alive[c][i, j] and r <= A.shape[0]]
                 found = {row['r']: row for row in fold_errors(
                     A, B, C, D, Us, Ys, fold[1], cand_r, refit=refit)}
             except (ConfigError, np.linalg.LinAlgError):
                 found = {}
             for j, r in enumerate(grid_r):
+                if not alive[c][i, j]:
+                    continue
                 row = found.get(r)
                 err[c][i, j] += row['sq_error'] if row is not None else float('inf')
                 radius[c][i, j] = max(radius[c][i, j], row['spectral_radius']
                                       if row is not None else float('inf'))
-            if not np.min(err[c][i]) <= bound:
-                alive[c][i] = False
+            alive[c][i] &= err[c][i] <= bound
 
     # The last block of every candidate first, then the candidates in the order of that
     # error, each through its other blocks: good candidates complete early and set the bound.
     for c in pairs:
         run_fold(c, folds[c[0]][-1])
     for c in sorted(pairs, key=lambda c: float(np.min(err[c]))):
-        alive[c] &= np.min(err[c], axis=1) <= bound
+        alive[c] &= err[c] <= bound
         for fold in folds[c[0]][-2::-1]:
             if not alive[c].any():
                 break
@@ -451,12 +454,11 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
     for c in pairs:
         lo, icpt = c
         for i, rho in enumerate(rhos):
-            base = {'observer_order': lo, 'ridge': rho, 'intercept': icpt,
-                    'complete': bool(alive[c][i])}
+            base = {'observer_order': lo, 'ridge': rho, 'intercept': icpt}
             found = []
             for j, r in enumerate(grid_r):
                 e = float(np.sqrt(err[c][i, j] / ref)) if ref > 0 else float('inf')
-                found.append({**base, 'r': r,
+                found.append({**base, 'r': r, 'complete': bool(alive[c][i, j]),
                               'tail_error': e if np.isfinite(e) else float('inf'),
                               'spectral_radius': float(radius[c][i, j])})
             rows.extend(found)
