@@ -10,6 +10,7 @@ from soft_rom.data import Episode
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
 from soft_rom.evaluation import evaluate, predict
 from soft_rom.learners.era import decimate, era, ERAOKID, hankel_rank, okid_markov
+from soft_rom.learners.era_select import RIDGE_FLOOR
 
 
 def _lti(n=6, m=2, p=2, seed=1, rho=0.95):
@@ -198,7 +199,7 @@ def test_defaults_on_realistic_lightly_damped_data():
     # data step (resampled if identified at a coarser one). Former defaults (decimation 5,
     # 100 Markov parameters, observer 3): 3-3.7 % test error on deviations.
     assert est.model_.dt == pytest.approx(h)
-    assert est.selection_ is not None and est.okid_ridge_ >= 1e-6
+    assert est.selection_ is not None and est.okid_ridge_ >= RIDGE_FLOOR
     assert ev.get('*', 'train')['relative_deviation_error'] < 0.08
     assert ev.get('*', 'test')['relative_deviation_error'] < 0.08
     assert est.model_.stability_margin() > 0
@@ -305,3 +306,72 @@ def test_default_selection_is_stable_under_tiny_perturbations():
     ev = evaluate(ref.model_, Episode(t=ep.t, U=U, Y=Y0), t_split=5.0)
     assert ev.get('*', 'test')['relative_deviation_error'] < 0.1
     assert ref.model_.stability_margin() > 0
+
+
+def test_input_compression_zeroes_the_responses_the_data_do_not_determine():
+    """Antagonistic inputs (u_2 = -u_1) excite 2 of 3 input directions.
+
+    The response to the third is not in the data; identified on the excited directions it is
+    exactly zero, the rest is the true one, and a 1e-9 output perturbation moves the Markov
+    parameters by < 1e-8 even with the weakest ridge (1e-10).
+    """
+    A, B, C, rng = _sampled(n=4, m=3, p=3, seed=6)
+    k = 600
+    base = rng.standard_normal((2, k))
+    U = np.vstack([base[0], -base[0], base[1]]) * 2e4
+    D = np.zeros((3, 3))
+    Y = _response(A, B, C, D, U, np.zeros(4)) * 1e-3
+    ep = Episode(t=np.arange(k) * 1e-3, U=U, Y=Y)
+    kw = dict(r=4, n_markov=40, decimation=1, selection='none', output_rank=None,
+              okid_ridge=1e-10)
+    est = ERAOKID(**kw).fit(ep, np.zeros(3))
+    assert est.input_basis_.shape == (3, 2) and est.model_.B.shape == (4, 3)
+    assert est.model_.metadata['input_rank'] == 2
+    R = np.linalg.svd(U, full_matrices=False)[0][:, :2]         # excited input directions
+    true = _markov(A, B, C, D, 40) * 1e-3
+    mk = est.markov_parameters()
+    scale = np.abs(true).max()
+    assert np.abs(mk @ (np.eye(3) - R @ R.T)).max() <= 1e-12 * scale
+    assert np.abs((mk - true) @ R).max() <= 1e-6 * scale
+    assert np.abs(est.model_.simulate(U) - Y).max() <= 1e-6 * np.abs(Y).max()
+    pert = Episode(t=ep.t, U=U, Y=Y * (1 + 1e-9 * rng.standard_normal(Y.shape)))
+    mk2 = ERAOKID(**kw).fit(pert, np.zeros(3)).markov_parameters()
+    # Measured 8e-10 (all three input directions: 1.9e-6, from the undetermined one).
+    assert np.linalg.norm(mk2 - mk) <= 1e-8 * np.linalg.norm(mk)
+    assert ERAOKID.from_preset('eel').input_rank is None            # presets as they were
+    full = ERAOKID(**kw, input_rank=None).fit(ep, np.zeros(3))
+    assert full.input_basis_ is None and full.model_.metadata['input_rank'] == 3
+    with pytest.raises(ConfigError, match='input_rank'):
+        ERAOKID(**kw, input_rank=4).fit(ep, np.zeros(3))
+
+
+def test_blocked_cross_validation_folds_and_order():
+    from soft_rom.learners.era_select import cv_folds, select_okid
+    folds = cv_folds(100, 3, 0.2)
+    assert len(folds) == 5
+    tests = np.array([t for _, t in folds])
+    np.testing.assert_array_equal(tests.sum(axis=0), np.ones(100))   # a partition
+    rows, test = folds[1]                                        # block 20..39 held out
+    np.testing.assert_array_equal(np.flatnonzero(test), np.arange(20, 40))
+    # Its equations and the l = 3 after it (their regressors are the block's outputs).
+    np.testing.assert_array_equal(np.flatnonzero(~rows), np.arange(20, 43))
+    (rows, test), = cv_folds(100, 3, 0.2, 'tail')
+    np.testing.assert_array_equal(np.flatnonzero(test), np.arange(80, 100))
+    np.testing.assert_array_equal(rows, ~test)
+    with pytest.raises(ConfigError, match='criterion'):
+        cv_folds(100, 3, 0.2, 'kfold')
+    # A 4-state system with 0.1 % output noise: the held-out error reaches the noise level
+    # at the true order, and the tie rule keeps it (the tail alone picks 12 here).
+    A, B, C, rng = _sampled(n=4, m=2, p=3, seed=6)
+    k = 800
+    U = np.repeat(rng.standard_normal((2, k // 10)), 10, axis=1)
+    Y0 = _response(A, B, C, np.zeros((3, 2)), U, np.zeros(4))
+    Y = Y0 + 1e-3 * np.std(Y0, axis=1, keepdims=True) * rng.standard_normal(Y0.shape)
+    res = select_okid(U / np.std(U, axis=1, keepdims=True),
+                      Y / np.std(Y0, axis=1, keepdims=True), observer_orders=(4, 8))
+    assert res['folds'] == 5 and res['r'] == 4
+    assert res['tail_error'] <= 1.5e-3
+    # Candidates whose folds were skipped (exact pruning) carry a lower bound above the band.
+    pruned = [row for row in res['rows'] if not row['complete']]
+    best = min(row['tail_error'] for row in res['rows'] if row['complete'])
+    assert pruned and min(row['tail_error'] for row in pruned) > best * 1.03

@@ -39,11 +39,11 @@ last seconds. The knobs:
   ``decimation`` samples and inputs averaged over each block (the input held over one model
   step); the model is then resampled to the data step when possible.
 
-:class:`ERAOKID` chooses them from the data by the error on a held-out tail of the episode
-(:mod:`soft_rom.learners.era_select`, which also explains why the ridge solve is needed);
-named presets (:data:`ERA_PRESETS`) give the hand-tuned settings.
+:class:`ERAOKID` chooses them from the data by the held-out error of a cross-validation
+over blocks of the episode (:mod:`soft_rom.learners.era_select`, which also explains why the
+ridge solve is needed); named presets (:data:`ERA_PRESETS`) give the hand-tuned settings.
 
-About 680 lines: the learner's fit carries the search over decimations, the refit on the
+About 710 lines: the learner's fit carries the search over decimations, the refit on the
 whole episode and the presets; the selection itself lives in
 :mod:`soft_rom.learners.era_select`.
 
@@ -76,7 +76,7 @@ __all__ = ['ERA_EEL_OPTIONS', 'ERA_PRESETS', 'ERAOKID', 'decimate', 'era', 'hank
 #: observer and 500 Markov parameters (0.5 s), plain least squares (no ridge, no selection).
 ERA_EEL_OPTIONS: dict[str, Any] = {'decimation': 1, 'output_rank': 4, 'observer_order': 36,
                                    'n_markov': 500, 'selection': 'none', 'refit': False,
-                                   'output_scale_floor': 0.0}
+                                   'output_scale_floor': 0.0, 'input_rank': None}
 
 #: Named settings for :meth:`ERAOKID.from_preset` (and ``soft-rom fit --era-preset``):
 #: ``'auto'`` the data-driven defaults; ``'eel'`` the study's hand-tuned settings;
@@ -87,7 +87,7 @@ ERA_PRESETS: dict[str, dict[str, Any]] = {
     'eel': ERA_EEL_OPTIONS,
     'legacy': {'decimation': 5, 'n_markov': 100, 'max_observer_order': 10,
                'output_rank': None, 'selection': 'none', 'refit': False,
-               'output_scale_floor': 0.0},
+               'output_scale_floor': 0.0, 'input_rank': None},
 }
 
 Array = NDArray[np.float64]
@@ -193,9 +193,13 @@ def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: in
 
 
 def _hankel(markov: Array, start: int, rows: int, cols: int) -> Array:
+    """Block Hankel matrix ``[Y_{start+i+j}]`` (rows · p, cols · m), from a strided view."""
     _, p, m = markov.shape
-    idx = start + np.arange(rows)[:, None] + np.arange(cols)[None, :]
-    return np.ascontiguousarray(markov[idx].transpose(0, 2, 1, 3).reshape(rows * p, cols * m))
+    mk = np.ascontiguousarray(markov[start:start + rows + cols - 1])
+    s0, s1, s2 = mk.strides
+    view = np.lib.stride_tricks.as_strided(mk, shape=(rows, p, cols, m),
+                                           strides=(s0, s1, s0, s2), writeable=False)
+    return np.ascontiguousarray(view.reshape(rows * p, cols * m))
 
 
 def hankel_rank(hsv: ArrayLike, *, tol: float = 1e-3) -> int:
@@ -294,12 +298,13 @@ class ERAOKID:
 
     Defaults (``selection='holdout'``): well-posed ridge OKID (module
     :mod:`soft_rom.learners.era_select`), with the decimation, the observer order ``l``, the
-    ridge weight ``ρ``, the OKID intercept and the order ``r`` chosen together by the error of
-    the stabilized, output-refitted ERA model on a held-out tail of the episode (fit on the
-    first 80 %; errors within ``tie_tol`` of the best are tied and broken by a fixed
-    preference, so tiny perturbations do not change the choice), then refitted on the whole
-    episode; the Markov horizon is a third of the samples (at most 500); outputs are
-    identified on their leading principal components. Any of ``r``, ``observer_order``,
+    ridge weight ``ρ``, the OKID intercept and the order ``r`` chosen together by the held-out
+    error of the stabilized, output-refitted ERA model in a blocked cross-validation over the
+    episode (5 blocks, each predicted by a model fitted without it; errors within ``tie_tol``
+    of the best are tied and broken by a fixed preference, so tiny perturbations do not change
+    the choice), then refitted on the whole episode; the Markov horizon is a third of the
+    samples (at most 500); outputs are identified on their leading principal components and
+    inputs on the directions the data excite. Any of ``r``, ``observer_order``,
     ``okid_ridge`` given by hand is kept fixed in the search.
 
     Parameters
@@ -316,7 +321,7 @@ class ERAOKID:
     decimation : int or 'auto'
         Fit at ``decimation`` times the data sample time; ``'auto'`` (default): a factor of
         :data:`~soft_rom.learners.era_select.DECIMATION_GRID`, selected with the other
-        settings by the held-out tail error. A model fitted at ``d > 1`` is resampled to the
+        settings by the cross-validated error. A model fitted at ``d > 1`` is resampled to the
         data step (:func:`~soft_rom.learners.era_select.to_data_rate`: exact ``d``-th root), so it
         predicts on the data grid without interpolation; the metadata state ``decimation``,
         ``dt_fit``, ``dt_model`` and ``resampled_to_data_rate``. If no real root exists the
@@ -331,6 +336,12 @@ class ERAOKID:
         Identify on the leading ``output_rank`` principal components of the scaled outputs
         (``Y_s ≈ P Z``) and lift ``C = P C_Z``, ``D = P D_Z``; ``'auto'`` (default): the
         components holding 99 % of the energy, at least ``min(p, 4)``; ``None``: all ``p``.
+    input_rank : int, 'auto' or None
+        Identify on the input directions the data excite
+        (:func:`~soft_rom.learners.era_select.compress_inputs`; ``'auto'``, default: singular
+        values of the scaled inputs above ``1e-8`` of the largest), so that the responses to
+        input combinations never applied (antagonistic pairs) are zero instead of
+        undetermined; ``None``: all ``m`` inputs (the presets).
     okid_rcond : float, optional
         Relative singular-value cut-off of the plain least-squares OKID solve (only when
         ``okid_ridge`` is ``None`` and ``selection='none'``).
@@ -341,7 +352,11 @@ class ERAOKID:
     selection : {'holdout', 'none'}
         Data-driven settings (default) or the given ones as they are.
     holdout : float
-        Fraction of the episode held out for the selection.
+        Fraction of the episode held out in each fold of the selection (``1 / holdout``
+        blocks).
+    criterion : {'blocked', 'tail'}
+        Blocked cross-validation (default) or the former single held-out tail
+        (:func:`~soft_rom.learners.era_select.cv_folds`).
     refit : bool
         Stabilize the realization (eigenvalues outside the unit circle reflected inside) and
         refit ``C, D`` by least squares on the simulated states (default); ``False``: the ERA
@@ -387,6 +402,7 @@ class ERAOKID:
                  holdout: float = 0.2, refit: bool = True,
                  tie_tol: float = era_select.TIE_TOL,
                  output_scale_floor: float = era_select.OUTPUT_SCALE_FLOOR,
+                 input_rank: int | str | None = 'auto', criterion: str = 'blocked',
                  blas_threads: int | None = 1) -> None:
         self.r = r
         self.n_markov = n_markov
@@ -404,6 +420,8 @@ class ERAOKID:
         self.refit = refit
         self.tie_tol = tie_tol
         self.output_scale_floor = output_scale_floor
+        self.input_rank = input_rank
+        self.criterion = criterion
         self.blas_threads = blas_threads
 
     @classmethod
@@ -464,7 +482,8 @@ class ERAOKID:
         ridge = self.okid_ridge
         sel = None
         tried: list[dict[str, Any]] = []
-        prepared: dict[int, tuple[Array, Array, Array, Array, Array | None]] = {}
+        prepared: dict[int, tuple[Array, Array, Array, Array, Array | None,
+                                  Array | None]] = {}
         if selecting:
             rows: list[dict[str, Any]] = []
             per_d: dict[int, dict[str, Any]] = {}
@@ -479,7 +498,8 @@ class ERAOKID:
                             int(self.observer_order),),
                         rhos=era_select.RIDGE_GRID if ridge is None else (float(ridge),),
                         n_markov=nm_d, r_values=None if self.r is None else (int(self.r),),
-                        refit=bool(self.refit), tie_tol=float(self.tie_tol))
+                        refit=bool(self.refit), tie_tol=float(self.tie_tol),
+                        criterion=str(self.criterion))
                 except (ConfigError, DimensionError) as err:
                     if not auto_d:
                         raise
@@ -509,15 +529,17 @@ class ERAOKID:
             d = grid[0]
             r_sel = self.r
             intercept = False
-        Us, Ys, s_u, s_y, P = prepared[d] if d in prepared else self._prepare(ep, y_ref, d)
+        Us, Ys, s_u, s_y, P, Pu = (prepared[d] if d in prepared
+                                   else self._prepare(ep, y_ref, d))
         p_id = Ys.shape[0]
+        m_id = Us.shape[0]
         K = Us.shape[1]
         nm = era_select.default_n_markov(K) if self.n_markov is None else int(self.n_markov)
         if sel is None:
             if self.observer_order is None:
                 # Keep at least 2 equations per unknown: near-square regressions fit the
                 # noise and give unstable Markov sequences.
-                lo = min(int(self.max_observer_order), (K // 2 - m) // (m + p_id))
+                lo = min(int(self.max_observer_order), (K // 2 - m_id) // (m_id + p_id))
                 if lo < 1:
                     raise DimensionError(
                         f'episode {ep.name!r} has {K} samples after decimation {d}: too few '
@@ -550,7 +572,10 @@ class ERAOKID:
         self._factors = factors
         if P is not None:
             Cs, Ds = P @ Cs, P @ Ds
+        if Pu is not None:
+            Bs, Ds = Bs @ Pu.T, Ds @ Pu.T
         self.output_basis_ = P
+        self.input_basis_ = Pu
         B = Bs / s_u[None, :]
         C = s_y[:, None] * Cs
         D = s_y[:, None] * Ds / s_u[None, :]
@@ -585,11 +610,14 @@ class ERAOKID:
             'selection_tail_error': None if sel is None else sel['tail_error'],
             'selection_refit': None if sel is None else sel.get('refit'),
             'selection_tie_tol': None if sel is None else float(self.tie_tol),
+            'selection_criterion': None if sel is None else sel.get('criterion'),
+            'selection_folds': None if sel is None else sel.get('folds'),
             'output_refit': bool(refitted), 'stabilized': bool(stabilized),
             'observer_order': lo, 'okid_residual': info['residual'],
             'okid_rank': info['rank'], 'okid_unknowns': info['n_unknowns'],
             'n_block_rows': self.n_block_rows, 'n_block_cols': self.n_block_cols,
             'hsv_tol': self.hsv_tol, 'output_rank': None if P is None else int(P.shape[1]),
+            'input_rank': m if Pu is None else int(Pu.shape[1]),
             'okid_rcond': self.okid_rcond,
             'hankel_singular_values': hsv[:200].tolist(),
             'input_scale': s_u.tolist(), 'output_scale': s_y.tolist(),
@@ -606,8 +634,8 @@ class ERAOKID:
         return self
 
     def _prepare(self, ep: Episode, y_ref: Array, d: int
-                 ) -> tuple[Array, Array, Array, Array, Array | None]:
-        """Decimated, scaled (and output-compressed) data: ``Us, Ys, s_u, s_y, P``."""
+                 ) -> tuple[Array, Array, Array, Array, Array | None, Array | None]:
+        """Decimated, scaled, compressed data: ``Us, Ys, s_u, s_y, P, P_u``."""
         m = ep.U.shape[0]
         Ud, Yd = decimate(ep.U, ep.Y - y_ref[:, None], d)
         if Ud.shape[1] < 2 * (2 * m + 1):
@@ -619,7 +647,8 @@ class ERAOKID:
         s_y = np.maximum(s_y, float(self.output_scale_floor) * float(np.max(s_y)))
         Us, Ys = Ud / s_u[:, None], Yd / s_y[:, None]
         Ys, P = era_select.compress_outputs(Ys, self.output_rank)
-        return Us, Ys, s_u, s_y, P
+        Us, Pu = era_select.compress_inputs(Us, self.input_rank)
+        return Us, Ys, s_u, s_y, P, Pu
 
     def markov_parameters(self) -> Array:
         """OKID Markov parameters in data units, shape (n_markov + 1, p, m).
@@ -630,6 +659,9 @@ class ERAOKID:
         if not hasattr(self, 'markov_'):
             raise NotFittedError('this ERAOKID is not fitted yet; call fit(episode) first.')
         mk = self.markov_ if self.output_basis_ is None else self.output_basis_ @ self.markov_
+        Pu = getattr(self, 'input_basis_', None)
+        if Pu is not None:
+            mk = mk @ Pu.T
         return np.asarray(self.output_scale_[:, None] * mk / self.input_scale_[None, :])
 
     def model_for(self, r: int) -> DiscreteModel:
@@ -646,6 +678,8 @@ class ERAOKID:
             A, Cs, Ds = era_select.stabilize_refit(A, Bs, Cs, Ds, *self._train)[:3]
         if self.output_basis_ is not None:
             Cs, Ds = self.output_basis_ @ Cs, self.output_basis_ @ Ds
+        if self.input_basis_ is not None:
+            Bs, Ds = Bs @ self.input_basis_.T, Ds @ self.input_basis_.T
         s_u, s_y = self.input_scale_, self.output_scale_
         old = self.model_
         Bp = Bs / s_u[None, :]
