@@ -58,6 +58,7 @@ Output of one run (two busy cores, 2026-12-02) is quoted in docs/methods_variant
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 import tempfile
 import time
@@ -216,6 +217,39 @@ def correction(data: Data, lin: LOpInf, lams: tuple[float, ...] = (1e-4, 1e-3, 1
                                     f'quartic bound {t4:.3g}')
 
 
+def levenberg_marquardt(x: np.ndarray,
+                        linearize: Callable[[np.ndarray], tuple[float, Any, Any]],
+                        cost: Callable[[np.ndarray], float],
+                        step: Callable[[np.ndarray, np.ndarray], np.ndarray],
+                        iters: int) -> tuple[np.ndarray, str]:
+    """Levenberg-Marquardt with Marquardt scaling; a step is taken only if it lowers the cost.
+
+    ``linearize(x) -> (J, A, b)``: cost, Gauss-Newton matrix and gradient at ``x``;
+    ``cost(x)``: the cost alone; ``step(x, dx)``: ``x`` moved by the solution ``dx`` of
+    ``(A + mu diag(A)) dx = -b``. Stops after ``iters`` steps, when no damping lowers the
+    cost, or when a step gains less than 1e-6 of it.
+    """
+    J0, A, b = linearize(x)
+    J, n = J0, len(b)
+    mu = 1e-3 * float(np.trace(A)) / n
+    steps = 0
+    for _ in range(iters):
+        Dg = np.diag(np.diag(A)) + 1e-12 * float(np.trace(A)) / n * np.eye(n)
+        Jn = np.inf
+        while mu < 1e12:
+            trial = step(x, np.linalg.solve(A + mu * Dg, -b))
+            Jn = cost(trial)
+            if Jn < J:
+                x, mu = trial, max(mu / 3.0, 1e-12)
+                steps += 1
+                break
+            mu *= 4.0
+        if mu >= 1e12 or J - Jn < 1e-6 * J:
+            break
+        J, A, b = linearize(x)
+    return x, f'{steps} LM steps, cost {J0:.4g} -> {J:.4g}'
+
+
 class OutputError:
     """Simulation-error fit of chosen entries of ``θ = (K, G, H, C, B)`` (scaled units).
 
@@ -351,26 +385,13 @@ class OutputError:
         return J, JTJ, g
 
     def fit(self, iters: int) -> tuple[np.ndarray, str]:
-        th = self.theta.copy()
-        J0, JTJ, g = self.cost(th)
-        J = J0
-        mu = 1e-3 * float(np.trace(JTJ)) / len(self.free)
-        steps = 0
-        for _ in range(iters):
-            D = np.diag(np.diag(JTJ)) + 1e-12 * float(np.trace(JTJ)) / len(self.free)
-            while mu < 1e12:
-                trial = th.copy()
-                trial[self.free] += np.linalg.solve(JTJ + mu * D, -g)
-                Jn = self.cost(trial, sens=False)[0]
-                if Jn < J:
-                    th, mu = trial, max(mu / 3.0, 1e-12)
-                    steps += 1
-                    break
-                mu *= 4.0
-            if mu >= 1e12 or J - Jn < 1e-6 * J:
-                break
-            J, JTJ, g = self.cost(th)
-        return th, f'{steps} LM steps, cost {J0:.4g} -> {J:.4g}'
+        def step(th: np.ndarray, dx: np.ndarray) -> np.ndarray:
+            out = th.copy()
+            out[self.free] += dx
+            return out
+
+        return levenberg_marquardt(self.theta.copy(), self.cost,
+                                   lambda th: self.cost(th, sens=False)[0], step, iters)
 
 
 def oe(data: Data, lin: LOpInf, which: str, lam: float, iters: int,
@@ -476,30 +497,16 @@ class StructuredOutputError(OutputError):
         return th, D
 
     def fit(self, iters: int) -> tuple[np.ndarray, str]:
-        phi = self.phi.copy()
-        th, D = self.theta_of(phi)
-        J0, JTJ, g = self.cost(th)
-        J = J0
-        A, b = D.T @ JTJ @ D, D.T @ g
-        mu = 1e-3 * float(np.trace(A)) / len(phi)
-        steps = 0
-        for _ in range(iters):
-            Dg = np.diag(np.diag(A)) + 1e-12 * float(np.trace(A)) / len(phi) * np.eye(len(phi))
-            Jn = np.inf
-            while mu < 1e12:
-                trial = phi + np.linalg.solve(A + mu * Dg, -b)
-                Jn = self.cost(self.theta_of(trial)[0], sens=False)[0]
-                if Jn < J:
-                    phi, mu = trial, max(mu / 3.0, 1e-12)
-                    steps += 1
-                    break
-                mu *= 4.0
-            if mu >= 1e12 or J - Jn < 1e-6 * J:
-                break
+        def linearize(phi: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
             th, D = self.theta_of(phi)
             J, JTJ, g = self.cost(th)
-            A, b = D.T @ JTJ @ D, D.T @ g
-        return self.theta_of(phi)[0], f'{steps} LM steps, cost {J0:.4g} -> {J:.4g}'
+            return J, D.T @ JTJ @ D, D.T @ g
+
+        phi, how = levenberg_marquardt(
+            self.phi.copy(), linearize,
+            lambda phi: self.cost(self.theta_of(phi)[0], sens=False)[0],
+            lambda phi, dx: phi + dx, iters)
+        return self.theta_of(phi)[0], how
 
 
 def oe_structured(data: Data, lin: LOpInf, lam: float, iters: int,
