@@ -85,16 +85,25 @@ def test_known_truth_recovered(n: int) -> None:
     assert how == 'sos' and t > 1.0
 
 
-def test_constraints_enforced_when_data_violate_them() -> None:
-    """Data of an unstable quartic (negative H): the fit keeps K, C SPD and H positive."""
-    base = duffing_chain(3)
+def unstable_quartic_data(r: int, k: int, q_scale: float, *, seed: int):
+    """Random states and exact accelerations of the Duffing chain with its quartic negated.
+
+    Returns ``Q, Q̇, Q̈, U`` (``k`` samples), the chain and the generator (drawn on after).
+    """
+    base = duffing_chain(r)
     bad = CubicSecondOrderModel(base.K, base.C, base.G, -base.H, base.B, base.E, dt=DT)
-    rng = np.random.default_rng(3)
-    Q = 0.3 * rng.standard_normal((3, 400))
-    Qd = rng.standard_normal((3, 400))
-    U = rng.standard_normal((2, 400))
+    rng = np.random.default_rng(seed)
+    Q = q_scale * rng.standard_normal((r, k))
+    Qd = rng.standard_normal((r, k))
+    U = rng.standard_normal((2, k))
     Qdd = np.column_stack([bad.B @ u - bad.C @ v - bad.force(q)
                            for q, v, u in zip(Q.T, Qd.T, U.T)])
+    return Q, Qd, Qdd, U, base, rng
+
+
+def test_constraints_enforced_when_data_violate_them() -> None:
+    """Data of an unstable quartic (negative H): the fit keeps K, C SPD and H positive."""
+    Q, Qd, Qdd, U, base, rng = unstable_quartic_data(3, 400, 0.3, seed=3)
     sol = fit_cubic(Q, Qd, Qdd, U, reg=1e-6)
     assert sol.info['method'].startswith('conic')
     assert np.linalg.eigvalsh(sol.K)[0] >= 0.999e-6 and np.linalg.eigvalsh(sol.C)[0] >= 0.999e-6
@@ -282,14 +291,7 @@ def test_conic_certificate_is_the_gram_matrix_bound() -> None:
     one with G and B eliminated): H(q, q, q, q) >= certificate |q|^4 on random directions,
     the certificate reaches the floor, and the free unknowns solve their normal equations.
     """
-    base = duffing_chain(4)
-    bad = CubicSecondOrderModel(base.K, base.C, base.G, -base.H, base.B, base.E, dt=DT)
-    rng = np.random.default_rng(7)
-    Q = 0.4 * rng.standard_normal((4, 600))
-    Qd = rng.standard_normal((4, 600))
-    U = rng.standard_normal((2, 600))
-    Qdd = np.column_stack([bad.B @ u - bad.C @ v - bad.force(q)
-                           for q, v, u in zip(Q.T, Qd.T, U.T)])
+    Q, Qd, Qdd, U, base, rng = unstable_quartic_data(4, 600, 0.4, seed=7)
     Qdd += 1e-3 * rng.standard_normal(Qdd.shape)
     sol = fit_cubic(Q, Qd, Qdd, U, reg=1e-5)
     assert sol.info['method'].startswith('conic')
