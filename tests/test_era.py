@@ -375,3 +375,14 @@ def test_blocked_cross_validation_folds_and_order():
     pruned = [row for row in res['rows'] if not row['complete']]
     best = min(row['tail_error'] for row in res['rows'] if row['complete'])
     assert pruned and min(row['tail_error'] for row in pruned) > best * 1.03
+
+
+@pytest.mark.parametrize('options', [{'criterion': 'bogus'}, {'input_rank': 'x'},
+                                     {'input_rank': 9}, {'input_rank': 0},
+                                     {'input_rank': True}])
+def test_bad_selection_options_are_config_errors(options) -> None:
+    rng = np.random.default_rng(0)
+    ep = Episode(t=np.arange(400) * 1e-3, U=rng.standard_normal((2, 400)),
+                 Y=rng.standard_normal((3, 400)))
+    with pytest.raises(ConfigError, match=next(iter(options))):
+        ERAOKID(**options).fit(ep)

@@ -472,6 +472,14 @@ class ERAOKID:
             'y_ref', np.reshape(y_ref, (-1, 1)), rows=p)[:, 0]
         if self.selection not in ('holdout', 'none'):
             raise ConfigError(f"selection must be 'holdout' or 'none'; got {self.selection!r}.")
+        if self.criterion not in ('blocked', 'tail'):
+            raise ConfigError(f"criterion must be 'blocked' or 'tail'; got {self.criterion!r}.")
+        rank = self.input_rank
+        if not (rank is None or rank == 'auto' or (isinstance(rank, (int, np.integer))
+                                                   and not isinstance(rank, bool)
+                                                   and 1 <= rank <= m)):
+            raise ConfigError(f"input_rank must be None, 'auto' or an integer from 1 to m = {m}; "
+                              f'got {rank!r}.')
         auto_d = self.decimation == 'auto'
         selecting = self.selection == 'holdout' or auto_d
         if auto_d:
