@@ -25,6 +25,7 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+import sqlite3
 import struct
 from typing import Any
 
@@ -243,7 +244,8 @@ class BagReader:
         try:
             reader = Reader(self.path)
             reader.open()
-        except (ReaderError, OSError, ValueError, KeyError) as err:
+        except (ReaderError, OSError, ValueError, KeyError, sqlite3.DatabaseError) as err:
+            # rosbags 0.11.5 and older let sqlite3's DatabaseError through unwrapped.
             why = str(err).rstrip('.')
             raise BagError(f'cannot open bag {self.path} ({self.storage}): {why}. '
                            'The bag may be truncated or corrupt (was the recorder killed?); '
