@@ -33,11 +33,16 @@ Printed figures:
    change of the Markov parameters under one 1e-9 perturbation and the test error, for
    ``ρ`` from 1e-10 to 1e-3 (the change does not fall below the perturbation of the motion,
    however strong the ridge).
+7. **Where the change lives** on the eel: the perturbation over each output channel's own
+   motion (the ``x`` channels barely move, so ``Y (1 + 1e-9 ε)`` is far more than 1e-9 of
+   their motion), and the defaults' Markov change split by lag (within the observer order
+   or beyond) and by output group (``x`` or ``z``).
 
 Run::
 
     .venv/bin/python benchmarks/bench_era_select.py [--eel /tmp/era_cache/ep1.npz]
         [--seeds 3] [--preset-seeds 5] [--skip-baseline] [--threads 1 2] [--skip-sweeps]
+        [--where-only]
 
 About 10 minutes on a loaded 2-core machine (the baseline with two BLAS threads dominates);
 ``--skip-baseline --threads 1`` about 4.
@@ -312,6 +317,45 @@ def ridge_sensitivity(ep: Episode) -> None:
               f'the motion), test {test:.5f}', flush=True)
 
 
+def where_it_moves(ep: Episode) -> None:
+    """Where the defaults' Markov change lives: lags and output channels (section 7)."""
+    train = ep.time_slice(None, T_TRAIN - 0.5 * ep.dt)
+    dev = train.Y - train.Y[:, :1]
+    moved = perturbed(train, 300).Y - train.Y
+    p = ep.Y.shape[0]
+    half = p // 2                                  # outputs [x_1..x_20, z_1..z_20]
+    own = np.linalg.norm(moved, axis=1) / np.maximum(np.linalg.norm(dev, axis=1), 1e-300)
+    moving = np.linalg.norm(dev, axis=1) > 0
+    print('eel: perturbation over the own motion of each channel: x channels '
+          f'{np.min(own[:half][moving[:half]]):.1e}-{np.max(own[:half][moving[:half]]):.1e}, '
+          f'z channels {np.min(own[half:][moving[half:]]):.1e}-'
+          f'{np.max(own[half:][moving[half:]]):.1e}')
+    a = ERAOKID(blas_threads=None).fit(train)
+    meta = a.model_.metadata
+    kw = dict(decimation=meta['decimation'], observer_order=meta['observer_order'],
+              okid_ridge=meta['okid_ridge'], r=meta['r'], selection='none')
+    b = ERAOKID(**kw).fit(perturbed(train, 300))
+    M0, M1 = a.markov_parameters(), b.markov_parameters()
+    n0, d = float(np.linalg.norm(M0)), M1 - M0
+    lo = int(meta['observer_order'])
+    print(f'eel defaults ({fmt_setting((kw["decimation"], lo, kw["okid_ridge"], kw["r"]))}): '
+          f'Markov change {np.linalg.norm(d) / n0:.1e}; lags 0-{lo}: '
+          f'{np.linalg.norm(d[:lo + 1]) / n0:.1e}, lags {lo + 1}-{len(M0) - 1}: '
+          f'{np.linalg.norm(d[lo + 1:]) / n0:.1e}; x channels '
+          f'{np.linalg.norm(d[:, :half]) / n0:.1e} (share of |M| '
+          f'{np.linalg.norm(M0[:, :half]) / n0:.2f}), z channels '
+          f'{np.linalg.norm(d[:, half:]) / n0:.1e}', flush=True)
+    eps = np.random.default_rng(300).standard_normal(train.Y.shape)
+    for group, rows in (('x', slice(0, half)), ('z', slice(half, p))):
+        Y = train.Y.copy()
+        Y[rows] *= 1 + 1e-9 * eps[rows]
+        c = ERAOKID(**kw).fit(Episode(t=train.t, U=train.U, Y=Y, name=train.name))
+        dg = c.markov_parameters() - M0
+        print(f'  only the {group} channels perturbed: Markov change '
+              f'{np.linalg.norm(dg) / n0:.1e} (lags 0-{lo}: '
+              f'{np.linalg.norm(dg[:lo + 1]) / n0:.1e})', flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--eel', type=Path, default=Path('/tmp/era_cache/ep1.npz'))
@@ -320,9 +364,14 @@ def main() -> None:
     ap.add_argument('--threads', type=int, nargs='+', default=[1, 2])
     ap.add_argument('--baseline', default=BASELINE)
     ap.add_argument('--skip-baseline', action='store_true')
-    ap.add_argument('--skip-sweeps', action='store_true', help='skip sections 4-6')
+    ap.add_argument('--skip-sweeps', action='store_true', help='skip sections 4-7')
+    ap.add_argument('--where-only', action='store_true', help='section 7 only')
     args = ap.parse_args()
     eel = eel_episode(args.eel)
+    if args.where_only:
+        print('== 7. eel: where the Markov change lives (lags, output channels)')
+        where_it_moves(eel)
+        return
     lti, lti_clean = lti_episode()
     data = {'eel': (eel, eel.Y), 'lti': (lti, lti_clean)}
 
@@ -394,6 +443,8 @@ def main() -> None:
     eel_hand_sweep(eel, d_med, p_med)
     print('== 6. eel: Markov change under a 1e-9 perturbation against the ridge')
     ridge_sensitivity(eel)
+    print('== 7. eel: where the Markov change lives (lags, output channels)')
+    where_it_moves(eel)
 
 
 if __name__ == '__main__':
