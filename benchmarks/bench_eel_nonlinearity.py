@@ -23,10 +23,16 @@ random pressures, 1 ms):
    (Ep 3 - 6) is printed. Families: ``q³`` (the gradient of a quartic potential, what
    ``forces='cubic'`` adds), ``u q`` and ``u q²`` (a configuration-dependent input matrix),
    ``u² q`` (a pressure-dependent stiffness), ``u³``, and velocity terms.
+4. **Is the discrete eel mirror-symmetric?** The body and its chambers are symmetric about
+   ``z = 0``, and an antagonistic pair driven with ``-u`` is the mirror image of ``+u``, so a
+   symmetric model would bend the tail by exactly opposite amounts and its potential would
+   be even (``G = 0``). Printed: how many tetrahedra of the mesh map onto tetrahedra under
+   ``z → -z``, and the static tail deflection (8 s at 5 ms steps, pressures ramped over 1 s)
+   under ``±50 kPa`` on the last segment's pair, nonlinear and linearized.
 
 The reduced episodes come from ``--data`` (default ``/tmp/cubic_cache/eel_reduced.npz``,
 made by ``bench_cubic_eel.py`` with the study's pipeline when missing; never inside the
-repository). The FEM runs take about 15 s.
+repository). The FEM runs take about 45 s.
 
 Run::
 
@@ -153,6 +159,30 @@ def residual_families(data: bce.Data, cutoff: float) -> None:
               f'(ridge {best[2]:g})')
 
 
+def mirror_check(amplitude: float = 50e3) -> None:
+    """Mesh symmetry under ``z -> -z`` and the static tail deflection under ``±u`` (4)."""
+    model = EelModel()
+    X, T = model.mesh.nodes, model.mesh.tets
+    index = {tuple(np.round(x, 9)): i for i, x in enumerate(X)}
+    mirror = np.array([index.get(tuple(np.round(x * (1.0, 1.0, -1.0), 9)), -1) for x in X])
+    tets = {tuple(sorted(t)) for t in T}
+    mapped = sum(tuple(sorted(mirror[t])) in tets for t in T) if np.all(mirror >= 0) else 0
+    print(f'4. Mirror symmetry z -> -z: nodes {"symmetric" if np.all(mirror >= 0) else "NOT"}; '
+          f'{mapped} of {len(T)} tetrahedra map onto tetrahedra')
+    dt, n = 5e-3, 1600
+    ramp = np.clip(np.arange(n) * dt / 1.0, 0.0, 1.0)
+    pair = np.zeros(model.n_chambers)
+    pair[-2:] = (1.0, -1.0)
+    for sign in (1.0, -1.0):
+        U = np.outer(sign * amplitude * pair, ramp)
+        tip = []
+        for linear in (False, True):
+            Y = model.simulate(U, n, dt, linear=linear).outputs()
+            tip.append(1e3 * (Y[-1, -1] - Y[-1, 0]))
+        print(f'   {sign * amplitude / 1e3:+.0f} kPa on the last pair: static tail-tip z '
+              f'{tip[0]:+.2f} mm (linearized {tip[1]:+.2f} mm)', flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--data', type=Path, default=Path('/tmp/cubic_cache/eel_reduced.npz'))
@@ -166,6 +196,7 @@ def main() -> None:
     t0 = time.perf_counter()
     amplitude_scan(data.U[3], (1.0, 0.3, 0.1, 0.01))
     residual_families(data, args.cutoff)
+    mirror_check()
     print(f'({time.perf_counter() - t0:.0f} s)')
 
 
