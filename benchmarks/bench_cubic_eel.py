@@ -28,7 +28,8 @@ Rows of the table, for each ``r``:
   (Levenberg-Marquardt on an RK4 simulation with forward sensitivities, from the linear
   model), ``K, C, B`` kept; ``--parity`` restricts ``G, H`` to the entries allowed by the
   eel's mirror symmetry (a mode is odd when ``E`` maps it mostly to the lateral ``z``
-  outputs; ``V(q)`` even in the odd modes);
+  outputs; ``V(q)`` even in the odd modes) -- an approximation: the discrete eel's mesh is
+  not mirror-symmetric (``bench_eel_nonlinearity.py``, section 4);
 * ``oe-joint``: every operator (``K, C, B, G, H``) on the simulation error, with ridge
   ``--joint-lambda`` on ``G, H`` and on the change of ``K, C, B`` from the linear fit;
 * ``oe-structured``: ``oe-joint`` with the library's structure at every iterate:
