@@ -20,8 +20,10 @@ random pressures, 1 ms):
    upper bound of what the family can explain), after a zero-phase low-pass filter applied
    to both sides (``--cutoff`` Hz; filtering commutes with the linear regression), and the
    fraction of the residual explained (R²) on the training and on the test episodes
-   (Ep 3 - 6) is printed. Families: ``q³`` (the gradient of a quartic potential, what
-   ``forces='cubic'`` adds), ``u q`` and ``u q²`` (a configuration-dependent input matrix),
+   (Ep 3 - 6) is printed. Families: ``q²`` and ``q³`` (the gradients of a cubic and a
+   quartic potential, what ``forces='cubic'`` adds), ``u²`` (an input nonlinearity; even
+   terms matter because the discrete eel is not mirror-symmetric, section 4), ``u q`` and
+   ``u q²`` (a configuration-dependent input matrix),
    ``u² q`` (a pressure-dependent stiffness), ``u³``, and velocity terms.
 4. **Is the discrete eel mirror-symmetric?** The body and its chambers are symmetric about
    ``z = 0``, and an antagonistic pair driven with ``-u`` is the mirror image of ``+u``, so a
@@ -59,7 +61,7 @@ from soft_rom.sim.eel import EelModel
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_cubic_eel as bce  # noqa: E402
 
-FAMILIES = ('linear', 'q3', 'uq', 'uq2', 'u2q', 'u3', 'q2v', 'v3')
+FAMILIES = ('linear', 'q2', 'q3', 'u2', 'uq', 'uq2', 'u2q', 'u3', 'q2v', 'v3')
 
 
 def _outputs(result: object) -> np.ndarray:
@@ -122,8 +124,12 @@ def residual_families(data: bce.Data, cutoff: float) -> None:
         q, v, u = q / qs, v / vs, u / us
         if fam == 'linear':
             return np.vstack([q, v, u])
+        if fam == 'q2':
+            return _monomials(q, 2)
         if fam == 'q3':
             return _monomials(q, 3)
+        if fam == 'u2':
+            return _monomials(u, 2)
         if fam == 'uq':
             return np.array([uk * qi for uk in u for qi in q])
         if fam == 'uq2':
