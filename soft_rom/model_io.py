@@ -58,6 +58,7 @@ __all__ = [
     'parse_json',
     'read_archive',
     'register_model_class',
+    'valid_text',
 ]
 
 FORMAT_NAME = 'soft_rom.model'
@@ -237,6 +238,30 @@ def read_archive(path: str | os.PathLike[str], allowed: Collection[str],
     except Exception as err:  # BadZipFile, zlib.error, NotImplementedError, ...
         detail = str(err)[:160] or type(err).__name__
         raise _fail(path, f'corrupt or not an .npz archive ({detail}).') from None
+
+
+def valid_text(value: Any) -> Any:
+    """``value`` (a JSON document) with every string made valid UTF-8, for writing a file.
+
+    Paths of a file system that is not UTF-8 reach Python as strings with lone surrogates
+    (``os.fsdecode``), which the loader refuses (:func:`parse_json`); the writer keeps such
+    bytes visible instead (byte 0xff of a folder name is stored as the text ``\\xff``).
+    """
+    if isinstance(value, str):
+        try:
+            value.encode('utf-8')
+            return value
+        except UnicodeEncodeError:
+            try:
+                raw = value.encode('utf-8', 'surrogateescape')
+            except UnicodeEncodeError:
+                return value.encode('utf-8', 'backslashreplace').decode('utf-8')
+            return raw.decode('utf-8', 'backslashreplace')
+    if isinstance(value, dict):
+        return {valid_text(k): valid_text(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [valid_text(v) for v in value]
+    return value
 
 
 def _check_value(value: Any) -> None:

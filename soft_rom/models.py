@@ -58,6 +58,7 @@ from soft_rom.model_io import (
     load_model,
     MAX_STATES,
     register_model_class,
+    valid_text,
 )
 
 __all__ = [
@@ -418,7 +419,8 @@ class LinearROM(ABC):
                 '.npz')
         arrays = dict(self.matrices())
         arrays['y_ref'] = self.y_ref
-        meta = json.dumps(self.header(), sort_keys=True, allow_nan=False).encode('utf-8')
+        meta = json.dumps(valid_text(self.header()), sort_keys=True,
+                          allow_nan=False).encode('utf-8')
         arrays[_META_KEY] = np.frombuffer(meta, dtype=np.uint8)
         tmp = path.with_name(f'.{path.name}.tmp-{os.getpid()}')
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -157,8 +157,14 @@ def check_output(dest: str | os.PathLike[str], *, overwrite: bool, what: str,
     if not overwrite:
         raise OutputExistsError(f'{dest} exists already; choose another output or pass '
                                 f'--overwrite to replace it')
-    ours = (is_ours(dest) if is_ours is not None and dest.is_file()
-            else dest.is_dir() and not dest.is_symlink() and is_marked(dest, kinds))
+    if is_ours is not None:
+        # A file output never replaces a folder, whoever wrote it (a training set, a bag).
+        if dest.is_dir():
+            raise OutputExistsError(f'{dest} is a folder, but the {what} is a file; refusing '
+                                    'to replace the folder (choose a file name)')
+        ours = dest.is_file() and is_ours(dest)
+    else:
+        ours = dest.is_dir() and not dest.is_symlink() and is_marked(dest, kinds)
     if not ours:
         raise OutputExistsError(f'{dest} was not written by soft_rom as a {what}; refusing to '
                                 f'replace it (--overwrite only replaces soft_rom outputs)')

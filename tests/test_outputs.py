@@ -39,6 +39,17 @@ def test_existing_needs_overwrite_and_ours(tmp_path: Path) -> None:
     assert [p.name for p in tmp_path.iterdir()] == ['recording']
 
 
+def test_a_file_output_never_replaces_a_folder_even_ours(tmp_path: Path) -> None:
+    dest = tmp_path / 'set'
+    with outputs.atomic_dir(dest, overwrite=False, kind='training_set', what='training set') as d:
+        (d / 'x').write_text('1')
+    with pytest.raises(OutputExistsError, match='is a folder'):
+        with outputs.atomic_files([dest], overwrite=True, what='summary',
+                                  is_ours=lambda p: True) as staged:
+            staged[dest].write_text('{}')
+    assert (dest / 'x').read_text() == '1' and outputs.is_marked(dest, ['training_set'])
+
+
 def test_overwrite_ours_replaces_and_failure_keeps_old(tmp_path: Path) -> None:
     dest = tmp_path / 'set'
     with outputs.atomic_dir(dest, overwrite=False, kind='t', what='set') as d:

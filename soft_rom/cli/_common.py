@@ -28,6 +28,7 @@ __all__ = [
     'add_output',
     'add_quiet',
     'available_memory',
+    'check_apart',
     'check_writable_folder',
     'finite_float',
     'int_range',
@@ -215,6 +216,22 @@ def check_writable_folder(folder: Path, what: str) -> None:
     if not os.access(probe, os.W_OK | os.X_OK):
         raise PermissionError(errno.EACCES, f'cannot write the {what} here (permission denied)',
                               str(probe))
+
+
+def check_apart(path: Path, option: str, others: Sequence[tuple[str, Path]]) -> None:
+    """Refuse early an output ``path`` that is, holds or sits inside another path of the run.
+
+    ``others``: ``(what, path)`` pairs (the inputs and the other outputs), e.g.
+    ``[('output bag', out), ('input bag', bag)]``.
+    """
+    from soft_rom.errors import ConfigError
+
+    mine = path.resolve()
+    for what, other in others:
+        theirs = Path(other).resolve()
+        if mine == theirs or theirs in mine.parents or mine in theirs.parents:
+            raise ConfigError(f'{option} {path} would replace or sit inside the {what} '
+                              f'{other}; choose another {option}')
 
 
 def write_text_output(path: Path, text: str, *, overwrite: bool, what: str,

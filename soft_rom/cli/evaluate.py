@@ -19,6 +19,7 @@ import numpy as np
 from soft_rom.cli._common import (
     add_json,
     add_quiet,
+    check_apart,
     check_writable_folder,
     finite_float,
     is_summary_json,
@@ -83,6 +84,9 @@ def run(args: argparse.Namespace) -> int:
 
     if args.json is not None:
         check_writable_folder(args.json.parent, '--json file')
+        check_apart(args.json, '--json', [('training set', Path(args.data))]
+                    + [('model file', Path(p)) for p in args.models]
+                    + ([('plots folder', args.plots)] if args.plots is not None else []))
         check_output(args.json, overwrite=args.overwrite, what='evaluation summary',
                      is_ours=_EVAL_JSON)
     if args.plots is not None:

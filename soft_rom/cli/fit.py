@@ -25,6 +25,7 @@ from typing import Any
 from soft_rom.cli._common import (
     add_json,
     add_quiet,
+    check_apart,
     check_writable_folder,
     finite_float,
     int_range,
@@ -169,6 +170,11 @@ def _check_outputs_early(args: argparse.Namespace, outdir: Path, prefix: str) ->
                                   f'at most {MAX_STATES} states (r <= {MAX_STATES // states})')
     if args.json is not None:
         check_writable_folder(args.json.parent, '--json file')
+        check_apart(args.json, '--json', [('training set', Path(args.training_set))])
+        mine, models = args.json.resolve(), outdir.resolve()
+        if mine == models or mine in models.parents:
+            raise ConfigError(f'--json {args.json} would replace or hold the model folder '
+                              f'{outdir}; choose another --json')
         if args.json.resolve().parent == outdir.resolve() and args.json.suffix == '.npz':
             raise ConfigError('--json must not be a .npz path among the model files')
         check_output(args.json, overwrite=args.overwrite, what='fit summary',

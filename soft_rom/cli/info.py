@@ -139,7 +139,7 @@ _INFO_JSON_KEYS = ('kind',)
 
 def run(args: argparse.Namespace) -> int:
     """Run ``info``; returns the exit code."""
-    from soft_rom.cli._common import is_summary_json, write_text_output
+    from soft_rom.cli._common import check_apart, is_summary_json, write_text_output
 
     paths = list(args.paths)
     if not paths and args.json not in (None, '-'):
@@ -152,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
         if args.json == '-':
             print(text)
         else:
+            check_apart(Path(args.json), '--json', [('input', Path(p)) for p in paths])
             write_text_output(Path(args.json), text + '\n', overwrite=args.overwrite,
                               what='info JSON', is_ours=is_summary_json(_INFO_JSON_KEYS))
     else:

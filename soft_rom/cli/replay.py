@@ -26,6 +26,7 @@ from typing import Any
 from soft_rom.cli._common import (
     add_json,
     add_quiet,
+    check_apart,
     check_writable_folder,
     finite_float,
     is_summary_json,
@@ -122,6 +123,9 @@ def _check_paths(args: argparse.Namespace) -> None:
     check_writable_folder(Path(args.output).parent, 'output bag')
     if args.json is not None:
         check_writable_folder(args.json.parent, '--json file')
+        check_apart(args.json, '--json', [('output bag', Path(args.output)),
+                                          ('input bag', Path(args.bag)),
+                                          ('model file', Path(args.model))])
         check_output(args.json, overwrite=args.overwrite, what='replay summary',
                      is_ours=_REPLAY_JSON)
     check_output(args.output, overwrite=args.overwrite, what='replay bag', kinds=('replay',))

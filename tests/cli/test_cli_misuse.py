@@ -137,6 +137,19 @@ CASES = [
      'not written by soft_rom'),
     (['fit', '{ts}', '--method', 'dmdc', '--r', '2', '-o', '{root}/m2', '--quiet', '--json',
       '{model}/fit.json'], 2, 'not a folder'),
+    # --json onto a folder or onto another path of the run: never replaced, even if soft_rom
+    # wrote it (it deleted the training set once), nothing created
+    (['evaluate', '{model}', '--data', '{ts}', '--json', '{ts}', '--overwrite'], 2,
+     'training set'),
+    (['fit', '{ts}', '--method', 'dmdc', '--r', '2', '-o', '{root}/m2', '--quiet', '--json',
+      '{ts}', '--overwrite'], 2, 'training set'),
+    (['info', '{model}', '--json', '{ts}', '--overwrite'], 2, 'is a folder'),
+    (['replay', '{model}', '{bag}', '-o', '{root}/p1', '--json', '{bag}', '--overwrite'], 2,
+     'input bag'),
+    (['replay', '{model}', '{bag}', '-o', '{root}/p5', '--json', '{root}/p5'], 2,
+     'output bag'),
+    (['fit', '{ts}', '--method', 'dmdc', '--r', '2', '-o', '{root}/m6', '--quiet', '--json',
+      '{root}/m6'], 2, 'model folder'),
     # a later method fails: no model at all is written
     (['fit', '{ts}', '--method', 'dmdc,era', '--r', '3', '--decimation', '100000',
       '--era-episode', 'ep1', '-o', '{root}/m3', '--quiet'], 2, 'decimation'),
@@ -290,6 +303,23 @@ def test_undecodable_path_names_print(tmp_path) -> None:
                                                                    PYTHONIOENCODING='utf-8'))
     assert res.returncode == 0, res.stderr
     assert b'model_\\udcff.npz' in res.stdout and b'Traceback' not in res.stderr
+
+
+def test_fit_from_a_path_that_is_not_utf8_writes_a_model_that_loads(ws, tmp_path,
+                                                                   capsys) -> None:
+    """Provenance paths with bytes that are not UTF-8 are stored escaped, not refused later."""
+    from soft_rom.models import load_model
+    folder = tmp_path / os.fsdecode(b'runs_\xff\xfe')
+    folder.mkdir()
+    eps = [TrainingSet.open(ws['ts'])[name] for name in ('ep1', 'ep2')]
+    ts = TrainingSet.from_episodes(folder / 'chain.zarr', eps, q_ref=eps[0].Q[:, 0],
+                                   y_ref=eps[0].Y[:, 0]).path
+    assert main(['fit', str(ts), '--method', 'dmdc', '--r', '2', '-o', str(folder / 'm'),
+                 '--quiet']) == 0, capsys.readouterr().err
+    (path,) = (folder / 'm').glob('*.npz')
+    model = load_model(path)
+    assert r'runs_\xff\xfe' in model.metadata['training']['training_set']
+    assert main(['info', str(path)]) == 0
 
 
 def test_convert_overwrite_replaces_a_training_set(ws, tmp_path, capsys) -> None:
