@@ -27,13 +27,14 @@ from collections.abc import Callable, Iterator, Sequence
 import contextlib
 import ctypes
 import ctypes.util
+import errno
 import json
 import os
 from pathlib import Path
 import shutil
 import uuid
 
-from soft_rom.errors import OutputExistsError, ResourceError
+from soft_rom.errors import ConfigError, OutputExistsError, ResourceError
 
 __all__ = [
     'MARKER',
@@ -44,6 +45,7 @@ __all__ = [
     'check_output',
     'clean_stale',
     'is_marked',
+    'make_parent',
     'mark',
     'recover',
 ]
@@ -170,6 +172,30 @@ def check_output(dest: str | os.PathLike[str], *, overwrite: bool, what: str,
                                 f'replace it (--overwrite only replaces soft_rom outputs)')
 
 
+def make_parent(folder: Path, what: str) -> None:
+    """Create the folder an output goes into, with errors that name it, not a staging path.
+
+    Raises ``NotADirectoryError`` when a file stands where a folder of the path should be,
+    the ``OSError`` naming ``folder`` when it cannot be written (no permission, no space),
+    and ``ConfigError`` when files cannot be created there at all (``/proc``).
+    """
+    probe = folder
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    if not probe.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, 'Not a directory', str(probe))
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe_file = folder / f'.{_STAGE}probe-{os.getpid()}-{uuid.uuid4().hex[:8]}'
+        probe_file.mkdir()
+        probe_file.rmdir()
+    except OSError as err:
+        if err.errno in (errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT):
+            raise type(err)(err.errno, err.strerror, str(folder)) from None   # run time: 1
+        raise ConfigError(f'cannot write the {what} in {folder} '
+                          f'({err.strerror or err})') from None
+
+
 def _stage_path(dest: Path) -> Path:
     return dest.parent / f'.{dest.name}{_STAGE}{os.getpid()}-{uuid.uuid4().hex[:8]}'
 
@@ -214,7 +240,7 @@ def _new_stage(dest: str | os.PathLike[str], overwrite: bool, kind: str, what: s
                kinds: Sequence[str] | None) -> tuple[Path, Path]:
     """Check ``dest`` may be written; create and return ``(dest, an empty staging folder)``."""
     dest = Path(dest)
-    dest.parent.mkdir(parents=True, exist_ok=True)
+    make_parent(dest.parent, what)
     clean_stale(dest.parent)
     check_output(dest, overwrite=overwrite, what=what, kinds=kinds or (kind,))
     stage = _stage_path(dest)
@@ -276,7 +302,7 @@ def atomic_files(dests: Sequence[str | os.PathLike[str]], *, overwrite: bool, wh
     if len(set(paths)) != len(paths):
         raise OutputExistsError(f'two {what}s would be written to the same path')
     for parent in {p.parent for p in paths}:
-        parent.mkdir(parents=True, exist_ok=True)
+        make_parent(parent, what)
         clean_stale(parent)
     for p in paths:
         check_output(p, overwrite=overwrite, what=what, is_ours=is_ours)

@@ -150,6 +150,12 @@ CASES = [
      'output bag'),
     (['fit', '{ts}', '--method', 'dmdc', '--r', '2', '-o', '{root}/m6', '--quiet', '--json',
       '{root}/m6'], 2, 'model folder'),
+    # a file where a folder of the output path should be
+    (['convert', '{bag}', '-o', '{root}/user.json/x.zarr', '--quiet'], 2, 'is not a directory'),
+    (['info', '{model}', '--json', '{root}/user.json/i.json'], 2, 'is not a directory'),
+    # a location where nothing can be created: named, not a staging path
+    (['evaluate', '{model}', '--data', '{ts}', '--json', '/proc/soft_rom_test.json'], 2,
+     'cannot write the evaluation summary in /proc'),
     # a later method fails: no model at all is written
     (['fit', '{ts}', '--method', 'dmdc,era', '--r', '3', '--decimation', '100000',
       '--era-episode', 'ep1', '-o', '{root}/m3', '--quiet'], 2, 'decimation'),
