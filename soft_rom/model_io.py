@@ -467,7 +467,10 @@ def load_model(path: str | os.PathLike[str], *, strict: bool = False) -> LinearR
     if not isinstance(header, dict) or header.get('format') != FORMAT_NAME:
         raise ModelFileError(f'{path}: metadata does not declare format {FORMAT_NAME!r}.')
     version = header.get('format_version')
-    if isinstance(version, bool) or version not in READ_VERSIONS:
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise ModelFileError(f'{path}: model file format version must be an integer; got '
+                             f'{json.dumps(version)[:30]}.')
+    if version not in READ_VERSIONS:
         raise ModelFileError(
             f'{path}: model file format version {str(version)[:20]} is not supported by this '
             f'soft_rom (it reads versions {", ".join(map(str, READ_VERSIONS))}); upgrade '

@@ -142,6 +142,8 @@ def test_multi_disk_zip64_record(tmp_path) -> None:
     ({'dt': True}, 'dt'), ({'r': 0}, 'r'), ({'r': 7}, 'r=7'), ({'n_states': 2}, 'n_states'),
     ({'method': 'x' * 100}, 'method'), ({'class': 'Nope'}, 'class'),
     ({'input_names': ['a']}, 'names'), ({'metadata': [1, 2]}, 'metadata'),
+    ({'format_version': '1'}, 'must be an integer'), ({'format_version': 1.0}, 'integer'),
+    ({'format_version': True}, 'integer'), ({'format_version': 99}, 'version 99'),
 ])
 def test_physical_fields(tmp_path, change, match) -> None:
     _refused(h.with_header(h.second_order(), tmp_path / 'm.npz', **change), match)
