@@ -143,6 +143,15 @@ def _arr(name: str, value: ArrayLike, shape: tuple[int, ...] | None = None) -> A
     return a
 
 
+def _leading(name: str, value: ArrayLike, n: int) -> Array:
+    """``value`` as float64 with ``n`` rows (a vector, or ``n`` x ``k`` for ``k`` at once)."""
+    a = np.asarray(value, dtype=np.float64)
+    if a.ndim not in (1, 2) or a.shape[0] != n:
+        raise DimensionError(f'{name} must have shape ({n},) (or ({n}, k)); got shape '
+                             f'{a.shape}.')
+    return a
+
+
 def _state_input_output(square: tuple[str, ArrayLike], inp: tuple[str, ArrayLike],
                         out: tuple[str, ArrayLike]) -> tuple[Array, Array, Array, int]:
     """The constructors' shape checks: ``square (r, r)``, ``inp (r, m)``, ``out (p, r)``."""
@@ -287,14 +296,16 @@ class LinearROM(ABC):
             Step length; default the native :attr:`dt`.
         """
         sys_ = self.system if dt is None else self.discretize(dt)
-        return sys_.A @ np.asarray(x, dtype=np.float64) + sys_.B @ np.asarray(u, np.float64)
+        return (sys_.A @ _leading('x', x, self.n_states)
+                + sys_.B @ _leading('u', u, self.n_inputs))
 
     def output(self, x: ArrayLike, u: ArrayLike | None = None) -> Array:
         """Absolute output ``y = C x + D u + y_ref``, shape (p,)."""
         sys_ = self.system
-        y = sys_.C @ np.asarray(x, dtype=np.float64) + self.y_ref
+        xs = _leading('x', x, self.n_states)
+        y = sys_.C @ xs + (self.y_ref if xs.ndim == 1 else self.y_ref[:, None])
         if u is not None:
-            y = y + sys_.D @ np.asarray(u, dtype=np.float64)
+            y = y + sys_.D @ _leading('u', u, self.n_inputs)
         return y
 
     def simulate(self, U: ArrayLike, x0: ArrayLike | None = None, *,

@@ -48,7 +48,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.data import as_signal
 from soft_rom.errors import DimensionError, SolverError
-from soft_rom.models import _arr, DiscreteSystem, LinearROM, register_model_class, SecondOrderModel
+from soft_rom.models import (
+    _arr,
+    _leading,
+    DiscreteSystem,
+    LinearROM,
+    register_model_class,
+    SecondOrderModel,
+)
 
 __all__ = ['CUBIC_FORMAT_VERSION', 'CubicSecondOrderModel', 'StepCache', 'symmetrize',
            'symmetric_from_entries', 'symmetric_entries', 'symmetric_index']
@@ -65,6 +72,14 @@ _W01 = np.array([[0.5 * (1.0 - _GAUSS[0]), 0.5 * _GAUSS[0]],
 
 
 # ------------------------------------------------------------------ symmetric tensors
+def _vector(name: str, value: ArrayLike, n: int) -> Array:
+    """``value`` as a float64 vector of ``n`` entries (one state or input at a time)."""
+    a = _leading(name, value, n)
+    if a.ndim != 1:
+        raise DimensionError(f'{name} must have shape ({n},); got shape {a.shape}.')
+    return a
+
+
 def symmetric_index(r: int, degree: int) -> list[tuple[int, ...]]:
     """The independent entries of a symmetric tensor: sorted index tuples ``i1 ≤ … ≤ id``.
 
@@ -395,8 +410,7 @@ class CubicSecondOrderModel(LinearROM):
             Step length; default the native :attr:`dt`.
         """
         h = self.dt if dt is None else float(dt)
-        return self._advance(np.asarray(x, dtype=np.float64), np.asarray(u, dtype=np.float64),
-                             h)
+        return self._advance(_vector('x', x, self.n_states), _vector('u', u, self.n_inputs), h)
 
     def step_jacobian(self, x: ArrayLike, u: ArrayLike, dt: float | None = None
                       ) -> tuple[Array, Array, Array]:
@@ -408,8 +422,8 @@ class CubicSecondOrderModel(LinearROM):
         A : ndarray, shape (2r, 2r)
         Bu : ndarray, shape (2r, m)
         """
-        x = np.asarray(x, dtype=np.float64)
-        u = np.asarray(u, dtype=np.float64)
+        x = _vector('x', x, self.n_states)
+        u = _vector('u', u, self.n_inputs)
         h = self.dt if dt is None else float(dt)
         cache = self.step_cache(h)
         out = self._solve_step(cache, x, cache.Bd @ u, None)
@@ -430,7 +444,7 @@ class CubicSecondOrderModel(LinearROM):
 
     def output(self, x: ArrayLike, u: ArrayLike | None = None) -> Array:
         """Absolute output ``y = E q + y_ref``, shape (p,)."""
-        x = np.asarray(x, dtype=np.float64)
+        x = _vector('x', x, self.n_states)
         return self.E @ x[:self.r] + self.y_ref
 
     def simulate(self, U: ArrayLike, x0: ArrayLike | None = None, *,

@@ -7,7 +7,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from soft_rom.data import Episode
-from soft_rom.errors import ConfigError, ModelFileError
+from soft_rom.errors import ConfigError, DimensionError, ModelFileError
 from soft_rom.learners.lopinf import LOpInf
 from soft_rom.learners.lopinf_cubic import fit_cubic, quartic_lower_bound
 from soft_rom.metrics import relative_error
@@ -161,6 +161,17 @@ def test_exact_for_the_linear_part() -> None:
     x0 = np.linspace(-1, 1, 8)
     np.testing.assert_allclose(zero.simulate(U, x0), model.linear_part().simulate(U, x0),
                                rtol=0, atol=1e-13)
+
+
+def test_step_and_output_name_a_wrong_state_or_input() -> None:
+    model = duffing_chain(3)                 # x = [q; q'] has 6 entries, u has 2
+    x, u = np.zeros(6), np.zeros(2)
+    with pytest.raises(DimensionError, match=r'x must have shape \(6,\)'):
+        model.output(np.zeros(3))            # q alone used to be taken silently
+    with pytest.raises(DimensionError, match=r'u must have shape \(2,\)'):
+        model.step(x, np.zeros(3))
+    with pytest.raises(DimensionError, match=r'x must have shape \(6,\)'):
+        model.step_jacobian(np.zeros((6, 2)), u)
 
 
 def test_step_jacobian_matches_finite_differences() -> None:

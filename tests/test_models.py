@@ -73,6 +73,25 @@ def test_step_and_simulate_agree() -> None:
     np.testing.assert_array_equal(X[:, 0], np.zeros(model.n_states))
 
 
+def test_step_and_output_name_a_wrong_state_or_input() -> None:
+    """A controller passing the wrong vector gets the shape it needs, not a matmul error."""
+    for model in (_discrete(), _second_order()):
+        n, m = model.n_states, model.n_inputs
+        x, u = model.initial_state(), np.zeros(m)
+        with pytest.raises(DimensionError, match=rf'u must have shape \({m},\)'):
+            model.step(x, np.zeros(m + 1))
+        with pytest.raises(DimensionError, match=rf'x must have shape \({n},\)'):
+            model.step(np.zeros(n - 1), u)
+        with pytest.raises(DimensionError, match='x must have shape'):
+            model.output(np.zeros((n + 2, 3)))
+        # k states at once still work, column by column
+        X = np.random.default_rng(0).normal(size=(n, 3))
+        Y = model.output(X)
+        np.testing.assert_allclose(Y[:, 1], model.output(X[:, 1]), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(model.step(X, np.zeros((m, 3)))[:, 2],
+                                   model.step(X[:, 2], u), rtol=0, atol=1e-12)
+
+
 def test_discrete_multiple_of_dt() -> None:
     model = _discrete()
     u = np.array([0.3, -1.0])
