@@ -100,6 +100,18 @@ class ConversionReport:
         d = asdict(self)
         return dict(json.loads(json.dumps(d, default=float)))
 
+    def main_cause(self) -> str:
+        """The largest drop of any topic, as one phrase (what an error should say first)."""
+        best: tuple[int, TopicReport, str] | None = None
+        for r in self.topics.values():
+            for reason, n in r.dropped.items():
+                if best is None or n > best[0]:
+                    best = (n, r, reason)
+        if best is None:
+            return 'no message was dropped, but no output sample fell on the grid'
+        n, r, reason = best
+        return f'{r.role} {r.topic}: {n} of {r.read} dropped ({reason})'
+
     def format(self) -> str:
         """Human-readable multi-line summary."""
         lines = [f'bag {self.bag} ({self.storage}): {self.n_samples} samples in '

@@ -197,8 +197,13 @@ class BagConverter:
         for tr in self.tracks.values():
             tr.report.timing(np.asarray(tr.times, dtype=np.int64))
         if not self.report.episodes:
+            cause = self.report.main_cause()
+            grid = (f'; the {self.dt_ns * 1e-9:g} s grid step is longer than the recording'
+                    if self.out_rep.dropped and all(k.startswith('piece shorter')
+                                                    for k in self.out_rep.dropped) else '')
             raise BagError(f'bag {self.plan.path}: no usable sample left after dropping bad or '
-                           f'unmatched messages:\n{self.report.format()}')
+                           f'unmatched messages: {cause}{grid}. The whole report:\n'
+                           f'{self.report.format()}')
         return self.report
 
     def _stamp_ok(self, topic: str, rep: TopicReport, t: int, log_ns: int,

@@ -111,6 +111,19 @@ def test_all_outputs_too_short_stops(tmp_path):
     _nothing_left(tmp_path, tmp_path / 'o.zarr')
 
 
+def test_no_usable_sample_says_why_first(tmp_path):
+    """The error leads with the topic and reason that emptied the bag, then the report."""
+    bag = tmp_path / 'b'
+    _write(bag)
+    mapping = BagMapping.from_dict({'output': {'points': [25]}})   # the centerline has 20
+    with pytest.raises(BagError) as err:
+        convert([bag], tmp_path / 'o.zarr', mapping, progress=False)
+    first = str(err.value).split('The whole report')[0]
+    assert 'output /soft_robot/centerline: ' in first, first
+    assert 'dropped (fewer than 26 points)' in first, first
+    _nothing_left(tmp_path, tmp_path / 'o.zarr')
+
+
 # -- cases that continue and report ---------------------------------------------------------
 def test_nan_inf_dropped_and_reported(tmp_path):
     bag = tmp_path / 'b'
