@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 import scipy.linalg as sla
@@ -386,3 +388,48 @@ def test_bad_selection_options_are_config_errors(options) -> None:
                  Y=rng.standard_normal((3, 400)))
     with pytest.raises(ConfigError, match=next(iter(options))):
         ERAOKID(**options).fit(ep)
+
+
+def test_markov_horizon_longer_than_the_episode_is_refused_before_any_work(monkeypatch):
+    A, B, C, D, rng = _lti()
+    U = rng.standard_normal((2, 300))
+    ep = Episode(t=np.arange(300) * 1e-3, U=U, Y=_response(A, B, C, D, U, np.zeros(6)),
+                 name='short')
+
+    def no_work(*_args, **_kwargs):
+        raise AssertionError('work started')
+
+    era_module = sys.modules[ERAOKID.__module__]
+    monkeypatch.setattr(era_module, 'okid_markov', no_work)
+    monkeypatch.setattr(era_module.era_select, 'select_okid', no_work)
+    monkeypatch.setattr(ERAOKID, '_prepare', no_work)
+    for options in ({'selection': 'none', 'decimation': 1}, {'selection': 'holdout'},
+                    {'decimation': 'auto'}):
+        for nm in (100_000, 5000, 300):
+            with pytest.raises(ConfigError, match=f"n_markov={nm} exceeds .*'short'.* 299"):
+                ERAOKID(r=3, n_markov=nm, **options).fit(ep)
+    with pytest.raises(ConfigError, match='at most 59'):          # 60 samples at d = 5
+        ERAOKID(r=3, n_markov=60, decimation=5, selection='none').fit(ep)
+    for bad in (0, 2.5, True, '10'):
+        with pytest.raises(ConfigError, match='n_markov must be an integer'):
+            ERAOKID(r=3, n_markov=bad).fit(ep)
+
+
+def test_markov_horizon_at_the_bound_fits():
+    A, B, C, D, rng = _lti()
+    U = rng.standard_normal((2, 120))
+    ep = Episode(t=np.arange(120) * 1e-3, U=U, Y=_response(A, B, C, D, U, np.zeros(6)))
+    est = ERAOKID(r=4, n_markov=119, decimation=1, selection='none', output_rank=None,
+                  observer_order=8).fit(ep)
+    assert est.markov_.shape[0] == 120
+
+
+def test_observer_order_too_large_is_refused_not_replaced():
+    A, B, C, D, rng = _lti()
+    U = rng.standard_normal((2, 300))
+    ep = Episode(t=np.arange(300) * 1e-3, U=U, Y=_response(A, B, C, D, U, np.zeros(6)))
+    for selection in ('holdout', 'none'):
+        with pytest.raises((ConfigError, DimensionError), match='observer_order'):
+            ERAOKID(r=3, observer_order=100_000, decimation=1, selection=selection).fit(ep)
+    with pytest.raises(ConfigError, match='observer_order must be an integer'):
+        ERAOKID(r=3, observer_order=0).fit(ep)

@@ -71,3 +71,35 @@ def test_rerun_reuses_bags_and_reconverts_when_they_change(study, tmp_path) -> N
 def test_markdown_table_formats_numbers() -> None:
     table = markdown_table(['a', 'b'], [[1, 0.12345], [2, 1.5e12], [3, 2e-5]])
     assert '| 1 | 0.1235 |' in table and '1.50e+12' in table and '2.00e-05' in table
+
+
+@pytest.mark.parametrize('data, words', [
+    (b'{x\n', 'is not valid JSON'),
+    (b'[]\n', 'must hold a JSON object; got an array'),
+    (b'"ep1"\n', 'must hold a JSON object; got a string'),
+    (b'\xff\xfe{}\n', 'is not UTF-8 text'),
+])
+def test_corrupt_bag_sidecar_is_refused_naming_it(tmp_path, capsys, data, words) -> None:
+    from soft_rom.cli import main
+    from soft_rom.errors import BagError
+    from soft_rom.study.run import simulate_bags
+
+    bags = tmp_path / 'sb'
+    (bags / 'ep1').mkdir(parents=True)
+    sidecar = bags / 'ep1.json'
+    sidecar.write_bytes(data)
+    cfg = StudyConfig(n_episodes=2, duration=0.4, t_train=0.3, jobs=1)
+    with pytest.raises(BagError, match=words):
+        simulate_bags(bags, cfg, progress=False)
+    assert not (bags / 'ep2').exists()          # refused before any simulation
+    for verb in ('study', 'demo'):
+        capsys.readouterr()
+        rc = main([verb, '-o', str(tmp_path / verb), '--bags', str(bags), '--episodes', '2',
+                   '--quiet', '--jobs', '1'])
+        err = capsys.readouterr().err
+        lines = [line for line in err.splitlines() if line.strip()]
+        assert rc == 2, err
+        assert len(lines) == 1 and 'Traceback' not in err, err
+        assert lines[0].startswith(f'soft-rom {verb}: error: bag sidecar {sidecar}'), err
+        assert words in lines[0]
+    assert sidecar.read_bytes() == data and not (bags / 'ep2').exists()

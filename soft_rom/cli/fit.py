@@ -104,9 +104,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                      help='fit at DECIMATION x the data sample time (default: selected, 1 or 5)')
     era.add_argument('--n-markov', type=int_range(1, 1_000_000), default=None,
                      help='number of Markov parameters in the Hankel matrices (default: a '
-                          'third of the samples, at most 500)')
+                          'third of the samples, at most 500); at most the samples of the ERA '
+                          'episode after decimation minus 1, else refused')
     era.add_argument('--observer-order', type=int_range(1, 100_000), default=None,
-                     help='OKID observer order (default: selected on a held-out tail)')
+                     help='OKID observer order (default: selected by cross-validation); one '
+                          'the episode cannot fit (two equations per unknown in each training '
+                          'fold) is refused, never replaced')
     era.add_argument('--output-rank', type=int_range(1), default=None,
                      help='identify on this many principal components of the outputs '
                           '(fewer OKID unknowns; e.g. 4 for a centerline)')

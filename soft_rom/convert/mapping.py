@@ -127,16 +127,24 @@ class BagMapping:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any] | None) -> BagMapping:
-        """Build from the YAML structure of ``config/bag_mapping.yaml``."""
-        d = dict(d or {})
+        """Build from the YAML structure of ``config/bag_mapping.yaml``.
+
+        Every key is type-checked here, once: a wrong type or value raises
+        :class:`~soft_rom.errors.ConfigError` naming the key (``output.points``, ...).
+        """
+        if d is None:
+            d = {}
+        if not isinstance(d, Mapping):
+            raise ConfigError(f'a mapping must be a mapping of sections (inputs, output, state, '
+                              f'time); got {_show(d)}.')
         unknown = set(d) - {'inputs', 'output', 'state', 'time'}
         if unknown:
-            raise ConfigError(f'unknown mapping section(s) {sorted(unknown)}; expected inputs, '
+            raise ConfigError(f'unknown mapping section(s) {_sorted(unknown)}; expected inputs, '
                               'output, state, time.')
-        inp = dict(d.get('inputs') or {})
-        out = dict(d.get('output') or {})
-        st = dict(d.get('state') or {})
-        tm = dict(d.get('time') or {})
+        inp = _section('inputs', d.get('inputs'))
+        out = _section('output', d.get('output'))
+        st = _section('state', d.get('state'))
+        tm = _section('time', d.get('time'))
         _no_extra('inputs', inp, {'sources', 'topics', 'topic', 'indices', 'slice', 'names',
                                   'units', 'scale', 'offset'})
         _no_extra('output', out, {'topic', 'points', 'n_points', 'components', 'order',
@@ -146,46 +154,62 @@ class BagMapping:
                                'min_samples'})
         sources: list[InputSource] | None
         if 'sources' in inp:
-            sources = [_source(s) for s in inp['sources'] or []]
+            if not isinstance(inp['sources'], (list, tuple)):
+                raise ConfigError(f'inputs.sources must be a list of sources (a topic, or '
+                                  f'{{topic, slice}} / {{topic, indices}}); got '
+                                  f"{_show(inp['sources'])}.")
+            sources = [_source('inputs.sources', s) for s in inp['sources']]
         elif 'topic' in inp:
-            sources = [_source({k: inp[k] for k in ('topic', 'indices', 'slice') if k in inp})]
+            sources = [_source('inputs', {k: inp[k] for k in ('topic', 'indices', 'slice')
+                                          if k in inp})]
         elif inp.get('topics', 'auto') in ('auto', None):
             sources = None
-        elif isinstance(inp['topics'], list):
-            sources = [InputSource(str(t)) for t in inp['topics']]
+        elif isinstance(inp['topics'], (list, tuple)):
+            sources = [InputSource(_topic('inputs.topics', t)) for t in inp['topics']]
         else:
-            raise ConfigError(f"inputs.topics must be 'auto' or a list; got {inp['topics']!r}.")
+            raise ConfigError(f"inputs.topics must be 'auto' or a list of topics; got "
+                              f"{_show(inp['topics'])}.")
         if sources is not None and not sources:
             raise ConfigError('inputs: at least one input source is needed.')
-        names = inp.get('names')
-        units = inp.get('units', 'Pa')
-        comps = tuple(str(c) for c in out.get('components', ('x', 'z')))
+        names = _strs('inputs.names', inp.get('names'), one=False)
+        units = _strs('inputs.units', inp.get('units', 'Pa'), one=True)
+        comps_v = out.get('components', ('x', 'z'))
+        if isinstance(comps_v, str):
+            comps_v = list(comps_v)          # 'xz' spells [x, z]
+        if not isinstance(comps_v, (list, tuple)) or not all(isinstance(c, str)
+                                                             for c in comps_v):
+            raise ConfigError(f'output.components must be a list of distinct x, y, z; got '
+                              f'{_show(comps_v)}.')
+        comps = tuple(comps_v)
         if not comps or any(c not in COMPONENTS for c in comps) or len(set(comps)) < len(comps):
             raise ConfigError(f'output.components must be a list of distinct x, y, z; got '
-                              f'{comps}.')
-        order = str(out.get('order', 'component_major'))
-        if order not in ORDERS:
-            raise ConfigError(f"output.order must be 'component_major' or 'point_major'; "
-                              f'got {order!r}.')
-        stamps = str(tm.get('stamps', 'header'))
-        if stamps not in ('header', 'log'):
-            raise ConfigError(f"time.stamps must be 'header' or 'log'; got {stamps!r}.")
-        points = out.get('points')
+                              f'{_show(list(comps))}.')
+        order = _choice('output.order', out.get('order', 'component_major'), ORDERS)
+        stamps = _choice('time.stamps', tm.get('stamps', 'header'), ('header', 'log'))
+        points = _indices('output.points', out.get('points'))
+        if points is not None and len(set(points)) < len(points):
+            raise ConfigError(f"output.points must be distinct point indices; got "
+                              f"{_show(out['points'])}.")
+        include = st.get('include')
+        if include is not None and not isinstance(include, bool):
+            raise ConfigError(f'state.include must be true, false or null (if the bag has '
+                              f'the state topic); got {_show(include)}.')
         return cls(
             inputs=None if sources is None else tuple(sources),
-            input_names=None if names is None else tuple(str(n) for n in names),
-            input_units=None if units is None else (
-                (str(units),) if isinstance(units, str) else tuple(str(u) for u in units)),
+            input_names=names,
+            input_units=units,
             scale=_floats('inputs.scale', inp.get('scale', 1.0)),
             offset=_floats('inputs.offset', inp.get('offset', 0.0)),
             output=OutputMapping(
-                topic=str(out.get('topic', OutputMapping.topic)),
-                points=None if points is None else tuple(int(i) for i in points),
-                n_points=None if out.get('n_points') is None else int(out['n_points']),
-                components=comps, order=order, units=str(out.get('units', 'm'))),
-            state=StateMapping(topic=str(st.get('topic', StateMapping.topic)),
-                               include=None if st.get('include') is None else bool(
-                                   st['include'])),
+                topic=_topic('output.topic', out.get('topic', OutputMapping.topic)),
+                points=points,
+                n_points=_opt_count('output.n_points', out.get('n_points')),
+                components=comps, order=order,
+                units=_topic('output.units', out.get('units', 'm'), what='a unit')),
+            state=StateMapping(topic=_topic('state.topic', st.get('topic', StateMapping.topic),
+                                            hint=' (to leave the state out, set '
+                                                 'state.include: false)'),
+                               include=include),
             stamps=stamps,
             match_tolerance=_opt_pos('time.match_tolerance', tm.get('match_tolerance')),
             dt=_opt_pos('time.dt', tm.get('dt')),
@@ -221,63 +245,159 @@ class BagMapping:
                                            'split_gap', 'min_samples')}}
 
 
+def _show(v: Any) -> str:
+    """A value as the user wrote it in the YAML file (flow style, one line, short)."""
+    import yaml
+
+    try:
+        text = yaml.safe_dump(v, default_flow_style=True, width=1 << 30).strip()
+    except yaml.YAMLError:
+        text = repr(v)
+    text = text.removesuffix('\n...').removesuffix(' ...').strip()
+    return text if len(text) <= 80 else text[:77] + '...'
+
+
+def _sorted(keys: Any) -> list[str]:
+    return sorted(str(k) for k in keys)
+
+
+def _section(name: str, v: Any) -> dict[str, Any]:
+    if v is None:
+        return {}
+    if not isinstance(v, Mapping):
+        raise ConfigError(f'mapping section {name!r} must be a mapping of keys (see '
+                          f'config/bag_mapping.yaml); got {_show(v)}.')
+    return dict(v)
+
+
 def _no_extra(section: str, d: Mapping[str, Any], allowed: set[str]) -> None:
     extra = set(d) - allowed
     if extra:
-        raise ConfigError(f'unknown key(s) {sorted(extra)} in mapping section {section!r}; '
+        raise ConfigError(f'unknown key(s) {_sorted(extra)} in mapping section {section!r}; '
                           f'allowed: {sorted(allowed)}.')
 
 
-def _source(s: Any) -> InputSource:
-    if isinstance(s, str):
+def _topic(name: str, v: Any, *, what: str = 'a topic name', hint: str = '') -> str:
+    if not isinstance(v, str) or not v:
+        raise ConfigError(f'{name} must be {what} (a non-empty string); got {_show(v)}'
+                          f'{hint}.')
+    return v
+
+
+def _strs(name: str, v: Any, *, one: bool) -> tuple[str, ...] | None:
+    """``None``, or a list of strings (``one``: or one string for all).
+
+    Names (``one=False``) may be numbers (``[1, 2]`` names the inputs '1', '2').
+    """
+    if v is None:
+        return None
+    if one and isinstance(v, str):
+        return (v,)
+    kinds: tuple[type, ...] = (str,) if one else (str, int, float)
+    if (not isinstance(v, (list, tuple)) or not v
+            or not all(isinstance(x, kinds) and not isinstance(x, bool) for x in v)):
+        what = 'one unit or a list of units' if one else 'a list of names'
+        raise ConfigError(f'{name} must be {what}; got {_show(v)}.')
+    return tuple(str(x) for x in v)
+
+
+def _is_int(x: Any) -> bool:
+    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
+
+
+def _indices(name: str, v: Any) -> tuple[int, ...] | None:
+    """``None``, or a non-empty list of 0-based indices (integers, not 1.5 or true)."""
+    if v is None:
+        return None
+    if not isinstance(v, (list, tuple)) or not all(_is_int(i) for i in v):
+        raise ConfigError(f'{name} must be a list of integers (0-based indices); got '
+                          f'{_show(v)}.')
+    if not v:
+        raise ConfigError(f'{name} must list at least one index (or be null for all); got [].')
+    if any(i < 0 for i in v):
+        raise ConfigError(f'{name} must be 0-based indices (>= 0); got {_show(v)}.')
+    return tuple(int(i) for i in v)
+
+
+def _source(name: str, s: Any) -> InputSource:
+    if isinstance(s, str) and s:
         return InputSource(s)
     if not isinstance(s, Mapping) or 'topic' not in s:
-        raise ConfigError(f'an input source needs a topic; got {s!r}.')
-    idx = s.get('indices')
+        raise ConfigError(f'{name}: an input source needs a topic; got {_show(s)}.')
+    _no_extra(name, s, {'topic', 'indices', 'slice'})
+    topic = _topic(f'{name} topic', s['topic'])
+    idx = _indices(f'{name} indices of {topic}', s.get('indices'))
     if s.get('slice') is not None:
-        sl = list(s['slice'])
-        if len(sl) != 2:
-            raise ConfigError(f"inputs slice must be [start, stop]; got {s['slice']!r}.")
-        idx = list(range(int(sl[0]), int(sl[1])))
-    return InputSource(str(s['topic']), None if idx is None else tuple(int(i) for i in idx))
+        sl = s['slice']
+        if (not isinstance(sl, (list, tuple)) or len(sl) != 2
+                or not all(_is_int(i) for i in sl) or not 0 <= sl[0] < sl[1]):
+            raise ConfigError(f'{name} slice of {topic} must be [start, stop], integers with '
+                              f'0 <= start < stop; got {_show(sl)}.')
+        idx = tuple(range(int(sl[0]), int(sl[1])))
+    return InputSource(topic, idx)
 
 
 def _floats(name: str, v: Any) -> tuple[float, ...]:
-    vals: list[Any] = [v] if np.isscalar(v) else list(v)
+    vals: list[Any] = list(v) if isinstance(v, (list, tuple)) else [v]
+    if not vals or any(isinstance(x, (bool, np.bool_)) for x in vals):
+        raise ConfigError(f'{name} must be a number or a list of numbers; got {_show(v)}.')
     try:
         out = tuple(float(x) for x in vals)
     except (TypeError, ValueError) as err:
-        raise ConfigError(f'{name} must be a number or a list of numbers; got {v!r}.') from err
-    if not out or not all(math.isfinite(x) for x in out):
-        raise ConfigError(f'{name} must be finite numbers; got {v!r}.')
+        raise ConfigError(f'{name} must be a number or a list of numbers; got {_show(v)}.'
+                          ) from err
+    if not all(math.isfinite(x) for x in out):
+        raise ConfigError(f'{name} must be finite numbers; got {_show(v)}.')
     return out
+
+
+def _choice(name: str, v: Any, choices: Sequence[str]) -> str:
+    if not isinstance(v, str) or v not in choices:
+        raise ConfigError(f'{name} must be one of {", ".join(choices)}; got {_show(v)}.')
+    return v
+
+
+def _opt_count(name: str, v: Any) -> int | None:
+    if v is None:
+        return None
+    if not _is_int(v) or v < 1:
+        raise ConfigError(f'{name} must be a positive integer or null; got {_show(v)}.')
+    return int(v)
+
+
+def _number(v: Any) -> float:
+    """``float(v)``; ``TypeError`` for ``true``/``false``, which YAML would make 1 and 0."""
+    if isinstance(v, (bool, np.bool_)):
+        raise TypeError('a boolean is not a number')
+    return float(v)
 
 
 def _opt_pos(name: str, v: Any) -> float | None:
     if v is None:
         return None
     try:
-        x = float(v)
+        x = _number(v)
     except (TypeError, ValueError) as err:
-        raise ConfigError(f'{name} must be a positive number of seconds; got {v!r}.') from err
+        raise ConfigError(f'{name} must be a positive number of seconds; got {_show(v)}.'
+                          ) from err
     if not x > 0 or not math.isfinite(x):
-        raise ConfigError(f'{name} must be a positive number of seconds; got {v!r}.')
+        raise ConfigError(f'{name} must be a positive number of seconds; got {_show(v)}.')
     return x
 
 
 def _nonneg(name: str, v: Any) -> float:
     try:
-        x = float(v)
+        x = _number(v)
     except (TypeError, ValueError) as err:
-        raise ConfigError(f'{name} must be a number >= 0; got {v!r}.') from err
+        raise ConfigError(f'{name} must be a number >= 0; got {_show(v)}.') from err
     if not x >= 0 or not math.isfinite(x):
-        raise ConfigError(f'{name} must be a number >= 0; got {v!r}.')
+        raise ConfigError(f'{name} must be a number >= 0; got {_show(v)}.')
     return x
 
 
 def _min_samples(v: Any) -> int:
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or int(v) < 2:
-        raise ConfigError(f'time.min_samples must be an integer >= 2; got {v!r}.')
+    if not _is_int(v) or int(v) < 2:
+        raise ConfigError(f'time.min_samples must be an integer >= 2; got {_show(v)}.')
     return int(v)
 
 
@@ -292,7 +412,14 @@ def per_input(name: str, values: Sequence[Any], m: int) -> list[Any]:
 
 
 def load_mapping(path: str | Path | None) -> BagMapping:
-    """Read a mapping YAML file (``None``: the defaults)."""
+    """Read a mapping YAML file (``None``: the defaults).
+
+    Raises
+    ------
+    ConfigError
+        The file does not exist, is not UTF-8 YAML text, or a key is invalid; the message
+        names the file and the key (``mapping m.yaml: output.points must be ...``).
+    """
     if path is None:
         return BagMapping()
     import yaml
@@ -300,11 +427,16 @@ def load_mapping(path: str | Path | None) -> BagMapping:
     if not p.exists():
         raise ConfigError(f'mapping file {p} does not exist.')
     try:
-        data = yaml.safe_load(p.read_text())
+        data = yaml.safe_load(p.read_text(encoding='utf-8'))
+    except UnicodeDecodeError as err:
+        raise ConfigError(f'mapping file {p} is not UTF-8 text (byte {err.start}); give a YAML '
+                          'file like config/bag_mapping.yaml.') from err
     except yaml.YAMLError as err:
         raise ConfigError(f'mapping file {p} is not valid YAML: {err}') from err
     if data is not None and not isinstance(data, Mapping):
-        raise ConfigError(f'mapping file {p} must hold a mapping (inputs/output/state/time).')
-    return BagMapping.from_dict(data)
-
-
+        raise ConfigError(f'mapping file {p} must hold a mapping (inputs/output/state/time); '
+                          f'got {_show(data)}.')
+    try:
+        return BagMapping.from_dict(data)
+    except ConfigError as err:
+        raise ConfigError(f'mapping {p}: {err}') from err

@@ -314,10 +314,15 @@ class ERAOKID:
         singular value rule (``selection='none'``).
     n_markov : int, optional
         System Markov parameters used in the Hankel matrices (their span is
-        ``n_markov · decimation · dt``); ``None``: ``min(K // 3, 500)``.
+        ``n_markov · decimation · dt``); ``None``: ``min(K // 3, 500)``. At most ``K - 1``
+        (``K`` samples after decimation): a longer horizon is refused
+        (:class:`~soft_rom.errors.ConfigError`) before any work.
     observer_order : int, optional
         OKID observer order ``l``; ``None``: selected, or (``selection='none'``) the largest
-        order with two equations per unknown, capped at ``max_observer_order``.
+        order with two equations per unknown, capped at ``max_observer_order``. An order the
+        data cannot fit is refused (:class:`~soft_rom.errors.ConfigError`), never replaced:
+        with ``selection='holdout'`` it must leave two equations per unknown in the
+        training part of a fold, with ``'none'`` one per unknown in the episode.
     decimation : int or 'auto'
         Fit at ``decimation`` times the data sample time; ``'auto'`` (default): a factor of
         :data:`~soft_rom.learners.era_select.DECIMATION_GRID`, selected with the other
@@ -486,7 +491,13 @@ class ERAOKID:
             grid = [d for d in era_select.DECIMATION_GRID
                     if d == 1 or ep.n_samples // d >= 200]
         else:
-            grid = [int(self.decimation)]
+            grid = [_positive_int('decimation', self.decimation)]
+        n_markov = None if self.n_markov is None else _positive_int('n_markov', self.n_markov)
+        if self.observer_order is not None:
+            _positive_int('observer_order', self.observer_order)
+        if n_markov is not None:
+            # Before any work: at the finest decimation tried (the most samples).
+            _check_horizon(n_markov, ep, min(grid))
         ridge = self.okid_ridge
         sel = None
         tried: list[dict[str, Any]] = []
@@ -497,9 +508,11 @@ class ERAOKID:
             per_d: dict[int, dict[str, Any]] = {}
             for d in grid:
                 try:
+                    if n_markov is not None:
+                        _check_horizon(n_markov, ep, d)
                     prepared[d] = self._prepare(ep, y_ref, d)
                     Us, Ys = prepared[d][:2]
-                    nm_d = None if self.n_markov is None else int(self.n_markov)
+                    nm_d = n_markov
                     res = era_select.select_okid(
                         Us, Ys, holdout=float(self.holdout),
                         observer_orders=None if self.observer_order is None else (
@@ -542,7 +555,7 @@ class ERAOKID:
         p_id = Ys.shape[0]
         m_id = Us.shape[0]
         K = Us.shape[1]
-        nm = era_select.default_n_markov(K) if self.n_markov is None else int(self.n_markov)
+        nm = era_select.default_n_markov(K) if n_markov is None else n_markov
         if sel is None:
             if self.observer_order is None:
                 # Keep at least 2 equations per unknown: near-square regressions fit the
@@ -708,6 +721,28 @@ class ERAOKID:
                              y_ref=self.y_ref_, input_names=old.input_names,
                              output_names=old.output_names, input_units=old.input_units,
                              output_units=old.output_units, metadata=meta)
+
+
+def _positive_int(name: str, value: Any) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ConfigError(f'{name} must be an integer >= 1; got {value!r}.')
+    return int(value)
+
+
+def _check_horizon(n_markov: int, ep: Episode, d: int) -> None:
+    """Refuse a Markov horizon longer than the episode at decimation ``d`` (before any work).
+
+    The ``n_markov`` Markov parameters are the impulse response over ``n_markov`` model
+    steps; a record of ``K`` samples constrains it over at most ``K - 1`` steps, and the
+    Hankel matrices grow with ``n_markov²`` (100 000 of them would need over 100 GiB).
+    """
+    K = ep.n_samples // d
+    if n_markov > K - 1:
+        raise ConfigError(
+            f'n_markov={n_markov} exceeds what episode {ep.name!r} supports: it has {K} '
+            f'samples at decimation {d}, so the Markov horizon can be at most {max(K - 1, 0)} '
+            f'(default {era_select.default_n_markov(K)}). Give a smaller n_markov, a longer '
+            'episode, or less decimation.')
 
 
 def _finite_rows(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:

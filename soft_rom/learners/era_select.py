@@ -350,7 +350,8 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
     observer_orders : tuple of int, optional
         Candidates (default :data:`OBSERVER_GRID` and the largest order with two equations
         per unknown in a fold, each if it fits): at high sample rates the observer must
-        span many samples to see slow modes.
+        span many samples to see slow modes. Given ones that do not fit are skipped; if
+        none fits, :class:`~soft_rom.errors.ConfigError`.
     rhos : tuple of float
         Candidate ridge weights (each at least :data:`RIDGE_FLOOR`).
     n_markov : int, optional
@@ -390,8 +391,13 @@ def select_okid(Us: Array, Ys: Array, *, holdout: float = 0.2,
                           f'tail (m={m}, p={p}); give observer_order and a ridge weight.')
     cands = sorted({lo for lo in (observer_orders or OBSERVER_GRID + (l_max,))
                     if 1 <= lo <= l_max})
-    if not cands:
-        cands = [l_max]
+    if not cands:       # only orders given by hand can all be out of reach
+        raise ConfigError(
+            f'observer_order {", ".join(str(lo) for lo in observer_orders or ())} is too large '
+            f'for {K} samples: the selection fits each fold on {cut} samples with two '
+            f'equations per unknown (m={m}, p={p} identified channels), so observer_order '
+            f'<= {l_max}. Give a smaller observer order, a longer episode, or less '
+            'decimation.')
     nm = default_n_markov(cut) if n_markov is None else int(n_markov)
     rhos = tuple(max(float(x), RIDGE_FLOOR) for x in rhos)
     intercepts = INTERCEPTS if intercepts is None else intercepts

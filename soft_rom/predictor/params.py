@@ -11,6 +11,8 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
+import math
+import numbers
 from pathlib import Path
 from typing import Any
 
@@ -18,8 +20,8 @@ from soft_rom.errors import ConfigError
 from soft_rom.predictor.config import PredictorConfig
 from soft_rom.predictor.loop import LoopSettings
 
-__all__ = ['NODE_NAME', 'NODE_PARAMS', 'PARAMS', 'Param', 'load_params_file', 'loop_settings',
-           'predictor_config', 'render_params_file']
+__all__ = ['NODE_NAME', 'NODE_PARAMS', 'PARAMS', 'Param', 'check_param', 'load_params_file',
+           'loop_settings', 'predictor_config', 'render_params_file']
 
 NODE_NAME = 'soft_rom_predictor'
 
@@ -137,30 +139,126 @@ _CONFIG_FIELDS = {f.name for f in fields(PredictorConfig)}
 _BY_NAME = {p.name: p for p in PARAMS + NODE_PARAMS}
 
 
+def _show(value: Any) -> str:
+    """A value as a YAML file spells it (``abc``, ``[1]``, ``null``), on one short line."""
+    import yaml
+
+    try:
+        text = yaml.safe_dump(value, default_flow_style=True, width=1 << 30).strip()
+    except yaml.YAMLError:
+        text = repr(value)
+    text = text.removesuffix('\n...').removesuffix(' ...').strip()
+    return text if len(text) <= 80 else text[:77] + '...'
+
+
+def _float(value: Any) -> float | None:
+    """``value`` as a finite float, or ``None``.
+
+    Accepts the numbers YAML writes as strings (PyYAML reads ``1e3`` as the string '1e3'
+    while ROS reads it as a double), refuses booleans.
+    """
+    if isinstance(value, bool) or not isinstance(value, (numbers.Real, str)):
+        return None
+    try:
+        x = float(value)
+    except (ValueError, OverflowError):
+        return None
+    return x if math.isfinite(x) else None
+
+
+def _int(value: Any) -> int | None:
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, numbers.Integral):
+        return int(value)
+    if isinstance(value, str):
+        try:
+            return int(value.strip().replace('_', ''), 10)
+        except ValueError:
+            return None
+    return None
+
+
+def check_param(name: str, value: Any) -> Any:
+    """``value`` of parameter ``name``, of the parameter's type, in its range and choices.
+
+    The type is that of the parameter's default (bool, int, float, str, list of str, list
+    of float); integers are taken for floats and numbers spelled as strings (``1e3``) for
+    numbers. Unknown names (``use_sim_time``) pass unchanged.
+
+    Raises
+    ------
+    ConfigError
+        ``'NAME must be ...; got VALUE.'``: the value does not fit.
+    """
+    p = _BY_NAME.get(name)
+    if p is None:
+        return value
+    default = p.default
+    out: Any
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise ConfigError(f'{name} must be true or false; got {_show(value)}.')
+        return value
+    if isinstance(default, (int, float)):
+        kind = 'an integer' if isinstance(default, int) else 'a number'
+        out = _int(value) if isinstance(default, int) else _float(value)
+        fmt = 'd' if isinstance(default, int) else 'g'
+        within = '' if p.range is None else (f' in {p.range[0]:{fmt}}..'
+                                             f'{p.range[1]:{fmt}}')
+        if out is None or (p.range is not None and not p.range[0] <= out <= p.range[1]):
+            raise ConfigError(f'{name} must be {kind}{within}; got {_show(value)}.')
+        return out
+    if isinstance(default, str):
+        if not isinstance(value, str):
+            raise ConfigError(f'{name} must be a string; got {_show(value)}.')
+        if p.choices is not None and value not in p.choices:
+            raise ConfigError(f'{name} must be one of {", ".join(p.choices)}; got '
+                              f'{_show(value)}.')
+        return value
+    # lists: of strings (topics) or of numbers (bounds); rclpy gives array.array for the
+    # latter
+    strings = all(isinstance(v, str) for v in default)
+    what = 'a list of strings' if strings else 'a list of numbers'
+    if value is None or isinstance(value, (str, bytes, Mapping)):
+        raise ConfigError(f'{name} must be {what}; got {_show(value)}.')
+    try:
+        items = list(value)
+    except TypeError:
+        raise ConfigError(f'{name} must be {what}; got {_show(value)}.') from None
+    out = [v if isinstance(v, str) else None for v in items] if strings else [
+        _float(v) for v in items]
+    if any(v is None for v in out):
+        raise ConfigError(f'{name} must be {what}; got {_show(value)}.')
+    return out
+
+
 def predictor_config(values: Mapping[str, Any]) -> PredictorConfig:
-    """The :class:`PredictorConfig` from node parameter values (other names ignored)."""
-    kwargs = {k: v for k, v in values.items() if k in _CONFIG_FIELDS}
-    for name in ('error_window', 'max_catchup_steps'):
-        if name in kwargs:
-            kwargs[name] = int(kwargs[name])
-    for name in ('rate_hz', 'input_timeout_s', 'warn_threshold', 'error_threshold',
-                 'process_noise', 'measurement_noise', 'clock_reset_s', 'max_lag_s',
-                 'error_window_s', 'alarm_hold_s', 'input_envelope_margin',
-                 'output_envelope_factor'):
-        if name in kwargs:
-            kwargs[name] = float(kwargs[name])
+    """The :class:`PredictorConfig` from node parameter values (other names ignored).
+
+    Each value is checked by :func:`check_param`; a bad one raises
+    :class:`~soft_rom.errors.ConfigError` naming the parameter.
+    """
+    kwargs = {k: _checked(k, v) for k, v in values.items() if k in _CONFIG_FIELDS}
     for name in ('input_min', 'input_max'):
         if name in kwargs:
-            kwargs[name] = tuple(float(v) for v in (kwargs[name] or ()))
+            kwargs[name] = tuple(kwargs[name])
     if kwargs.get('input_min') in ((), (0.0,)) and kwargs.get('input_max') in ((), (0.0,)):
         kwargs['input_min'] = kwargs['input_max'] = ()       # the node's "unset" value
     return PredictorConfig(**kwargs)
 
 
+def _checked(name: str, value: Any) -> Any:
+    try:
+        return check_param(name, value)
+    except ConfigError as err:
+        raise ConfigError(f'parameter {err}') from err
+
+
 def loop_settings(values: Mapping[str, Any]) -> LoopSettings:
     """The :class:`LoopSettings` from node parameter values (defaults for missing ones)."""
     d = {p.name: p.default for p in PARAMS}
-    d.update(values)
+    d.update({k: _checked(k, v) for k, v in values.items()})
     return LoopSettings(output_rate_hz=float(d['publish_rate_hz']),
                         centerline_rate_hz=float(d['centerline_rate_hz']),
                         diagnostics_rate_hz=float(d['diagnostics_rate_hz']),
@@ -173,24 +271,55 @@ def loop_settings(values: Mapping[str, Any]) -> LoopSettings:
 def load_params_file(path: str | Path, node_name: str = NODE_NAME) -> dict[str, Any]:
     """Read ``ros__parameters`` of ``node_name`` (or ``/**``) from a ROS 2 params YAML file.
 
-    Unknown parameter names are refused (:class:`~soft_rom.errors.ConfigError`).
+    Each value is checked and converted by :func:`check_param`.
+
+    Raises
+    ------
+    ConfigError
+        The file is not UTF-8 YAML, a section is not a mapping, a parameter name is
+        unknown or a value does not fit; the message names the file and the parameter.
     """
     import yaml
 
     path = Path(path)
     try:
-        doc = yaml.safe_load(path.read_text(encoding='utf-8')) or {}
+        doc = yaml.safe_load(path.read_text(encoding='utf-8'))
+    except UnicodeDecodeError as err:
+        raise ConfigError(f'{path}: not UTF-8 text (byte {err.start}); give a ROS 2 params '
+                          'YAML file like config/predictor.yaml.') from err
     except yaml.YAMLError as err:
         raise ConfigError(f'{path}: not valid YAML ({err}).') from err
+    if doc is None:
+        doc = {}
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{path}: a ROS 2 params file must map node names ('/**:') to "
+                          f'sections; got {_show(doc)}.')
     values: dict[str, Any] = {}
     for key in ('/**', node_name, f'/{node_name}'):
-        section = doc.get(key) if isinstance(doc, dict) else None
-        if isinstance(section, dict):
-            values.update(section.get('ros__parameters') or {})
-    unknown = sorted(set(values) - set(_BY_NAME) - {'use_sim_time'})
+        if key not in doc:
+            continue
+        section = doc[key]
+        if section is None:
+            continue
+        if not isinstance(section, dict):
+            raise ConfigError(f"{path}: section {key!r} must be a mapping with "
+                              f"'ros__parameters:'; got {_show(section)}.")
+        params = section.get('ros__parameters')
+        if params is None:
+            continue
+        if not isinstance(params, dict):
+            raise ConfigError(f'{path}: ros__parameters of {key!r} must be a mapping of '
+                              f'parameter names to values; got {_show(params)}.')
+        values.update(params)
+    unknown = sorted((str(k) for k in set(values) - set(_BY_NAME) - {'use_sim_time'}))
     if unknown:
         raise ConfigError(f'{path}: unknown predictor parameters {unknown}; known: '
                           f'{sorted(_BY_NAME)}.')
+    for name, value in values.items():
+        try:
+            values[name] = check_param(name, value)
+        except ConfigError as err:
+            raise ConfigError(f'{path}: parameter {err}') from err
     return values
 
 

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from soft_rom.data import Episode
-from soft_rom.errors import ConfigError, DatasetError
+from soft_rom.errors import BagError, ConfigError, DatasetError
 from soft_rom.learners.era import ERA_PRESETS
 from soft_rom.metrics import relative_deviation_error, relative_error
 from soft_rom.models import LinearROM
@@ -130,7 +130,7 @@ def simulate_bags(bag_dir: Path, cfg: StudyConfig, *, progress: bool = True) -> 
     for i in range(1, cfg.n_episodes + 1):
         sidecar = bag_dir / f'ep{i}.json'
         if (bag_dir / f'ep{i}').exists() and sidecar.exists():
-            meta = json.loads(sidecar.read_text())
+            meta = _read_sidecar(sidecar)
             if _same_recording(meta, wanted, cfg.resolution):
                 continue
             raise ConfigError(
@@ -141,6 +141,30 @@ def simulate_bags(bag_dir: Path, cfg: StudyConfig, *, progress: bool = True) -> 
         record_episodes(bag_dir, todo, resolution=cfg.resolution, jobs=cfg.jobs,
                         progress=progress, **wanted)
     return [bag_dir / f'ep{i}' for i in range(1, cfg.n_episodes + 1)]
+
+
+def _read_sidecar(path: Path) -> dict[str, Any]:
+    """The JSON sidecar ``ep<i>.json`` that ``soft-rom simulate`` writes next to a bag.
+
+    Raises
+    ------
+    BagError
+        The file is not UTF-8 JSON or does not hold an object; the message names it.
+    """
+    fix = (f'it should be the sidecar soft-rom simulate writes next to bag {path.stem}. Use '
+           'another --bags folder, or remove the bag and its sidecar to record them again.')
+    try:
+        meta = json.loads(path.read_text(encoding='utf-8'))
+    except UnicodeDecodeError as err:
+        raise BagError(f'bag sidecar {path} is not UTF-8 text (byte {err.start}); {fix}'
+                       ) from err
+    except json.JSONDecodeError as err:
+        raise BagError(f'bag sidecar {path} is not valid JSON ({err}); {fix}') from err
+    if not isinstance(meta, dict):
+        kind = {list: 'an array', str: 'a string', bool: 'a boolean', type(None): 'null',
+                int: 'a number', float: 'a number'}.get(type(meta), type(meta).__name__)
+        raise BagError(f'bag sidecar {path} must hold a JSON object; got {kind}; {fix}')
+    return meta
 
 
 def _same_recording(meta: dict[str, Any], wanted: dict[str, Any], resolution: int) -> bool:

@@ -131,3 +131,25 @@ def test_fit_streaming_and_dask_equal_in_memory(training_set, tmp_path, backend)
         Ya, Yb = a.simulate(U), b.simulate(U)
         dev = np.linalg.norm(Ya - a.y_ref[:, None])
         assert np.linalg.norm(Ya - Yb) <= 1e-6 * dev, name
+
+
+@pytest.mark.parametrize('argv, words', [
+    (['--n-markov', '100000'], 'n_markov=100000 exceeds'),
+    (['--n-markov', '5000'], 'n_markov=5000 exceeds'),
+    (['--n-markov', '500'], 'at most 499'),          # 500 samples per episode
+    (['--n-markov', '100', '--decimation', '5'], 'at most 99'),
+    (['--observer-order', '100000'], 'observer_order 100000 is too large'),
+    (['--observer-order', '100000', '--era-preset', 'eel', '--n-markov', '100'],
+     'observer_order=100000'),
+])
+def test_era_options_beyond_the_episode_exit_2_before_any_work(training_set, tmp_path,
+                                                                capsys, argv, words):
+    capsys.readouterr()
+    rc = main(['fit', str(training_set), '--method', 'era', '--r', '3', '--era-episode', 'ep1',
+               *argv, '-o', str(tmp_path / 'o'), '--quiet'])
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert rc == 2, err
+    assert len(lines) == 1 and 'Traceback' not in err and 'Warning' not in err, err
+    assert lines[0].startswith('soft-rom fit: error: ') and words in lines[0], err
+    assert not (tmp_path / 'o').exists()
