@@ -5,7 +5,8 @@ Layout (zarr format 2 on disk, so zarr 2.16+ and zarr 3.x both read and write it
 
     OUT.zarr/                      attrs: format='soft_rom.trainingset', format_version=2,
                                           input_names, input_units, output_names,
-                                          output_units, episode_names, provenance, ...
+                                          output_units, episode_names, provenance,
+                                          all_chunks_stored=true, ...
         q_ref      (n,)            reference configuration (absent without states)
         y_ref      (p,)            reference output
         episodes/<name>/           attrs: metadata (t0_ns, source bag, topics, report)
@@ -32,9 +33,18 @@ absolute seconds; such a set is read with its times shifted to ``t[0] = 0`` when
 are small enough to be exact (below 1e4 s), and refused with the command that converts its
 bags again otherwise.
 
+Every chunk of every array is stored, chunks of zeros too (``all_chunks_stored``; before
+that attribute, zarr 3 left chunks of zeros out). The reader therefore takes a missing chunk
+for a damaged set: each array it reads is a :class:`~soft_rom.dataset.stored.StoredArray`,
+which checks once, before its first read, that every chunk of its grid is stored (one
+directory listing) and whole, and raises :class:`~soft_rom.errors.DatasetError` naming the
+set, the episode and the array for that and for any error of zarr or its codecs; zarr alone
+would read a missing chunk as zeros.
+
 Modules: :mod:`~soft_rom.dataset.writer` (:class:`TrainingSetWriter`), :mod:`~soft_rom.
-dataset.reader` (:class:`TrainingSet`), :mod:`~soft_rom.dataset.chunks` (the raw ``Q`` chunk
-writer) and ``_format`` (constants and zarr helpers).
+dataset.reader` (:class:`TrainingSet`), :mod:`~soft_rom.dataset.stored` (:class:`StoredArray`,
+the checked reads), :mod:`~soft_rom.dataset.chunks` (the raw ``Q`` chunk writer) and
+``_format`` (constants and zarr helpers).
 
 A training set is written atomically through :func:`soft_rom.outputs.atomic_dir`: into a
 hidden staging folder next to the target, marked as a soft_rom output and swapped into place
@@ -52,7 +62,9 @@ from soft_rom.dataset._format import (
                                       V1_MAX_START_S,
 )
 from soft_rom.dataset.reader import TrainingSet
+from soft_rom.dataset.stored import StoredArray
 from soft_rom.dataset.writer import adopt_legacy, EpisodeWriter, TrainingSetWriter
 
 __all__ = ['FORMAT', 'FORMAT_VERSION', 'KIND', 'EpisodeWriter', 'Q_CHUNK_COLS', 'Q_CHUNK_ROWS',
-           'TrainingSet', 'TrainingSetWriter', 'V1_MAX_START_S', 'adopt_legacy']
+           'StoredArray', 'TrainingSet', 'TrainingSetWriter', 'V1_MAX_START_S',
+           'adopt_legacy']

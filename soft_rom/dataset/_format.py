@@ -22,6 +22,10 @@ V1_MAX_START_S = 1e4
 #: Default ``Q`` chunk: rows (at most) and columns.
 Q_CHUNK_ROWS = 32768
 Q_CHUNK_COLS = 32
+#: Root attribute of a set whose writer stored every chunk, zeros too (every set since it
+#: was added; before, zarr 3 left out chunks of zeros of ``t``, ``U``, ``Y`` and the
+#: references, so that such a missing chunk may be one of zeros in an older set).
+ALL_CHUNKS = 'all_chunks_stored'
 
 
 def _zarr() -> Any:
@@ -44,16 +48,21 @@ def _open_group(path: Path, mode: str) -> Any:
 def _create_array(group: Any, name: str, shape: tuple[int, ...], chunks: tuple[int, ...],
                   data: NDArray[Any] | None = None, compress: bool = True,
                   order: str = 'C') -> Any:
-    """Create a float64 array under ``group`` with the zarr 3 or the zarr 2 API."""
+    """Create a float64 array under ``group`` with the zarr 3 or the zarr 2 API.
+
+    Every chunk written is stored, also one of zeros (zarr 3 leaves those out by default):
+    the reader takes a missing chunk for a damaged set (:data:`ALL_CHUNKS`).
+    """
     chunks = tuple(max(int(c), 1) for c in chunks)
     if hasattr(group, 'create_array'):  # zarr 3
         kw: dict[str, Any] = {} if compress else {'compressors': None}
         arr = group.create_array(name, shape=shape, chunks=chunks, dtype='f8',
-                                 fill_value=0.0, order=order, **kw)
+                                 fill_value=0.0, order=order,
+                                 config={'write_empty_chunks': True}, **kw)
     else:  # zarr 2
         kw = {} if compress else {'compressor': None}
         arr = group.create_dataset(name, shape=shape, chunks=chunks, dtype='f8',
-                                   fill_value=0.0, order=order, **kw)
+                                   fill_value=0.0, order=order, write_empty_chunks=True, **kw)
     if data is not None and data.size:
         arr[...] = data
     return arr

@@ -20,6 +20,7 @@ from soft_rom.dataset._format import (
     _create_array,
     _jsonable,
     _open_group,
+    ALL_CHUNKS,
     FORMAT,
     FORMAT_VERSION,
     KIND,
@@ -406,7 +407,7 @@ class TrainingSetWriter:
                 'format': FORMAT, 'format_version': FORMAT_VERSION,
                 'input_names': self.input_names, 'input_units': self.input_units,
                 'output_names': self.output_names, 'output_units': self.output_units,
-                'episode_names': list(self._episodes),
+                'episode_names': list(self._episodes), ALL_CHUNKS: True,
                 'provenance': attrs.get('provenance', {}),
             })
             self._root.attrs.update(attrs)   # written last: a partial set has no format

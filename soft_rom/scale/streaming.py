@@ -93,10 +93,14 @@ class ColumnWindow:
         return self.array[rows, a:b]
 
     def to_dask(self) -> Any:
-        """The window as a dask array (``dask.array.from_zarr`` of the underlying array)."""
+        """The window as a dask array (the stored array's own, else ``from_zarr``)."""
         import dask.array as da
-        base = (da.from_zarr(self.array) if type(self.array).__module__.startswith('zarr')
-                else da.from_array(self.array))
+        if hasattr(self.array, 'to_dask'):      # a training set's checked StoredArray
+            base = self.array.to_dask()
+        elif type(self.array).__module__.startswith('zarr'):
+            base = da.from_zarr(self.array)
+        else:
+            base = da.from_array(self.array)
         return base[:, :self.stop]
 
 

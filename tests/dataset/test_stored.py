@@ -1,0 +1,262 @@
+"""Tests of soft_rom.dataset.stored: damaged training sets are refused, never read as zeros.
+
+Each set is written by the project's own writer, then damaged on disk the way the outside
+world does it: a chunk truncated (an interrupted copy, ``head -c``), overwritten with random
+bytes, deleted (zarr would read it as its fill value, zeros), a ``.zattrs`` replaced.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+import pickle
+import re
+import shutil
+
+import numpy as np
+import pytest
+
+from soft_rom.cli import main
+from soft_rom.data import Episode
+from soft_rom.dataset import StoredArray, TrainingSet
+from soft_rom.errors import DatasetError
+
+K, N = 40, 9
+Q_CHUNKS = (4, 8)          # Q: a 3 x 5 grid of chunks
+
+
+def _episodes() -> list[Episode]:
+    rng = np.random.default_rng(7)
+    t = 0.001 * np.arange(K)
+    smooth = np.sin(np.outer(np.arange(1, 4), t * 50.0))        # compresses: blosc decodes it
+    ep1 = Episode(t=t, U=rng.normal(size=(2, K)), Y=np.round(smooth, 3),
+                  Q=rng.normal(size=(N, K)), name='ep1', metadata={'source_bag': '/rec/ep1'})
+    ep2 = Episode(t=t, U=np.zeros((2, K)), Y=rng.normal(size=(3, K)),    # inputs all zero
+                  Q=rng.normal(size=(N, K)), name='ep2')
+    return [ep1, ep2]
+
+
+@pytest.fixture(scope='module')
+def intact(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp('sets') / 'ts.zarr'
+    TrainingSet.from_episodes(path, _episodes(), q_chunks=Q_CHUNKS,
+                              attrs={'provenance': {'bags': ['/rec/ep1', '/rec/ep2']}})
+    return path
+
+
+@pytest.fixture
+def damaged(intact, tmp_path) -> Path:
+    """A fresh copy of the intact set, to damage."""
+    return Path(shutil.copytree(intact, tmp_path / 'a.zarr'))
+
+
+def _chunks(array_dir: Path) -> list[Path]:
+    """The chunk files of an array, as the store names them (zarr version dependent)."""
+    return sorted(p for p in array_dir.iterdir() if not p.name.startswith('.'))
+
+
+def _truncate(path: Path, n: int = 100) -> None:
+    path.write_bytes(path.read_bytes()[:n])                # what `head -c 100` leaves
+
+
+def _random_bytes(path: Path, n: int = 1000) -> None:
+    path.write_bytes(np.random.default_rng(3).bytes(n))    # `head -c 1000 /dev/urandom`
+
+
+def _scramble_payload(path: Path) -> None:
+    """Keep the (blosc) header and length, flip every 5th byte after it."""
+    data = bytearray(path.read_bytes())
+    for i in range(40, len(data), 5):
+        data[i] ^= 0x5A
+    path.write_bytes(bytes(data))
+
+
+def _read(ts: TrainingSet, key: str) -> object:
+    ep = ts['ep1']
+    return ep.Q[:, 0:8] if key == 'Q' else getattr(ep, key)
+
+
+# -- an intact set --------------------------------------------------------------------------
+def test_intact_set_reads_bit_identically_and_stores_chunks_of_zeros(intact):
+    ts = TrainingSet.open(intact)
+    for ref in _episodes():
+        got = ts[ref.name]
+        np.testing.assert_array_equal(got.t, ref.t)
+        np.testing.assert_array_equal(got.U, ref.U)
+        np.testing.assert_array_equal(got.Y, ref.Y)
+        assert isinstance(got.Q, StoredArray) and got.Q.chunks == Q_CHUNKS
+        np.testing.assert_array_equal(got.Q[:, :], ref.Q)
+        np.testing.assert_array_equal(np.asarray(got.Q), ref.Q)
+        np.testing.assert_array_equal(got.Q[2:7, 5:29], ref.Q[2:7, 5:29])
+    np.testing.assert_array_equal(ts.q_ref, _episodes()[0].Q[:, 0])
+    # zarr 3 leaves chunks of zeros out unless told not to: the all-zero U must be stored
+    assert [p.name for p in _chunks(intact / 'episodes/ep2/U')] == \
+        [p.name for p in _chunks(intact / 'episodes/ep1/U')]
+    assert len(_chunks(intact / 'episodes/ep1/Q')) == 3 * 5
+    assert ts.attrs['all_chunks_stored'] is True
+    q = pickle.loads(pickle.dumps(ts.q_array('ep2')))       # as shipped to dask workers
+    np.testing.assert_array_equal(q[:, 8:16], _episodes()[1].Q[:, 8:16])
+
+
+def test_to_dask_reads_the_stored_chunks(intact):
+    pytest.importorskip('dask.array')
+    q = TrainingSet.open(intact).q_array('ep1').to_dask()
+    assert q.chunks[1] == (8,) * 5
+    np.testing.assert_array_equal(q.compute(), _episodes()[0].Q)
+
+
+# -- damaged chunks -------------------------------------------------------------------------
+@pytest.mark.parametrize('key', ['t', 'U', 'Y', 'Q'])
+@pytest.mark.parametrize('damage, words', [
+    (lambda p: p.unlink(), r'chunk {name} is missing \(was the copy interrupted\?\)'),
+    (_truncate, r'chunk {name} is truncated'),
+    (_random_bytes, r'chunk {name} is truncated or overwritten'),
+], ids=['deleted', 'truncated', 'random'])
+def test_damaged_chunk_is_a_clear_error(damaged, key, damage, words):
+    chunk = _chunks(damaged / 'episodes/ep1' / key)[-1]
+    damage(chunk)
+    ts = TrainingSet.open(damaged)
+    with pytest.raises(DatasetError) as err:
+        _read(ts, key)
+    text = str(err.value)
+    assert text.startswith(f'training set {damaged} is corrupt or incomplete: '
+                           f"episode 'ep1', array {key}: ")
+    assert re.search(words.format(name=chunk.name), text), text
+    assert text.endswith(f'convert the bags again: soft-rom convert /rec/ep1 /rec/ep2 -o '
+                         f'{damaged} --overwrite')
+    assert '\n' not in text
+    np.testing.assert_array_equal(ts['ep2'].Y, _episodes()[1].Y)     # the rest still reads
+
+
+def test_damaged_q_fails_only_when_q_is_read(damaged):
+    """ERA reads only inputs and outputs: a damaged Q does not stop it, any read of Q does."""
+    _chunks(damaged / 'episodes/ep1/Q')[0].unlink()
+    _chunks(damaged / 'episodes/ep1/Q')[-1].unlink()
+    ts = TrainingSet.open(damaged)
+    ep = ts['ep1']
+    np.testing.assert_array_equal(ep.Y, _episodes()[0].Y)
+    with pytest.raises(DatasetError, match=r'array Q: 2 of its 15 chunks are missing'):
+        ep.Q[:, 8:16]                                         # chunks that are there
+    with pytest.raises(DatasetError, match='array Q'):
+        np.asarray(ts.q_array('ep1'))
+    pytest.importorskip('dask.array')
+    with pytest.raises(DatasetError, match='array Q'):
+        ts.q_array('ep1').to_dask()
+
+
+def test_scrambled_compressed_chunk_is_translated(damaged):
+    """A chunk of the right length whose bytes are damaged: blosc's error, named."""
+    _scramble_payload(_chunks(damaged / 'episodes/ep1/Y')[0])
+    with pytest.raises(DatasetError, match=r"episode 'ep1', array Y cannot be read \("
+                                           r'RuntimeError: error during blosc'):
+        TrainingSet.open(damaged)['ep1']
+
+
+@pytest.mark.parametrize('key', ['q_ref', 'y_ref'])
+def test_damaged_reference_is_refused_at_open(damaged, key):
+    _chunks(damaged / key)[0].unlink()
+    with pytest.raises(DatasetError, match=f'array {key}: chunk 0 is missing'):
+        TrainingSet.open(damaged)
+
+
+def test_missing_arrays_are_refused(damaged):
+    shutil.rmtree(damaged / 'episodes/ep2/Q')      # not a set without states: one that lost them
+    with pytest.raises(DatasetError, match=r"episode 'ep2', array Q: it is missing, but the "
+                                           "episode's metadata says it has states"):
+        TrainingSet.open(damaged)
+    shutil.rmtree(damaged / 'episodes/ep1/Y')      # the whole array, metadata and all
+    with pytest.raises(DatasetError, match=r"episode 'ep1', array Y: it is missing \(was"):
+        TrainingSet.open(damaged)
+    shutil.rmtree(damaged / 'episodes/ep1')
+    with pytest.raises(DatasetError, match=r"episode 'ep1': its group is missing"):
+        TrainingSet.open(damaged)
+
+
+def test_set_from_before_every_chunk_was_stored_names_the_likely_cause(damaged):
+    attrs = json.loads((damaged / '.zattrs').read_text())
+    del attrs['all_chunks_stored']
+    (damaged / '.zattrs').write_text(json.dumps(attrs))
+    _chunks(damaged / 'episodes/ep1/Y')[0].unlink()
+    with pytest.raises(DatasetError, match=r'missing \(was the copy interrupted\? Sets '
+                                           r'written with zarr 3 .* all zeros\)'):
+        TrainingSet.open(damaged)['ep1']
+
+
+# -- damaged attributes and metadata --------------------------------------------------------
+@pytest.mark.parametrize('where, text, words', [
+    ('episodes/ep1/.zattrs', '[1, 2]', "episode 'ep1'"),
+    ('episodes/ep1/.zattrs', '{"metadata": [1]}', "'metadata' is \\[1\\], not a JSON object"),
+    ('episodes/ep1/.zattrs', '{"metadata": {"t0_ns": "12:00"}}', "'t0_ns' is '12:00'"),
+    ('episodes/ep1/.zattrs', '{"metadata": {"t0_ns": 1.5}}', "'t0_ns' is 1.5"),
+    ('episodes/ep1/.zattrs', '{"meta', "episode 'ep1'"),
+    ('episodes/ep1/Y/.zarray', '[]', "episode 'ep1', array Y"),
+    ('episodes/ep1/Y/.zarray', '{"shape": [3', "episode 'ep1', array Y"),
+    ('episodes/ep1/.zgroup', '[', "episode 'ep1'"),
+], ids=['attrs-list', 'metadata-list', 't0-text', 't0-float', 'attrs-json', 'zarray-list',
+        'zarray-json', 'zgroup-json'])
+def test_damaged_episode_metadata_is_a_clear_error(damaged, where, text, words):
+    (damaged / where).write_text(text)
+    with pytest.raises(DatasetError, match=f'training set .* is corrupt or incomplete: '
+                                           f'.*{words}') as err:
+        ts = TrainingSet.open(damaged)
+        ts['ep1']
+    assert '\n' not in str(err.value)
+
+
+@pytest.mark.parametrize('change, words', [
+    ({'episode_names': [1, 2]}, "'episode_names' is missing or not a list of strings"),
+    ({'episode_names': ['ep1', '../../etc']}, "'episode_names' holds episode name"),
+    ({'episode_names': ['ep1', 'ep1']}, 'repeats names'),
+    ({'output_units': 'm'}, "'output_units' is missing or not a list"),
+    ({'provenance': ['bags']}, "'provenance' is \\['bags'\\], not a JSON object"),
+    ({'format_version': True}, 'format version True'),
+])
+def test_damaged_root_attributes_are_refused(damaged, change, words):
+    attrs = json.loads((damaged / '.zattrs').read_text())
+    attrs.update(change)
+    (damaged / '.zattrs').write_text(json.dumps(attrs))
+    with pytest.raises(DatasetError, match=words):
+        TrainingSet.open(damaged)
+
+
+def test_root_attributes_as_a_list_are_refused(damaged):
+    (damaged / '.zattrs').write_text('[1, 2]')
+    with pytest.raises(DatasetError, match='not a readable zarr training set'):
+        TrainingSet.open(damaged)
+
+
+# -- through the command line: exit 2, one line, no traceback --------------------------------
+def _model(tmp_path: Path) -> Path:
+    from soft_rom.models import DiscreteModel
+    return DiscreteModel(np.eye(2) * 0.5, np.ones((2, 2)), np.ones((3, 2)), dt=1e-3,
+                         method='dmdc').save(tmp_path / 'm.npz')
+
+
+@pytest.mark.parametrize('target, damage, verb, words', [
+    ('episodes/ep1/Y', 'deleted', 'evaluate', "episode 'ep1', array Y: chunk .* is missing"),
+    ('episodes/ep1/Y', 'deleted', 'era', "episode 'ep1', array Y: chunk .* is missing"),
+    ('episodes/ep1/U', 'random', 'fit', "episode 'ep1', array U: chunk .* overwritten"),
+    ('episodes/ep1/Q', 'truncated', 'fit', "episode 'ep1', array Q: chunk .* truncated"),
+    ('episodes/ep1/Q', 'deleted', 'fit', "episode 'ep1', array Q: chunk .* is missing"),
+    ('episodes/ep1/.zattrs', 'list', 'info', "episode 'ep1'"),
+    ('episodes/ep1/.zattrs', 'list', 'evaluate', "episode 'ep1'"),
+])
+def test_cli_exit_2_with_one_line(damaged, tmp_path, capsys, target, damage, verb, words):
+    path = damaged / target
+    if damage == 'list':
+        path.write_text('[1, 2]')
+    else:
+        chunk = _chunks(path)[-1]
+        {'deleted': Path.unlink, 'random': _random_bytes, 'truncated': _truncate}[damage](chunk)
+    argv = {'evaluate': ['evaluate', str(_model(tmp_path)), '--data', str(damaged)],
+            'era': ['fit', str(damaged), '--method', 'era', '--era-episode', 'ep1', '--r', '2',
+                    '-o', str(tmp_path / 'o')],
+            'fit': ['fit', str(damaged), '--method', 'dmdc', '--r', '2', '--no-progress',
+                    '-o', str(tmp_path / 'o')],
+            'info': ['info', str(damaged)]}[verb]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and 'Traceback' not in err, err
+    assert re.search(f'corrupt or incomplete: .*{words}', lines[0])
+    assert not (tmp_path / 'o').exists()
