@@ -18,6 +18,7 @@ __all__ = [
     'ResourceError',
     'SoftRomError',
     'SolverError',
+    'show_value',
 ]
 
 
@@ -59,3 +60,18 @@ class OutputExistsError(SoftRomError, FileExistsError):
 
 class ResourceError(SoftRomError, MemoryError):
     """A run was refused before it started: it would not fit in memory or on disk."""
+
+
+def show_value(value: object) -> str:
+    """``value`` as a YAML file spells it (``abc``, ``[1]``, ``null``), on one short line.
+
+    For messages about configuration values: the user sees what they wrote.
+    """
+    import yaml
+
+    try:
+        text = yaml.safe_dump(value, default_flow_style=True, width=1 << 30).strip()
+    except yaml.YAMLError:
+        text = repr(value)
+    text = text.removesuffix('\n...').removesuffix(' ...').strip()
+    return text if len(text) <= 80 else text[:77] + '...'

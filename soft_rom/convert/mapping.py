@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from soft_rom.errors import ConfigError
+from soft_rom.errors import ConfigError, show_value
 from soft_rom.layout import COMPONENTS, ORDERS, OutputLayout
 
 __all__ = ['ARRAY_TYPES', 'BagMapping', 'InputSource', 'OUTPUT_TYPES', 'OutputMapping',
@@ -136,7 +136,7 @@ class BagMapping:
             d = {}
         if not isinstance(d, Mapping):
             raise ConfigError(f'a mapping must be a mapping of sections (inputs, output, state, '
-                              f'time); got {_show(d)}.')
+                              f'time); got {show_value(d)}.')
         unknown = set(d) - {'inputs', 'output', 'state', 'time'}
         if unknown:
             raise ConfigError(f'unknown mapping section(s) {_sorted(unknown)}; expected inputs, '
@@ -157,7 +157,7 @@ class BagMapping:
             if not isinstance(inp['sources'], (list, tuple)):
                 raise ConfigError(f'inputs.sources must be a list of sources (a topic, or '
                                   f'{{topic, slice}} / {{topic, indices}}); got '
-                                  f"{_show(inp['sources'])}.")
+                                  f"{show_value(inp['sources'])}.")
             sources = [_source('inputs.sources', s) for s in inp['sources']]
         elif 'topic' in inp:
             sources = [_source('inputs', {k: inp[k] for k in ('topic', 'indices', 'slice')
@@ -168,7 +168,7 @@ class BagMapping:
             sources = [InputSource(_topic('inputs.topics', t)) for t in inp['topics']]
         else:
             raise ConfigError(f"inputs.topics must be 'auto' or a list of topics; got "
-                              f"{_show(inp['topics'])}.")
+                              f"{show_value(inp['topics'])}.")
         if sources is not None and not sources:
             raise ConfigError('inputs: at least one input source is needed.')
         names = _strs('inputs.names', inp.get('names'), one=False)
@@ -179,21 +179,21 @@ class BagMapping:
         if not isinstance(comps_v, (list, tuple)) or not all(isinstance(c, str)
                                                              for c in comps_v):
             raise ConfigError(f'output.components must be a list of distinct x, y, z; got '
-                              f'{_show(comps_v)}.')
+                              f'{show_value(comps_v)}.')
         comps = tuple(comps_v)
         if not comps or any(c not in COMPONENTS for c in comps) or len(set(comps)) < len(comps):
             raise ConfigError(f'output.components must be a list of distinct x, y, z; got '
-                              f'{_show(list(comps))}.')
+                              f'{show_value(list(comps))}.')
         order = _choice('output.order', out.get('order', 'component_major'), ORDERS)
         stamps = _choice('time.stamps', tm.get('stamps', 'header'), ('header', 'log'))
         points = _indices('output.points', out.get('points'))
         if points is not None and len(set(points)) < len(points):
             raise ConfigError(f"output.points must be distinct point indices; got "
-                              f"{_show(out['points'])}.")
+                              f"{show_value(out['points'])}.")
         include = st.get('include')
         if include is not None and not isinstance(include, bool):
             raise ConfigError(f'state.include must be true, false or null (if the bag has '
-                              f'the state topic); got {_show(include)}.')
+                              f'the state topic); got {show_value(include)}.')
         return cls(
             inputs=None if sources is None else tuple(sources),
             input_names=names,
@@ -245,18 +245,6 @@ class BagMapping:
                                            'split_gap', 'min_samples')}}
 
 
-def _show(v: Any) -> str:
-    """A value as the user wrote it in the YAML file (flow style, one line, short)."""
-    import yaml
-
-    try:
-        text = yaml.safe_dump(v, default_flow_style=True, width=1 << 30).strip()
-    except yaml.YAMLError:
-        text = repr(v)
-    text = text.removesuffix('\n...').removesuffix(' ...').strip()
-    return text if len(text) <= 80 else text[:77] + '...'
-
-
 def _sorted(keys: Any) -> list[str]:
     return sorted(str(k) for k in keys)
 
@@ -266,7 +254,7 @@ def _section(name: str, v: Any) -> dict[str, Any]:
         return {}
     if not isinstance(v, Mapping):
         raise ConfigError(f'mapping section {name!r} must be a mapping of keys (see '
-                          f'config/bag_mapping.yaml); got {_show(v)}.')
+                          f'config/bag_mapping.yaml); got {show_value(v)}.')
     return dict(v)
 
 
@@ -279,7 +267,7 @@ def _no_extra(section: str, d: Mapping[str, Any], allowed: set[str]) -> None:
 
 def _topic(name: str, v: Any, *, what: str = 'a topic name', hint: str = '') -> str:
     if not isinstance(v, str) or not v:
-        raise ConfigError(f'{name} must be {what} (a non-empty string); got {_show(v)}'
+        raise ConfigError(f'{name} must be {what} (a non-empty string); got {show_value(v)}'
                           f'{hint}.')
     return v
 
@@ -297,7 +285,7 @@ def _strs(name: str, v: Any, *, one: bool) -> tuple[str, ...] | None:
     if (not isinstance(v, (list, tuple)) or not v
             or not all(isinstance(x, kinds) and not isinstance(x, bool) for x in v)):
         what = 'one unit or a list of units' if one else 'a list of names'
-        raise ConfigError(f'{name} must be {what}; got {_show(v)}.')
+        raise ConfigError(f'{name} must be {what}; got {show_value(v)}.')
     return tuple(str(x) for x in v)
 
 
@@ -311,11 +299,11 @@ def _indices(name: str, v: Any) -> tuple[int, ...] | None:
         return None
     if not isinstance(v, (list, tuple)) or not all(_is_int(i) for i in v):
         raise ConfigError(f'{name} must be a list of integers (0-based indices); got '
-                          f'{_show(v)}.')
+                          f'{show_value(v)}.')
     if not v:
         raise ConfigError(f'{name} must list at least one index (or be null for all); got [].')
     if any(i < 0 for i in v):
-        raise ConfigError(f'{name} must be 0-based indices (>= 0); got {_show(v)}.')
+        raise ConfigError(f'{name} must be 0-based indices (>= 0); got {show_value(v)}.')
     return tuple(int(i) for i in v)
 
 
@@ -323,7 +311,7 @@ def _source(name: str, s: Any) -> InputSource:
     if isinstance(s, str) and s:
         return InputSource(s)
     if not isinstance(s, Mapping) or 'topic' not in s:
-        raise ConfigError(f'{name}: an input source needs a topic; got {_show(s)}.')
+        raise ConfigError(f'{name}: an input source needs a topic; got {show_value(s)}.')
     _no_extra(name, s, {'topic', 'indices', 'slice'})
     topic = _topic(f'{name} topic', s['topic'])
     idx = _indices(f'{name} indices of {topic}', s.get('indices'))
@@ -332,7 +320,7 @@ def _source(name: str, s: Any) -> InputSource:
         if (not isinstance(sl, (list, tuple)) or len(sl) != 2
                 or not all(_is_int(i) for i in sl) or not 0 <= sl[0] < sl[1]):
             raise ConfigError(f'{name} slice of {topic} must be [start, stop], integers with '
-                              f'0 <= start < stop; got {_show(sl)}.')
+                              f'0 <= start < stop; got {show_value(sl)}.')
         idx = tuple(range(int(sl[0]), int(sl[1])))
     return InputSource(topic, idx)
 
@@ -340,20 +328,20 @@ def _source(name: str, s: Any) -> InputSource:
 def _floats(name: str, v: Any) -> tuple[float, ...]:
     vals: list[Any] = list(v) if isinstance(v, (list, tuple)) else [v]
     if not vals or any(isinstance(x, (bool, np.bool_)) for x in vals):
-        raise ConfigError(f'{name} must be a number or a list of numbers; got {_show(v)}.')
+        raise ConfigError(f'{name} must be a number or a list of numbers; got {show_value(v)}.')
     try:
         out = tuple(float(x) for x in vals)
     except (TypeError, ValueError) as err:
-        raise ConfigError(f'{name} must be a number or a list of numbers; got {_show(v)}.'
+        raise ConfigError(f'{name} must be a number or a list of numbers; got {show_value(v)}.'
                           ) from err
     if not all(math.isfinite(x) for x in out):
-        raise ConfigError(f'{name} must be finite numbers; got {_show(v)}.')
+        raise ConfigError(f'{name} must be finite numbers; got {show_value(v)}.')
     return out
 
 
 def _choice(name: str, v: Any, choices: Sequence[str]) -> str:
     if not isinstance(v, str) or v not in choices:
-        raise ConfigError(f'{name} must be one of {", ".join(choices)}; got {_show(v)}.')
+        raise ConfigError(f'{name} must be one of {", ".join(choices)}; got {show_value(v)}.')
     return v
 
 
@@ -361,7 +349,7 @@ def _opt_count(name: str, v: Any) -> int | None:
     if v is None:
         return None
     if not _is_int(v) or v < 1:
-        raise ConfigError(f'{name} must be a positive integer or null; got {_show(v)}.')
+        raise ConfigError(f'{name} must be a positive integer or null; got {show_value(v)}.')
     return int(v)
 
 
@@ -378,10 +366,10 @@ def _opt_pos(name: str, v: Any) -> float | None:
     try:
         x = _number(v)
     except (TypeError, ValueError) as err:
-        raise ConfigError(f'{name} must be a positive number of seconds; got {_show(v)}.'
+        raise ConfigError(f'{name} must be a positive number of seconds; got {show_value(v)}.'
                           ) from err
     if not x > 0 or not math.isfinite(x):
-        raise ConfigError(f'{name} must be a positive number of seconds; got {_show(v)}.')
+        raise ConfigError(f'{name} must be a positive number of seconds; got {show_value(v)}.')
     return x
 
 
@@ -389,15 +377,15 @@ def _nonneg(name: str, v: Any) -> float:
     try:
         x = _number(v)
     except (TypeError, ValueError) as err:
-        raise ConfigError(f'{name} must be a number >= 0; got {_show(v)}.') from err
+        raise ConfigError(f'{name} must be a number >= 0; got {show_value(v)}.') from err
     if not x >= 0 or not math.isfinite(x):
-        raise ConfigError(f'{name} must be a number >= 0; got {_show(v)}.')
+        raise ConfigError(f'{name} must be a number >= 0; got {show_value(v)}.')
     return x
 
 
 def _min_samples(v: Any) -> int:
     if not _is_int(v) or int(v) < 2:
-        raise ConfigError(f'time.min_samples must be an integer >= 2; got {_show(v)}.')
+        raise ConfigError(f'time.min_samples must be an integer >= 2; got {show_value(v)}.')
     return int(v)
 
 
@@ -435,7 +423,7 @@ def load_mapping(path: str | Path | None) -> BagMapping:
         raise ConfigError(f'mapping file {p} is not valid YAML: {err}') from err
     if data is not None and not isinstance(data, Mapping):
         raise ConfigError(f'mapping file {p} must hold a mapping (inputs/output/state/time); '
-                          f'got {_show(data)}.')
+                          f'got {show_value(data)}.')
     try:
         return BagMapping.from_dict(data)
     except ConfigError as err:

@@ -16,7 +16,7 @@ import numbers
 from pathlib import Path
 from typing import Any
 
-from soft_rom.errors import ConfigError
+from soft_rom.errors import ConfigError, show_value
 from soft_rom.predictor.config import PredictorConfig
 from soft_rom.predictor.loop import LoopSettings
 
@@ -139,18 +139,6 @@ _CONFIG_FIELDS = {f.name for f in fields(PredictorConfig)}
 _BY_NAME = {p.name: p for p in PARAMS + NODE_PARAMS}
 
 
-def _show(value: Any) -> str:
-    """A value as a YAML file spells it (``abc``, ``[1]``, ``null``), on one short line."""
-    import yaml
-
-    try:
-        text = yaml.safe_dump(value, default_flow_style=True, width=1 << 30).strip()
-    except yaml.YAMLError:
-        text = repr(value)
-    text = text.removesuffix('\n...').removesuffix(' ...').strip()
-    return text if len(text) <= 80 else text[:77] + '...'
-
-
 def _float(value: Any) -> float | None:
     """``value`` as a finite float, or ``None``.
 
@@ -198,7 +186,7 @@ def check_param(name: str, value: Any) -> Any:
     out: Any
     if isinstance(default, bool):
         if not isinstance(value, bool):
-            raise ConfigError(f'{name} must be true or false; got {_show(value)}.')
+            raise ConfigError(f'{name} must be true or false; got {show_value(value)}.')
         return value
     if isinstance(default, (int, float)):
         kind = 'an integer' if isinstance(default, int) else 'a number'
@@ -207,29 +195,29 @@ def check_param(name: str, value: Any) -> Any:
         within = '' if p.range is None else (f' in {p.range[0]:{fmt}}..'
                                              f'{p.range[1]:{fmt}}')
         if out is None or (p.range is not None and not p.range[0] <= out <= p.range[1]):
-            raise ConfigError(f'{name} must be {kind}{within}; got {_show(value)}.')
+            raise ConfigError(f'{name} must be {kind}{within}; got {show_value(value)}.')
         return out
     if isinstance(default, str):
         if not isinstance(value, str):
-            raise ConfigError(f'{name} must be a string; got {_show(value)}.')
+            raise ConfigError(f'{name} must be a string; got {show_value(value)}.')
         if p.choices is not None and value not in p.choices:
             raise ConfigError(f'{name} must be one of {", ".join(p.choices)}; got '
-                              f'{_show(value)}.')
+                              f'{show_value(value)}.')
         return value
     # lists: of strings (topics) or of numbers (bounds); rclpy gives array.array for the
     # latter
     strings = all(isinstance(v, str) for v in default)
     what = 'a list of strings' if strings else 'a list of numbers'
     if value is None or isinstance(value, (str, bytes, Mapping)):
-        raise ConfigError(f'{name} must be {what}; got {_show(value)}.')
+        raise ConfigError(f'{name} must be {what}; got {show_value(value)}.')
     try:
         items = list(value)
     except TypeError:
-        raise ConfigError(f'{name} must be {what}; got {_show(value)}.') from None
+        raise ConfigError(f'{name} must be {what}; got {show_value(value)}.') from None
     out = [v if isinstance(v, str) else None for v in items] if strings else [
         _float(v) for v in items]
     if any(v is None for v in out):
-        raise ConfigError(f'{name} must be {what}; got {_show(value)}.')
+        raise ConfigError(f'{name} must be {what}; got {show_value(value)}.')
     return out
 
 
@@ -293,7 +281,7 @@ def load_params_file(path: str | Path, node_name: str = NODE_NAME) -> dict[str, 
         doc = {}
     if not isinstance(doc, dict):
         raise ConfigError(f"{path}: a ROS 2 params file must map node names ('/**:') to "
-                          f'sections; got {_show(doc)}.')
+                          f'sections; got {show_value(doc)}.')
     values: dict[str, Any] = {}
     for key in ('/**', node_name, f'/{node_name}'):
         if key not in doc:
@@ -303,13 +291,13 @@ def load_params_file(path: str | Path, node_name: str = NODE_NAME) -> dict[str, 
             continue
         if not isinstance(section, dict):
             raise ConfigError(f"{path}: section {key!r} must be a mapping with "
-                              f"'ros__parameters:'; got {_show(section)}.")
+                              f"'ros__parameters:'; got {show_value(section)}.")
         params = section.get('ros__parameters')
         if params is None:
             continue
         if not isinstance(params, dict):
             raise ConfigError(f'{path}: ros__parameters of {key!r} must be a mapping of '
-                              f'parameter names to values; got {_show(params)}.')
+                              f'parameter names to values; got {show_value(params)}.')
         values.update(params)
     unknown = sorted((str(k) for k in set(values) - set(_BY_NAME) - {'use_sim_time'}))
     if unknown:
