@@ -78,9 +78,13 @@ class PredictorConfig:
         How long a dropped message, clipped input, clock jump or divergence keeps the
         health at ``WARN`` / ``ERROR`` after it happened.
     input_min, input_max : tuple of float
-        Input envelope per channel (absolute input units). Empty: the training range
-        recorded in the model file, widened by ``input_envelope_margin`` times its width
-        on each side; no recorded range: no input envelope.
+        Input envelope (absolute input units), each bound on its own: one value per input,
+        or one value for every input. Empty: that bound from the training range recorded in
+        the model file, widened by ``input_envelope_margin`` times its width on each side
+        (no recorded range: no bound on that side). Where both are given they must list
+        the same number of values (or one of them a single value) and ``input_min`` must
+        not exceed ``input_max``; a bound against the training range is checked when the
+        model is known (:class:`~soft_rom.predictor.envelope.Envelopes`).
     input_envelope_margin : float
         Widening of the recorded training range (default ``1.0``: the envelope is three
         times as wide as the training range, centred on it).
@@ -158,11 +162,19 @@ class PredictorConfig:
             if not isinstance(getattr(self, name), bool):
                 raise bad(name, 'true or false')
         lo, hi = self._bounds('input_min'), self._bounds('input_max')
-        if len(lo) != len(hi):
-            raise ConfigError(f'input_min and input_max must list the same number of '
-                              f'values; got {len(lo)} and {len(hi)}.')
-        if any(a > b for a, b in zip(lo, hi)):
-            raise ConfigError(f'input_min {list(lo)} must not exceed input_max {list(hi)}.')
+        if lo and hi:
+            if len(lo) != len(hi) and 1 not in (len(lo), len(hi)):
+                raise ConfigError(f'input_min and input_max must list the same number of '
+                                  f'values (or one of them a single value for every '
+                                  f'input); got {len(lo)} and {len(hi)}.')
+            n = max(len(lo), len(hi))
+            for i in range(n):
+                a, b = lo[i % len(lo)], hi[i % len(hi)]
+                if a > b:
+                    which = f' for input {i + 1}' if n > 1 else ''
+                    raise ConfigError(f'input_min must not exceed input_max{which}: '
+                                      f'{a:g} > {b:g} (input_min {list(lo)}, input_max '
+                                      f'{list(hi)}).')
 
     def _bounds(self, name: str) -> tuple[float, ...]:
         raw = getattr(self, name)

@@ -12,8 +12,9 @@ stored as ``model.metadata['envelope']``. :class:`Envelopes` turns it (and the
 predictor's settings) into the bounds the predictor applies:
 
 * input envelope -- ``[lo - f w, hi + f w]`` per channel with ``w = hi - lo`` and
-  ``f = input_envelope_margin`` (default 1); explicit ``input_min`` / ``input_max``
-  replace it; a model file without a recorded range has none;
+  ``f = input_envelope_margin`` (default 1); an explicit ``input_min`` / ``input_max``
+  (one value per input, or one for all) replaces its side, the other side staying as it
+  is; a model file without a recorded range has none (only the configured side bounds);
 * output envelope -- ``max |y_hat - y_ref| <= output_envelope_factor * S`` with ``S`` the
   recorded ``y_dev_max`` (files without it: ``max |y_ref|``, or 1 if that is 0).
 """
@@ -47,7 +48,7 @@ class Envelopes:
     Attributes
     ----------
     u_lo, u_hi : ndarray, shape (m,) or None
-        Input envelope (``None``: none).
+        Input envelope (``None``: none; ``-inf`` / ``inf``: no bound on that side).
     y_bound : float
         Largest allowed ``max |y - y_ref|``.
     input_source, output_source : str
@@ -61,20 +62,40 @@ class Envelopes:
         self.u_lo: Array | None = None
         self.u_hi: Array | None = None
         self.input_source = 'none'
-        if config.input_min:
-            if len(config.input_min) != m:
-                raise ConfigError(f'input_min/input_max list {len(config.input_min)} values; '
-                                  f'the model has {m} inputs.')
-            self.u_lo = np.array(config.input_min, dtype=np.float64)
-            self.u_hi = np.array(config.input_max, dtype=np.float64)
-            self.input_source = 'configured'
+        lo_cfg = _configured(config.input_min, m, 'input_min')
+        hi_cfg = _configured(config.input_max, m, 'input_max')
+        lo, hi = _floats(meta.get('u_min'), m), _floats(meta.get('u_max'), m)
+        train_lo = train_hi = None
+        trained = 'none recorded in the model file'
+        if lo is not None and hi is not None and np.all(lo <= hi):
+            width = hi - lo
+            f = float(config.input_envelope_margin)
+            train_lo, train_hi = lo - f * width, hi + f * width
+            trained = f'training range widened by {f:g} x its width'
+        if lo_cfg is None and hi_cfg is None:
+            if train_lo is not None:
+                self.u_lo, self.u_hi = train_lo, train_hi
+                self.input_source = trained
         else:
-            lo, hi = _floats(meta.get('u_min'), m), _floats(meta.get('u_max'), m)
-            if lo is not None and hi is not None and np.all(lo <= hi):
-                width = hi - lo
-                f = float(config.input_envelope_margin)
-                self.u_lo, self.u_hi = lo - f * width, hi + f * width
-                self.input_source = f'training range widened by {f:g} x its width'
+            self.u_lo = lo_cfg if lo_cfg is not None else (
+                train_lo if train_lo is not None else np.full(m, -np.inf))
+            self.u_hi = hi_cfg if hi_cfg is not None else (
+                train_hi if train_hi is not None else np.full(m, np.inf))
+            if lo_cfg is not None and hi_cfg is not None:
+                self.input_source = 'configured'
+            elif lo_cfg is not None:
+                self.input_source = f'input_min configured; input_max: {trained}'
+            else:
+                self.input_source = f'input_max configured; input_min: {trained}'
+            bad = np.flatnonzero(self.u_lo > self.u_hi)
+            if bad.size:
+                i = int(bad[0])
+                names = list(getattr(model, 'input_names', ()) or ())
+                name = names[i] if i < len(names) else str(i + 1)
+                raise ConfigError(
+                    f'input_min must not exceed input_max: input {name} would get '
+                    f'{self.u_lo[i]:g} > {self.u_hi[i]:g} (input envelope: '
+                    f'{self.input_source}).')
         y_ref = np.asarray(model.y_ref, dtype=np.float64)
         dev = meta.get('y_dev_max')
         if isinstance(dev, (int, float)) and math.isfinite(dev) and dev > 0:
@@ -107,12 +128,29 @@ class Envelopes:
     def summary(self) -> dict[str, Any]:
         """JSON-able description (for ``model_info`` and diagnostics)."""
         return {
-            'input_min': None if self.u_lo is None else self.u_lo.tolist(),
-            'input_max': None if self.u_hi is None else self.u_hi.tolist(),
+            'input_min': _side(self.u_lo),
+            'input_max': _side(self.u_hi),
             'input_source': self.input_source,
             'output_bound': self.y_bound,
             'output_source': self.output_source,
         }
+
+
+def _side(bound: Array | None) -> list[float] | None:
+    """One side of the input envelope for JSON: ``None`` where it does not bound."""
+    if bound is None or not np.any(np.isfinite(bound)):
+        return None
+    return [float(v) for v in bound]
+
+
+def _configured(values: tuple[float, ...], m: int, name: str) -> Array | None:
+    """A configured bound for ``m`` inputs (one value: every input); ``None``: not set."""
+    if not values:
+        return None
+    if len(values) not in (1, m):
+        raise ConfigError(f'{name} lists {len(values)} values; the model has {m} inputs '
+                          f'(give one value per input, or one for all).')
+    return np.broadcast_to(np.array(values, dtype=np.float64), (m,)).copy()
 
 
 def _floats(values: Any, m: int) -> Array | None:

@@ -83,11 +83,12 @@ PARAMS: tuple[Param, ...] = (
           'an empty window after measurements is STALE.', range=(0.0, 1e6), read_only=False),
     Param('alarm_hold_s', 2.0, 'How long a dropped/clipped input, clock jump or divergence '
           'keeps the status WARN/ERROR.', range=(0.0, 3600.0), read_only=False),
-    Param('input_min', [0.0], 'Input envelope, lower bounds per input (after scale/offset); '
-          '[0.0] with input_max [0.0] or empty = from the model file (training range).',
-          read_only=False),
-    Param('input_max', [0.0], 'Input envelope, upper bounds per input; see input_min.',
-          read_only=False),
+    Param('input_min', [0.0], 'Input envelope, lower bounds (after scale/offset): one per '
+          'input, or one for every input; [0.0] (the default) or empty = from the model file '
+          '(training range). Must not exceed input_max.', read_only=False),
+    Param('input_max', [0.0], 'Input envelope, upper bounds: one per input, or one for '
+          'every input; [0.0] (the default) or empty = from the model file (training range). '
+          'input_min and input_max can be set one at a time.', read_only=False),
     Param('input_envelope_margin', 1.0, 'The default input envelope is the training range '
           'widened by this times its width on each side.', range=(0.0, 1e6), read_only=False),
     Param('input_envelope_action', 'clip', 'clip or drop an input outside its envelope.',
@@ -134,6 +135,11 @@ NODE_PARAMS: tuple[Param, ...] = (
     Param('hardware_id', '', 'hardware_id of the /diagnostics statuses; empty = the node '
           'name.'),
 )
+
+#: ``input_min`` / ``input_max`` at this value (their default; ROS 2 cannot declare an empty
+#: double array) mean "not set": that bound comes from the model file. A zero bound for
+#: every input is written out per input (``[0.0, 0.0, ...]``).
+UNSET_BOUND = (0.0,)
 
 _CONFIG_FIELDS = {f.name for f in fields(PredictorConfig)}
 _BY_NAME = {p.name: p for p in PARAMS + NODE_PARAMS}
@@ -230,9 +236,8 @@ def predictor_config(values: Mapping[str, Any]) -> PredictorConfig:
     kwargs = {k: _checked(k, v) for k, v in values.items() if k in _CONFIG_FIELDS}
     for name in ('input_min', 'input_max'):
         if name in kwargs:
-            kwargs[name] = tuple(kwargs[name])
-    if kwargs.get('input_min') in ((), (0.0,)) and kwargs.get('input_max') in ((), (0.0,)):
-        kwargs['input_min'] = kwargs['input_max'] = ()       # the node's "unset" value
+            bound = tuple(kwargs[name])
+            kwargs[name] = () if bound == UNSET_BOUND else bound   # the node's "unset" value
     return PredictorConfig(**kwargs)
 
 
