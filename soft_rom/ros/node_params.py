@@ -6,12 +6,19 @@ in :mod:`soft_rom.predictor.params`; two more exist only on the node (``NODE_PAR
 * A double parameter accepts an integer (``-p rate_hz:=100``, ``ros2 param set ... 100``):
   it is converted before rclpy checks the type.
 * A refused change is logged at WARN with the reason (read-only, wrong type, out of range,
-  or refused by the core / the model file) and returned as the reason to the caller.
+  undeclared, or refused by the core / the model file) and returned as the reason to the
+  caller. Each change of a run-time parameter is checked together with every other setting
+  as it is in force (``input_min`` against the ``input_max`` in force, ``warn_threshold``
+  against ``error_threshold``, ...), so that one ``ros2 param set`` at a time works.
+* At start-up a bad value (wrong type, out of range, not one of the choices, an empty list)
+  raises :class:`~soft_rom.errors.ConfigError` naming the parameter, before rclpy would
+  raise its own exception.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+import re
 from typing import Any
 
 from rcl_interfaces.msg import (
@@ -20,14 +27,16 @@ from rcl_interfaces.msg import (
     ParameterDescriptor,
     SetParametersResult,
 )
+from rclpy.exceptions import ParameterException
 from rclpy.parameter import Parameter
 
+from soft_rom.errors import ConfigError, show_value
 from soft_rom.predictor import PredictorConfig
 from soft_rom.predictor.loop import LoopSettings
 from soft_rom.predictor.params import loop_settings as _loop_settings
 from soft_rom.predictor.params import NODE_PARAMS, Param, PARAMS, predictor_config
 
-__all__ = ['NODE_PARAMS', 'NodeSettings', 'ParameterMixin']
+__all__ = ['NODE_PARAMS', 'NodeSettings', 'ParameterMixin', 'rclpy_reason']
 
 ALL_PARAMS = PARAMS + NODE_PARAMS
 _BY_NAME = {p.name: p for p in ALL_PARAMS}
@@ -77,6 +86,31 @@ def _descriptor(p: Param) -> ParameterDescriptor:
     return d
 
 
+def _type_or_range(p: Param, param: Parameter) -> str | None:
+    expected = Parameter.Type.from_parameter_value(p.default)
+    if param.type_ != expected:
+        return (f'{param.name} must be of type {expected.name}; got {param.type_.name} '
+                f'{show_value(param.value)}')
+    if p.range is not None and not p.range[0] <= param.value <= p.range[1]:
+        return f'{param.name} = {param.value!r} outside {p.range[0]:g}..{p.range[1]:g}'
+    return None
+
+
+_WRONG_TYPE = re.compile(r"Trying to set parameter '(?P<name>[^']*)' to '(?P<value>.*)' of "
+                         r"type '(?P<got>\w+)', expecting type '(?:Type\.)?(?P<want>\w+)'")
+
+
+def rclpy_reason(err: ParameterException) -> str:
+    """One of rclpy's parameter exceptions as ``'NAME must be ...'`` (or its own text)."""
+    text = str(err)
+    text = text.rsplit(': ', 1)[0] if ': ' in text else text    # its trailing ': NAME'
+    wrong = _WRONG_TYPE.fullmatch(text)
+    if wrong:
+        return (f'{wrong["name"]} must be of type {wrong["want"]}; got {wrong["got"]} '
+                f'{wrong["value"]}')
+    return text
+
+
 def _as_double(param: Parameter) -> Parameter:
     if param.name in _DOUBLES and param.type_ == Parameter.Type.INTEGER:
         return Parameter(param.name, Parameter.Type.DOUBLE, float(param.value))
@@ -90,13 +124,29 @@ class ParameterMixin:
     """
 
     def declare_predictor_parameters(self) -> NodeSettings:
-        """Declare every parameter (integers given for doubles converted); the settings."""
+        """Declare every parameter (integers given for doubles converted); the settings.
+
+        Raises
+        ------
+        ConfigError
+            A value given at start-up (``-p``, ``--params-file``) does not fit: wrong type,
+            out of range, not one of the choices, or an empty list (which has no type in
+            ROS 2). The message names the parameter.
+        """
         overrides = self._parameter_overrides  # type: ignore[attr-defined]
         for name, param in list(overrides.items()):
-            overrides[name] = _as_double(param)
+            param = overrides[name] = _as_double(param)
+            p = _BY_NAME.get(name)
+            why = None if p is None else self._start_refusal(p, param)
+            if why:
+                raise ConfigError(f'parameter {why}.')
         for p in ALL_PARAMS:
-            self.declare_parameter(p.name, p.default,  # type: ignore[attr-defined]
-                                   _descriptor(p))
+            try:
+                self.declare_parameter(p.name, p.default,  # type: ignore[attr-defined]
+                                       _descriptor(p))
+            except ParameterException as err:     # what the check above did not foresee
+                raise ConfigError(f'parameter {p.name}: {rclpy_reason(err)}.') from None
+        self.check_settings()
         self.add_pre_set_parameters_callback(self._pre_set)  # type: ignore[attr-defined]
         self.add_on_set_parameters_callback(self._on_set)  # type: ignore[attr-defined]
         v = self.parameter_values()
@@ -132,11 +182,17 @@ class ParameterMixin:
         return _loop_settings(self.parameter_values())
 
     def check_settings(self) -> None:
-        """Refuse read-only settings outside their choices (a start-up error)."""
+        """Refuse settings outside their choices (a start-up error): ConfigError."""
         for p in ALL_PARAMS:
             if p.choices and self.settings_value(p.name) not in p.choices:
-                raise ValueError(f'{p.name} must be one of {", ".join(p.choices)}; got '
-                                 f'{self.settings_value(p.name)!r}')
+                raise ConfigError(f'parameter {p.name} must be one of '
+                                  f'{", ".join(p.choices)}; got '
+                                  f'{show_value(self.settings_value(p.name))}.')
+
+    def check_core_settings(self) -> None:
+        """Build the core's and the loop's settings once: ConfigError naming the parameter."""
+        self.predictor_config()
+        self.loop_settings()
 
     def _warn_refused(self, reason: str) -> None:
         self.get_logger().warning(  # type: ignore[attr-defined]
@@ -144,15 +200,15 @@ class ParameterMixin:
 
     def _pre_set(self, params: list[Parameter]) -> list[Parameter]:
         # Runs before rclpy's own checks: converts integers for doubles, and logs (WARN) the
-        # refusals that rclpy then returns without logging (read-only, type, range).
+        # refusals that rclpy then returns without logging (read-only, type, range,
+        # undeclared), for this node's parameters and rclpy's own (use_sim_time).
         out = []
         for param in params:
             param = _as_double(param)
             p = _BY_NAME.get(param.name)
-            if p is not None:
-                why = self._refusal(p, param)
-                if why:
-                    self._warn_refused(why)
+            why = self._refusal(p, param) if p is not None else self._other_refusal(param)
+            if why:
+                self._warn_refused(why)
             out.append(param)
         return out
 
@@ -161,11 +217,35 @@ class ParameterMixin:
         if p.read_only:
             return (f'{param.name} is read-only (set it at start-up: --ros-args -p '
                     f'{param.name}:=VALUE)')
-        expected = Parameter.Type.from_parameter_value(p.default)
+        return _type_or_range(p, param)
+
+    @staticmethod
+    def _start_refusal(p: Param, param: Parameter) -> str | None:
+        if param.type_ == Parameter.Type.NOT_SET:
+            return (f'{param.name} has no value (an empty list has no type in ROS 2): leave '
+                    'it out for its default, or give values')
+        why = _type_or_range(p, param)
+        if why is None and p.choices and param.value not in p.choices:
+            why = (f'{param.name} must be one of {", ".join(p.choices)}; got '
+                   f'{show_value(param.value)}')
+        return why
+
+    def _other_refusal(self, param: Parameter) -> str | None:
+        """Why rclpy will refuse a change of a parameter that is not the predictor's own."""
+        node: Any = self
+        if not node.has_parameter(param.name):
+            return f'{param.name} is not a parameter of this node'
+        d = node.describe_parameter(param.name)
+        if d.read_only:
+            return f'{param.name} is read-only'
+        if d.dynamic_typing:
+            return None
+        expected = Parameter.Type(d.type)
+        if param.type_ == Parameter.Type.NOT_SET:
+            return f'{param.name} cannot be undeclared'
         if param.type_ != expected:
-            return f'{param.name} must be of type {expected.name}; got {param.type_.name}'
-        if p.range is not None and not p.range[0] <= param.value <= p.range[1]:
-            return f'{param.name} = {param.value!r} outside {p.range[0]:g}..{p.range[1]:g}'
+            return (f'{param.name} must be of type {expected.name}; got {param.type_.name} '
+                    f'{show_value(param.value)}')
         return None
 
     def _on_set(self, params: list[Parameter]) -> SetParametersResult:

@@ -26,6 +26,12 @@ activate creates the subscriptions, publishers, timers and the reset service, de
 destroys them keeping the state, cleanup unloads the model); default false: everything
 happens at start-up, as a plain node.
 
+Start-up: a bad parameter (wrong type, out of range, not one of the choices, an empty list,
+settings that contradict each other) or an unparsable ``--ros-args`` is one error line naming
+it and exit status 1, whatever ``wait_for_model`` says (that one waits for a valid model
+only); a missing or bad model file is one error line naming the file, then exit status 1
+(``wait_for_model: false``) or waiting for a valid ``model_path``.
+
 Shutdown: rclpy's signal handlers are off; SIGINT and SIGTERM set a flag that the spin loop
 checks at least every 0.1 s, so no callback runs after the context shuts down (no
 "context is invalid" errors) and the process exits 0.
@@ -34,6 +40,7 @@ checks at least every 0.1 s, so no callback runs after the context shuts down (n
 from __future__ import annotations
 
 import functools
+import re
 import signal
 import sys
 import threading
@@ -44,8 +51,10 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Point, Pose, PoseArray
 import numpy as np
 import rclpy
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNodeMixin, LifecycleState, TransitionCallbackReturn
+from rclpy.logging import get_logger, get_logger_level, LoggingSeverity, set_logger_level
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
@@ -54,6 +63,7 @@ from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker
 
+from soft_rom.errors import ConfigError
 from soft_rom.predictor import Predictor
 from soft_rom.predictor.conversions import (
     array_to_data,
@@ -66,9 +76,13 @@ from soft_rom.predictor.conversions import (
 )
 from soft_rom.predictor.loop import MARKER_STYLES, Publish, RuntimeLoop
 from soft_rom.ros.diagnostics import Diagnostics, TopicMonitor
-from soft_rom.ros.node_params import NodeSettings, ParameterMixin
+from soft_rom.ros.node_params import NodeSettings, ParameterMixin, rclpy_reason
 
-__all__ = ['PredictorNode', 'main']
+__all__ = ['PredictorNode', 'StartupError', 'main']
+
+
+class StartupError(Exception):
+    """A bad parameter at start-up; already logged (one error line): exit status 1."""
 
 
 class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
@@ -87,20 +101,33 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
     loop : RuntimeLoop or None
         The core (``None`` while no valid model is loaded).
     startup_error : str or None
-        Why the model could not be loaded (plain mode: at start-up; lifecycle: at configure).
+        Why the node cannot run: a bad parameter, or the model could not be loaded (plain
+        mode: at start-up; lifecycle: at configure).
     managed : bool
         Whether the node runs as a lifecycle (managed) node.
+
+    Raises
+    ------
+    StartupError
+        A bad parameter at start-up (logged as one error line first).
     """
 
     def __init__(self, node_name: str = 'soft_rom_predictor', **kwargs: Any) -> None:
-        Node.__init__(self, node_name, **kwargs)
-        self.settings: NodeSettings = self.declare_predictor_parameters()
+        self.startup_error: str | None = None
+        try:
+            Node.__init__(self, node_name, **kwargs)    # declares use_sim_time
+            self.settings: NodeSettings = self.declare_predictor_parameters()
+            if not self.settings.lifecycle:     # managed: checked at configure (changeable)
+                self.check_core_settings()
+        except (ConfigError, ParameterException) as err:
+            self._fail_start(node_name, str(err) if isinstance(err, ConfigError) else
+                             f'parameter {rclpy_reason(err)}.')
         self.managed = self.settings.lifecycle
         self.loop: RuntimeLoop | None = None
-        self.startup_error: str | None = None
         self.callback_errors = 0
         self._entities: list[Any] = []
         self._timer: Any = None
+        self._info_sent: str | None = None
         self._active = False
         self._latched = QoSProfile(depth=1, history=HistoryPolicy.KEEP_LAST,
                                    reliability=ReliabilityPolicy.RELIABLE,
@@ -120,6 +147,20 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
             self._activate()
         elif s.wait_for_model:
             self._activate()        # idle, diagnostics ERROR, until a valid model_path is set
+
+    def _fail_start(self, node_name: str, reason: str) -> None:
+        """Log ``reason`` as the one error line and raise :class:`StartupError`."""
+        self.startup_error = reason.rstrip('.')
+        try:
+            logger = Node.get_logger(self)
+        except AttributeError:          # rclpy failed before the node had a logger
+            logger = get_logger(node_name)
+        logger.error(f'{self.startup_error}; exiting with status 1.')
+        try:
+            Node.destroy_node(self)
+        except Exception:  # noqa: BLE001 - a half-built node; the context goes next
+            pass
+        raise StartupError(self.startup_error)
 
     @property
     def predictor(self) -> Predictor | None:
@@ -159,15 +200,17 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
     # -- set-up ------------------------------------------------------------------------------
     def _configure(self) -> bool:
         path = self.settings_value('model_path')
+        loop = None
         try:
-            self.check_settings()
+            config, settings = self.predictor_config(), self.loop_settings()
+        except ConfigError as err:          # managed: changeable settings, fix and retry
+            self.startup_error = str(err).rstrip('.')
+        else:
             if not path:
-                raise FileNotFoundError('model_path is empty')
-            predictor = Predictor(path, self.predictor_config())
-            self._check_model(predictor.model)
-            loop = RuntimeLoop(predictor, self.loop_settings())
-        except Exception as err:  # noqa: BLE001 - reported once, clearly
-            self.startup_error = f'cannot load model_path {path!r}: {err}'
+                self.startup_error = 'model_path is empty (give -p model_path:=FILE)'
+            else:
+                loop = self._load(path, config, settings)
+        if loop is None:
             if self.managed:
                 then = 'staying unconfigured'
             elif self.settings.wait_for_model:
@@ -175,10 +218,28 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
                         f'{self.get_fully_qualified_name()} model_path FILE)')
             else:
                 then = 'exiting with status 1 (wait_for_model:=true to wait instead)'
+            self.startup_error = str(self.startup_error).rstrip('.')
             self.get_logger().error(f'{self.startup_error}; {then}.')
             return False
         self._use(loop)
         return True
+
+    def _load(self, path: str, config: Any, settings: Any) -> RuntimeLoop | None:
+        """The model file run with these settings, or ``None`` with :attr:`startup_error`."""
+        try:
+            predictor = Predictor(path, config)
+        except ConfigError as err:
+            self.startup_error = f'the parameters do not fit model_path {path!r}: {err}'
+            return None
+        except Exception as err:  # noqa: BLE001 - reported once, clearly
+            self.startup_error = f'cannot load model_path {path!r}: {err}'
+            return None
+        try:
+            self._check_model(predictor.model)
+            return RuntimeLoop(predictor, settings)
+        except Exception as err:  # noqa: BLE001
+            self.startup_error = f'the parameters do not fit model_path {path!r}: {err}'
+            return None
 
     def _check_model(self, model: Any) -> None:
         if self.settings.input_mode == 'per_chamber' and len(
@@ -202,8 +263,17 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
             f'step {pred.h:g} s, {how}'
             + (', Kalman correction on' if pred.config.kalman else ''))
         self._start_timer()
-        if self._active:
-            self._pub_info.publish(String(data=model_info_json(pred.info)))
+        self._publish_info()
+
+    def _publish_info(self, if_changed: bool = False) -> None:
+        """Publish ``~/model_info`` (latched); ``if_changed``: only if it says something new."""
+        if not self._active or self.loop is None:
+            return
+        text = model_info_json(self.loop.predictor.info)
+        if if_changed and text == self._info_sent:
+            return
+        self._info_sent = text
+        self._pub_info.publish(String(data=text))
 
     def _input_qos(self) -> QoSProfile:
         best = self.settings.input_qos == 'sensor_data'
@@ -241,8 +311,7 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
         self._entities = ents
         self._active = True
         self._start_timer()
-        if self.loop is not None:
-            self._pub_info.publish(String(data=model_info_json(self.loop.predictor.info)))
+        self._publish_info()
 
     def _deactivate(self) -> None:
         if not self._active:
@@ -435,6 +504,7 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
             loop.set_config(config)
             if config.stepping != stepping:
                 self._start_timer()
+            self._publish_info(if_changed=True)     # e.g. the envelopes in force
 
 
 class _StopFlag:
@@ -468,10 +538,35 @@ def _executor(node: PredictorNode) -> Any:
     return SingleThreadedExecutor()
 
 
+def _init(args: list[str] | None) -> str | None:
+    """``rclpy.init``; ``None``, or why the command line was refused (one line).
+
+    rcl's own "Failed to parse global arguments" error line is held back meanwhile: the
+    reason returned says more (which ``-p`` rule, which file).
+    """
+    quiet = get_logger_level('rcl') == LoggingSeverity.UNSET
+    if quiet:
+        set_logger_level('rcl', LoggingSeverity.FATAL)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except RuntimeError as err:         # rclpy's RCLError: a bad --ros-args
+        text = re.sub(r'(\. Error: error not set)?\s*,? at /\S+:\d+', '', str(err))
+        return ' '.join(text.split()).removeprefix('failed to initialize rcl: ')
+    finally:
+        if quiet and get_logger_level('rcl') == LoggingSeverity.FATAL:
+            set_logger_level('rcl', LoggingSeverity.UNSET)
+    return None
+
+
 def main(args: list[str] | None = None) -> int:
-    """Run the node until SIGINT/SIGTERM; returns the exit status (0, or 1: no model)."""
+    """Run the node until SIGINT/SIGTERM; returns the exit status (0, or 1: bad start)."""
     stop = _StopFlag()
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    refused = _init(args)
+    if refused is not None:
+        stop.restore()
+        get_logger('soft_rom_predictor').error(
+            f'bad command line (--ros-args): {refused}; exiting with status 1.')
+        return 1
     node = None
     code = 0
     executor = None
@@ -485,6 +580,8 @@ def main(args: list[str] | None = None) -> int:
             executor.add_node(node)
             while not stop.event.is_set() and rclpy.ok():
                 executor.spin_once(timeout_sec=0.1)
+    except StartupError:        # logged by the node: one line
+        code = 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
