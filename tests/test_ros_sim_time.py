@@ -122,3 +122,52 @@ def test_bag_played_with_clock_equals_soft_rom_replay(client, tmp_path) -> None:
         assert not no_noise(node.log()), node.log()
     finally:
         node.kill()
+
+
+def test_clock_jumping_back_keeps_every_topic_alive(client, tmp_path) -> None:
+    """``/clock`` and the stamps jump 30 s back (a bag played again): nothing goes quiet."""
+    m = model()
+    path = m.save(tmp_path / 'm.npz')
+    node = NodeProcess(tmp_path, params(path, use_sim_time=True, publish_rate_hz=100.0))
+    try:
+        out = Outputs(client, node.fqn)
+        clock = client.node.create_publisher(Clock, '/clock', 10)
+        pubs = [client.node.create_publisher(FluidPressure, tp, RELIABLE) for tp in TOPICS]
+        assert client.spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs)
+                                 and clock.get_subscription_count() > 0, timeout=20.0)
+
+        def play(t0_ns: int, k: int = 400) -> None:
+            for j in range(k):
+                t = t0_ns + j * 1_000_000
+                sec, nsec = ns_to_stamp(t)
+                clock.publish(Clock(clock=Time(sec=sec, nanosec=nsec)))
+                for i, pub in enumerate(pubs):
+                    msg = FluidPressure()
+                    msg.header.stamp.sec, msg.header.stamp.nanosec = sec, nsec
+                    msg.fluid_pressure = 0.1 * (i + 1)
+                    pub.publish(msg)
+                if j % 50 == 0:
+                    client.spin_for(0.005)
+
+        def since(stamps: list[int], t0_ns: int) -> list[int]:
+            return [t for t in stamps if t0_ns <= t < t0_ns + 1_000_000_000]
+
+        def diag_stamps() -> list[int]:
+            return [d.header.stamp.sec * 1_000_000_000 + d.header.stamp.nanosec
+                    for d in out.diagnostics]
+
+        late = T_SIM_NS + 30_000_000_000
+        play(late)
+        assert client.spin_until(lambda: len(since(out.times, late)) >= 39, timeout=10.0)
+        play(T_SIM_NS)                                     # the clock restarts 30 s back
+        assert client.spin_until(
+            lambda: len(since(out.times, T_SIM_NS)) >= 39          # ~/output_stamped 100 Hz
+            and len(since(out.centerlines, T_SIM_NS)) >= 11        # ~/centerline 30 Hz
+            and since(diag_stamps(), T_SIM_NS)                     # /diagnostics
+            and out.status('prediction').get('clock_reset') == '1', timeout=10.0), (
+            len(since(out.times, T_SIM_NS)), len(since(out.centerlines, T_SIM_NS)),
+            since(diag_stamps(), T_SIM_NS), out.status('prediction').get('clock_reset'))
+        assert node.stop(signal.SIGINT) == 0
+        assert not no_noise(node.log()), node.log()
+    finally:
+        node.kill()

@@ -9,7 +9,8 @@ Reasons, worst first:
   ``input_timeout_s``; measurements were seen but none is left in the window
   (``error_window_s``);
 * ``WARN`` -- within the last ``alarm_hold_s``: a dropped message, an input clipped to its
-  envelope, a measurement outside the output envelope, a clock stall or jump; the model
+  envelope, a measurement outside the output envelope, stamped more than ``clock_reset_s``
+  ahead of the model time or beyond the queue bound, a clock stall or jump; the model
   is unstable or not trusted (``model.trust_issues()``); the windowed error is above
   ``warn_threshold``.
 """
@@ -81,6 +82,7 @@ def assess(pred: Any, now_ns: int | None, Level: Any, severity: dict[Any, int]) 
         'kalman': int(pred._dyn.L is not None),
         'stepping': cfg.stepping,
         'output_bound': pred.envelopes.y_bound,
+        'measured_queued': pred._queued_measurements,
     }
     values.update(pred.counters)
     for name, age in zip(ch.names, ages):

@@ -12,11 +12,18 @@ messages (value, stamp in int ns, reception time in int ns) and publishes the
   ``measured_points`` (the last accepted measurement) and ``error`` go with it;
 * ``diagnostics_due`` -- time for :meth:`RuntimeLoop.diagnostics` (reception clock).
 
+When the predictor restarts (:attr:`Predictor.restarts <soft_rom.predictor.Predictor>`:
+a restarted clock -- a bag played again, ``/clock`` jumping back -- a reset or a reload) the
+whole schedule re-anchors at the next output and report, so model time starting over
+earlier than before never silences a publisher; a reception clock that went back by more
+than a diagnostics period before the last report also re-anchors the diagnostics.
+
 Stepping is the predictor's: with ``'event'`` stepping the inputs drive the model, so no
 fast timer is needed -- :meth:`RuntimeLoop.tick` only has to run at the diagnostics rate;
 with ``'fixed'`` stepping a timer calls it at :meth:`RuntimeLoop.timer_period_ns`.
 A zero stamp (un-stamped sources: ``Float64MultiArray``) is replaced by the sender's
-sequence on the reception clock (:class:`SequenceClock`; counted ``stamp_fallback``);
+sequence on the reception clock (:class:`SequenceClock`; counted ``stamp_fallback``),
+which starts over when the reception clock goes back by more than ``clock_reset_s``;
 a measurement without a stamp takes its reception time.
 """
 
@@ -137,6 +144,9 @@ class SequenceClock:
     (stamps never go backwards, and never lead the reception clock by more than ``resync_ns``);
     both counted in :attr:`resyncs`. Until 8 intervals are seen the period is
     taken to be one step (the recommended set-up: the sender at the model rate).
+    A reception time more than ``reset_ns`` before the previous one is a restarted clock
+    (``/clock`` of a bag played again): the sequence starts over there (counted in
+    :attr:`resyncs`), so the stamps go back with it and the predictor sees the restart.
 
     Parameters
     ----------
@@ -144,11 +154,14 @@ class SequenceClock:
         Step of the model in ns.
     resync_ns : int
         Largest accepted disagreement with the reception clock.
+    reset_ns : int, optional
+        Largest step back of the reception clock that is not a restart (``0``: never one).
     """
 
-    def __init__(self, h_ns: int, resync_ns: int) -> None:
+    def __init__(self, h_ns: int, resync_ns: int, reset_ns: int = 0) -> None:
         self.h_ns = max(1, int(h_ns))
         self.resync_ns = int(resync_ns)
+        self.reset_ns = int(reset_ns)
         self.last: int | None = None
         self.last_received: int | None = None
         self.period = self.h_ns
@@ -158,6 +171,13 @@ class SequenceClock:
 
     def stamp(self, now_ns: int) -> int:
         """The stamp of a message received at ``now_ns``."""
+        if self.reset_ns > 0 and self.last_received is not None and \
+                now_ns < self.last_received - self.reset_ns:       # the clock restarted
+            self.last = None
+            self.period = self.h_ns
+            self._times.clear()
+            self._count = 0
+            self.resyncs += 1
         self._times.append(now_ns)
         self._count += 1
         n = len(self._times)
@@ -224,6 +244,7 @@ class RuntimeLoop:
         self._next_cl: int | None = None
         self._next_diag: int | None = None
         self._last_t: int | None = None
+        self._restarts = pred.restarts
         pred.take_emitted()
         self._clocks: dict[int, SequenceClock] = {}
         if keep_figures and len(self._recv) == pred.model.n_inputs:
@@ -292,7 +313,9 @@ class RuntimeLoop:
         clock = self._clocks.get(key)
         if clock is None:
             pred = self.predictor
-            clock = SequenceClock(int(round(pred.h * 1e9)), int(pred.config.max_lag_s * 1e9))
+            cfg = pred.config
+            clock = SequenceClock(int(round(pred.h * 1e9)), int(cfg.max_lag_s * 1e9),
+                                  int(cfg.clock_reset_s * 1e9))
             self._clocks[key] = clock
         return clock
 
@@ -355,6 +378,9 @@ class RuntimeLoop:
     # -- schedule --------------------------------------------------------------------
     def _collect(self, now_ns: int) -> Publish:
         pred = self.predictor
+        if pred.restarts != self._restarts:       # model time started over: re-anchor all
+            self._restarts = pred.restarts
+            self._next_out = self._next_cl = self._next_diag = self._last_t = None
         pub = Publish()
         emitted = pred.take_emitted()
         t = pred.t_ns
@@ -385,12 +411,13 @@ class RuntimeLoop:
                 self._next_cl = t_last + self._cl_period
                 self.counts['centerlines'] += 1
             self.counts['outputs'] += len(pub.outputs)
-        if self._next_diag is None or now_ns >= self._next_diag:
+        nd, period = self._next_diag, self._diag_period
+        # due, or the reception clock went back by more than a period before the last report
+        if nd is None or not nd - 2 * period <= now_ns < nd:
             pub.diagnostics_due = True
-            base = now_ns if self._next_diag is None else self._next_diag
-            self._next_diag = base + self._diag_period
-            if self._next_diag <= now_ns:         # clock jumped: no burst of reports
-                self._next_diag = now_ns + self._diag_period
+            # on schedule; after a jump either way, from now (no burst, no long silence)
+            self._next_diag = nd + period if nd is not None and nd <= now_ns < nd + period \
+                else now_ns + period
         return pub
 
     # -- diagnostics -----------------------------------------------------------------

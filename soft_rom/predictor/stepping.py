@@ -55,6 +55,7 @@ class Stepping:
     _done: bool
     _released: bool
     _queue: list[tuple[int, int, int, int, Any]]
+    _queued_measurements: int
     _seq: int
     _newest: int
     _xn: Array
@@ -88,6 +89,8 @@ class Stepping:
 
         def _measure_now(self, y: Array, stamp_ns: int, k: int) -> float | None: ...
 
+        def _clock_reset(self, t_ns: int) -> None: ...
+
     # -- clocked stepping ('fixed', 'input') ----------------------------------------------
     def _take_clocked(self, index: int | None, value: Any, stamp_ns: int) -> None:
         if self._k is None:
@@ -96,7 +99,7 @@ class Stepping:
             self.counters['late'] += 1
             self.channels.late_one(index)
         else:
-            self.advance_to_ns(stamp_ns)
+            self._advance_ns(stamp_ns)
         self._latch(index, value)
         self._update_Bu()
 
@@ -111,11 +114,23 @@ class Stepping:
         ``'fixed'``: every whole step due; ``'input'``: exactly to ``t_ns`` (discrete-time
         models: whole native steps, remainder carried); ``'event'``: every step up to the
         one ``t_ns`` belongs to, as if every input were known until then. Past times do
-        nothing; refused times (non-finite, out of range) are counted ``bad_time``.
+        nothing, except with ``'fixed'`` stepping (the caller's clock drives the model) a
+        time more than ``clock_reset_s`` before the model time: a restarted clock (``/clock``
+        of a bag played again), counted ``clock_reset``; the predictor resets and model time
+        starts over at ``t_ns``. Refused times (non-finite, out of range) are counted
+        ``bad_time``.
         """
         if not _ok_ns(t_ns):
             return int(self._bad_time('advance'))
         t_ns = int(t_ns)
+        limit = self.config.clock_reset_s
+        if self.config.stepping == 'fixed' and self._k is not None and limit > 0 and \
+                t_ns < self._time_of(self._k) - limit * 1e9:
+            self._clock_reset(t_ns)
+        return self._advance_ns(t_ns)
+
+    def _advance_ns(self, t_ns: int) -> int:
+        """:meth:`advance_to_ns` of a checked time, never a clock reset (measurements)."""
         if self._k is None:
             self._anchor(t_ns)
             if self.config.stepping == 'event':
@@ -255,12 +270,14 @@ class Stepping:
                         self._latch(None if i < 0 else i, v)
                         changed = True
                     else:
+                        self._queued_measurements -= 1
                         self._measure_now(v[0], v[1], s)
                 if changed:
                     self._update_Bu()
                 self._complete(k)
                 while q and q[0][0] <= k:
                     s, _, _, _, v = heapq.heappop(q)
+                    self._queued_measurements -= 1
                     self._measure_now(v[0], v[1], s)
                 self._done = True
                 self._released = True
