@@ -72,8 +72,11 @@ class PredictorConfig:
         Most steps in one update; beyond that the model time jumps with the state held
         (counted ``catchup_skipped``, reported as a clock jump/stall).
     clock_reset_s : float
-        An input stamp older than the newest by more than this is a restarted clock: the
-        predictor resets (counted ``clock_reset``). ``0`` disables it.
+        An input stamp older than the newest by more than this (with fixed stepping: the
+        node clock going back that far) is a restarted clock: the predictor resets (counted
+        ``clock_reset``) and every schedule starts again from the new time. A measurement
+        stamped more than this ahead of the model time is dropped (``measured_dropped``).
+        ``0`` disables both.
     alarm_hold_s : float
         How long a dropped message, clipped input, clock jump or divergence keeps the
         health at ``WARN`` / ``ERROR`` after it happened.

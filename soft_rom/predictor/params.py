@@ -118,8 +118,10 @@ PARAMS: tuple[Param, ...] = (
           range=(1e-30, 1e30), read_only=False),
     Param('max_catchup_steps', 10000, 'Most integration steps in one update; beyond that '
           'model time jumps (counted).', range=(1, 10000000), read_only=False),
-    Param('clock_reset_s', 1.0, 'An input stamp this much older than the newest is a '
-          'restarted clock (bag replayed): reset and take it; 0 = never (drop as backwards).',
+    Param('clock_reset_s', 1.0, 'An input stamp this much older than the newest (fixed '
+          'stepping: the node clock going back this far) is a restarted clock (bag replayed): '
+          'reset and take it; a measurement this far ahead of the model is dropped; 0 = never '
+          '(drop as backwards).',
           range=(0.0, 1e9), read_only=False),
 )
 
