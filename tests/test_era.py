@@ -9,7 +9,7 @@ import pytest
 import scipy.linalg as sla
 
 from soft_rom.data import Episode
-from soft_rom.errors import ConfigError, DimensionError, NotFittedError
+from soft_rom.errors import ConfigError, DimensionError, NotFittedError, ResourceError
 from soft_rom.evaluation import evaluate, predict
 from soft_rom.learners.era import decimate, era, ERAOKID, hankel_rank, okid_markov
 from soft_rom.learners.era_select import RIDGE_FLOOR
@@ -413,6 +413,23 @@ def test_markov_horizon_longer_than_the_episode_is_refused_before_any_work(monke
     for bad in (0, 2.5, True, '10'):
         with pytest.raises(ConfigError, match='n_markov must be an integer'):
             ERAOKID(r=3, n_markov=bad).fit(ep)
+
+
+def test_hankel_matrices_larger_than_memory_are_refused_before_they_are_built(monkeypatch):
+    """A long horizon within the episode can still ask for more memory than there is."""
+    from soft_rom.learners.era_select import era_truncated
+    import soft_rom.resources as resources
+    monkeypatch.setattr(resources, 'available_memory', lambda: 64e6)       # 64 MB left
+    markov = np.random.default_rng(0).standard_normal((1201, 40, 6))
+    era_module = sys.modules[era.__module__]
+    hankel, built = era_module._hankel, []
+    monkeypatch.setattr(era_module, '_hankel', lambda *a: built.append(a))
+    for fn in (era, era_truncated):
+        with pytest.raises(ResourceError, match=r'GiB of memory; 0.0596 GiB are available'):
+            fn(markov, 4)
+    assert not built
+    monkeypatch.setattr(era_module, '_hankel', hankel)
+    assert era(markov[:41], 2)[0].shape == (2, 2)          # a short horizon fits in 64 MB
 
 
 def test_markov_horizon_at_the_bound_fits():

@@ -23,6 +23,8 @@ import math
 import os
 from pathlib import Path
 
+from soft_rom.resources import available_memory
+
 __all__ = [
     'add_json',
     'add_output',
@@ -138,39 +140,6 @@ def add_json(parser: argparse.ArgumentParser, *, help: str, old: str | None = No
     parser.add_argument('--json', type=Path, default=None, metavar='FILE', help=help)
     if old:
         parser.add_argument(old, type=Path, dest='json', help=argparse.SUPPRESS)
-
-
-def available_memory() -> float:
-    """Bytes of memory this process may still use: MemAvailable, capped by a cgroup limit."""
-    avail = math.inf
-    try:
-        with open('/proc/meminfo', encoding='ascii') as fh:
-            for line in fh:
-                if line.startswith('MemAvailable:'):
-                    avail = float(line.split()[1]) * 1024
-                    break
-    except OSError:
-        pass
-    for limit_file, usage_file in (('/sys/fs/cgroup/memory.max', '/sys/fs/cgroup/memory.current'),
-                                   ('/sys/fs/cgroup/memory/memory.limit_in_bytes',
-                                    '/sys/fs/cgroup/memory/memory.usage_in_bytes')):
-        try:
-            limit_text = Path(limit_file).read_text().strip()
-            if limit_text == 'max':
-                continue
-            limit = float(limit_text)
-            if limit > 2**60:
-                continue
-            used = float(Path(usage_file).read_text().strip())
-            avail = min(avail, max(limit - used, 0.0))
-        except (OSError, ValueError):
-            continue
-    if not math.isfinite(avail):
-        try:
-            avail = float(os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_AVPHYS_PAGES'))
-        except (ValueError, OSError):
-            avail = math.inf
-    return avail
 
 
 def is_summary_json(keys: Sequence[str]) -> Callable[[Path], bool]:

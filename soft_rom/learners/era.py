@@ -67,9 +67,10 @@ from soft_rom.errors import ConfigError, DimensionError, NotFittedError
 from soft_rom.learners import era_select
 from soft_rom.learners.dmdc import channel_scale
 from soft_rom.models import DiscreteModel
+from soft_rom.resources import check_memory
 
-__all__ = ['ERA_EEL_OPTIONS', 'ERA_PRESETS', 'ERAOKID', 'decimate', 'era', 'hankel_rank',
-           'okid_markov']
+__all__ = ['ERA_EEL_OPTIONS', 'ERA_PRESETS', 'ERAOKID', 'check_hankel_memory', 'decimate',
+           'era', 'hankel_rank', 'okid_markov']
 
 #: The hand-tuned settings of the eel study (1 kHz, 40 outputs, slow lightly damped modes):
 #: identify on the 4 leading output principal components at the full rate with a 36-step
@@ -192,6 +193,17 @@ def okid_markov(U: ArrayLike, Y: ArrayLike, *, observer_order: int, n_markov: in
     return markov, info
 
 
+def check_hankel_memory(rows: int, cols: int, copies: float = 4.0) -> None:
+    """Refuse Hankel matrices of ``rows`` x ``cols`` that would not fit in memory.
+
+    ``copies``: matrices of that size alive at once (``H_0``, ``H_1`` and the SVD's factors
+    and workspace). Raises :class:`~soft_rom.errors.ResourceError` before they are built.
+    """
+    check_memory(8.0 * copies * rows * cols, f'ERA on a {rows} x {cols} Hankel matrix',
+                 'Use a shorter Markov horizon (n_markov), decimation, or fewer outputs '
+                 '(output_rank).')
+
+
 def _hankel(markov: Array, start: int, rows: int, cols: int) -> Array:
     """Block Hankel matrix ``[Y_{start+i+j}]`` (rows · p, cols · m), from a strided view."""
     _, p, m = markov.shape
@@ -264,6 +276,7 @@ def era(markov: ArrayLike, r: int | None = None, *, n_block_rows: int | None = N
     if a < 1 or b < 1 or a + b > N:
         raise ConfigError(f'Hankel blocks ({a} rows, {b} columns) need 1 <= rows, cols and '
                           f'rows + cols <= {N} (the number of Markov parameters).')
+    check_hankel_memory(a * p, b * m)
     H0 = _hankel(markov, 1, a, b)
     H1 = _hankel(markov, 2, a, b)
     P, s, Qt = np.linalg.svd(H0, full_matrices=False)

@@ -220,11 +220,12 @@ def era_truncated(markov: Array, rmax: int, *, seed: int = 0
     Range finder with ``rmax + 20`` columns and two power iterations (fixed seed, so
     deterministic); the leading ``r ≤ rmax`` states are the order-``r`` realization.
     """
-    from soft_rom.learners.era import _hankel
+    from soft_rom.learners.era import _hankel, check_hankel_memory
     N = markov.shape[0] - 1
     p, m = markov.shape[1:]
     a = min(max(int(round(N * m / (m + p))), 1), N - 1)
     b = N - a
+    check_hankel_memory(a * p, b * m, copies=2.5)     # H_0, H_1 and the sketches
     H0 = _hankel(markov, 1, a, b)
     H1 = _hankel(markov, 2, a, b)
     k = min(rmax + 20, min(H0.shape))
