@@ -86,7 +86,8 @@ def format_text(d: dict[str, Any]) -> str:
                          f'{rate_s}')
     elif kind == 'trainingset':
         lines.append(f"training set {d['path']} (format {d['format_version']}): "
-                     f"{len(d['episodes'])} episode(s), n = {d['n_states']}")
+                     f"{len(d['episodes'])} episode(s), n = {d['n_states']}; every chunk of "
+                     'every array present')
         lines.append(f"  inputs  (m = {len(d['input_names'])}): "
                      f"{_fmt_names(d['input_names'], d['input_units'])}")
         lines.append(f"  outputs (p = {len(d['output_names'])}): "

@@ -388,11 +388,20 @@ class TrainingSet:
         return len(self.episode_names)
 
     def describe(self) -> dict[str, Any]:
-        """Summary for ``soft-rom info``: per episode ``t0_ns`` and times from its start."""
+        """Summary for ``soft-rom info``: per episode ``t0_ns`` and times from its start.
+
+        Every array's chunks are checked (listings only, no data read): a set copied
+        incompletely is refused here too (:class:`~soft_rom.errors.DatasetError`), not only
+        when a fit reads the damaged array.
+        """
         eps = {}
         for name in self.episode_names:
             t = self.times(name)
             q = self.q_array(name) if self.has_state(name) else None
+            for key in ('U', 'Y'):
+                self._array(name, key).check()
+            if q is not None:
+                q.check()
             eps[name] = {
                 'n_samples': int(t.size), 't0_ns': self.t0_ns(name),
                 'duration_s': float(t[-1]) if t.size else 0.0,

@@ -239,6 +239,8 @@ def _model(tmp_path: Path) -> Path:
     ('episodes/ep1/Q', 'truncated', 'fit', "episode 'ep1', array Q: chunk .* truncated"),
     ('episodes/ep1/Q', 'deleted', 'fit', "episode 'ep1', array Q: chunk .* is missing"),
     ('episodes/ep1/.zattrs', 'list', 'info', "episode 'ep1'"),
+    ('episodes/ep1/Q', 'deleted', 'info', "episode 'ep1', array Q: chunk .* is missing"),
+    ('episodes/ep1/U', 'truncated', 'info', "episode 'ep1', array U: chunk .* truncated"),
     ('episodes/ep1/.zattrs', 'list', 'evaluate', "episode 'ep1'"),
 ])
 def test_cli_exit_2_with_one_line(damaged, tmp_path, capsys, target, damage, verb, words):
