@@ -179,9 +179,10 @@ class Predictor(Stepping):
 
     @property
     def info(self) -> dict[str, Any]:
-        """Model description (``~/model_info``) with the envelopes in force."""
+        """Model description (``~/model_info``) with the envelopes and the correction in force."""
         info = dict(self._dyn.info)
         info['envelope'] = self._env.summary()
+        info['kalman'] = bool(self.config.kalman)
         return info
 
     @property

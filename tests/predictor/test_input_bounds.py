@@ -111,6 +111,14 @@ def test_set_config_one_bound_at_a_time_takes_effect_and_refuses_a_conflict() ->
     np.testing.assert_array_equal(pred.envelopes.u_hi, [1.0] * 3)
 
 
+def test_model_info_says_whether_the_kalman_correction_is_on() -> None:
+    """~/model_info is republished when its content changes: the correction is part of it."""
+    pred = Predictor(_model())
+    assert pred.info['kalman'] is False
+    pred.set_config(pred.config.replace(kalman=True))
+    assert pred.info['kalman'] is True
+
+
 def test_node_default_means_from_the_model_file_per_bound() -> None:
     values = {p.name: p.default for p in PARAMS}
     assert values['input_min'] == [0.0] and values['input_max'] == [0.0]
