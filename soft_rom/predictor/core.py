@@ -371,9 +371,10 @@ class Predictor(Stepping):
 
     def _envelope_vector(self, u: Array, stamp_ns: int) -> Array | None:
         """A finite input with values outside the envelope: clipped, or ``None`` (dropped)."""
-        env = self._env
-        assert env.u_lo is not None and env.u_hi is not None      # called only with one
-        bad = np.flatnonzero((u < env.u_lo) | (u > env.u_hi))
+        lo, hi = self._env.u_lo, self._env.u_hi
+        if lo is None or hi is None:                # no envelope: nothing to clip
+            return u
+        bad = np.flatnonzero((u < lo) | (u > hi))
         if self.config.input_envelope_action == 'drop':
             for i in bad.tolist():
                 self.channels.out_of_envelope[i] += 1
@@ -383,7 +384,7 @@ class Predictor(Stepping):
             return None
         for i in bad.tolist():
             self._clipped(i, float(u[i]), stamp_ns)
-        return np.clip(u, env.u_lo, env.u_hi)
+        return np.clip(u, lo, hi)
 
     def _clipped(self, index: int, value: float, stamp_ns: int) -> None:
         self.counters['input_clipped'] += 1
