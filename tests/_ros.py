@@ -11,7 +11,7 @@ not see each other.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 import os
 from pathlib import Path
 import random
@@ -167,6 +167,19 @@ class Client:
         self.executor.shutdown()
         self.node.destroy_node()
         rclpy.try_shutdown(context=self.context)
+
+
+def client_fixture(name: str = 'test_client') -> Any:
+    """A pytest fixture ``client``: a :class:`Client` named ``name`` for one test, closed after.
+
+    In a test module: ``client = client_fixture('my_client')``.
+    """
+    @pytest.fixture
+    def client() -> Iterator[Client]:
+        c = Client(name)
+        yield c
+        c.close()
+    return client
 
 
 def no_noise(log: str) -> list[str]:

@@ -8,9 +8,8 @@ from __future__ import annotations
 
 import signal
 
-from _ros import Client, no_noise, NodeProcess, require_rclpy
+from _ros import Client, client_fixture, no_noise, NodeProcess, require_rclpy
 import numpy as np
-import pytest
 
 require_rclpy()
 
@@ -19,12 +18,7 @@ from lifecycle_msgs.srv import ChangeState, GetState  # noqa: E402
 from sensor_msgs.msg import FluidPressure  # noqa: E402
 from test_ros_node import model, MS, Outputs, params, pressure, RELIABLE, T0_NS, TOPICS  # noqa: E402
 
-
-@pytest.fixture
-def client():
-    c = Client('lifecycle_client')
-    yield c
-    c.close()
+client = client_fixture('lifecycle_client')
 
 
 def _state(client: Client, fqn: str) -> int:

@@ -13,7 +13,7 @@ import signal
 import threading
 import time
 
-from _ros import Client, no_noise, NodeProcess, require_rclpy
+from _ros import Client, client_fixture, no_noise, NodeProcess, require_rclpy
 import numpy as np
 import pytest
 
@@ -113,11 +113,7 @@ class Outputs:
         return {}
 
 
-@pytest.fixture
-def client():
-    c = Client()
-    yield c
-    c.close()
+client = client_fixture()
 
 
 def _publishers(client: Client, topics=TOPICS, kind=FluidPressure) -> list:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import signal
 
-from _ros import Client, no_noise, NodeProcess, require_rclpy
+from _ros import Client, client_fixture, no_noise, NodeProcess, require_rclpy
 import pytest
 
 require_rclpy()
@@ -18,12 +18,7 @@ require_rclpy()
 from sensor_msgs.msg import FluidPressure  # noqa: E402
 from test_ros_node import model, MS, Outputs, params, pressure, RELIABLE, T0_NS, TOPICS  # noqa: E402
 
-
-@pytest.fixture
-def client():
-    c = Client('params_client')
-    yield c
-    c.close()
+client = client_fixture('params_client')
 
 
 # (-p arguments after the params file, the parameter the one error line must name)

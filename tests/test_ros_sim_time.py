@@ -12,9 +12,8 @@ import signal
 import subprocess
 import sys
 
-from _ros import Client, no_noise, NodeProcess, require_rclpy
+from _ros import client_fixture, no_noise, NodeProcess, require_rclpy
 import numpy as np
-import pytest
 import yaml
 
 require_rclpy()
@@ -33,11 +32,7 @@ T_SIM_NS = 12_000_000_000        # a simulator's clock: the recording starts at 
 MEASURED = '/t/centerline'
 
 
-@pytest.fixture
-def client():
-    c = Client('bag_player')
-    yield c
-    c.close()
+client = client_fixture('bag_player')
 
 
 def _to_rclpy(topic: str, msg) -> object:
