@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
 import scipy.linalg as sla
 
@@ -97,10 +97,17 @@ def _pose_array(ns: int, pts: np.ndarray) -> object:
 
 
 def write_messages(path: Path, messages: list[tuple[int, str, str, object]],
-                   storage: str = 'mcap') -> Path:
-    """Write ``(log_ns, topic, msgtype, msg)`` through rosbags, in log-time order."""
+                   storage: str = 'mcap', compression: str = 'none') -> Path:
+    """Write ``(log_ns, topic, msgtype, msg)`` through rosbags, in log-time order.
+
+    ``compression``: rosbag2's zstd compression mode (``'file'``: ``*.mcap.zstd`` /
+    ``*.db3.zstd``, as ``ros2 bag record --compression-mode file`` writes; ``'message'``;
+    ``'none'``).
+    """
     plugin = StoragePlugin.MCAP if storage == 'mcap' else StoragePlugin.SQLITE3
     writer = Writer(path, version=9, storage_plugin=plugin)
+    if compression != 'none':
+        writer.set_compression(CompressionMode[compression.upper()], CompressionFormat.ZSTD)
     writer.open()
     conns: dict[str, object] = {}
     try:
@@ -124,7 +131,8 @@ class Recording:
 
 
 def record(robot: Robot, path: Path, *, duration: float, seed: int, t0_ns: int = T0_NS,
-           storage: str = 'mcap', noise: float = 5e-4, lost: float = 0.01) -> Recording:
+           storage: str = 'mcap', noise: float = 5e-4, lost: float = 0.01,
+           compression: str = 'none') -> Recording:
     """Run the robot and record it as the rig does (module docstring)."""
     rng = np.random.default_rng(seed + 1000)
     U, Q = robot.run(duration, seed)
@@ -158,5 +166,5 @@ def record(robot: Robot, path: Path, *, duration: float, seed: int, t0_ns: int =
         stamp = t0_ns + int(rel_ns[c])
         msgs.append((stamp + int(rng.integers(1_000_000, 3_000_000)), '/soft_robot/centerline',
                      'geometry_msgs/msg/PoseArray', _pose_array(stamp, pts)))
-    write_messages(path, msgs, storage)
+    write_messages(path, msgs, storage, compression)
     return Recording(path, t0_ns + rel_ns, int(np.sum(~keep)), q_cam)

@@ -190,22 +190,68 @@ _FAST = {'sensor_msgs/msg/FluidPressure': _fast_fluid_pressure,
          'geometry_msgs/msg/PoseArray': _fast_pose_array}
 
 
+#: Storage of a bag file by the end of its name (``ros2 bag record --compression-mode file``
+#: writes ``*.mcap.zstd`` / ``*.db3.zstd``).
+_STORAGE_ENDINGS = (('.mcap', 'mcap'), ('.mcap.zstd', 'mcap'), ('.db3', 'sqlite3'),
+                    ('.db3.zstd', 'sqlite3'))
+#: rosbag2 storage identifiers (``metadata.yaml``) and the storage soft_rom reads for each.
+_STORAGE_IDS = {'mcap': 'mcap', 'sqlite3': 'sqlite3'}
+
+
+def _file_storage(f: Path) -> str | None:
+    """``'mcap'`` / ``'sqlite3'`` from the end of a bag file's name; ``None`` otherwise."""
+    return next((kind for end, kind in _STORAGE_ENDINGS if f.name.endswith(end)), None)
+
+
 def is_bag(path: str | Path) -> bool:
-    """True if ``path`` looks like a rosbag2 directory or a ``.mcap`` / ``.db3`` file."""
+    """True if ``path`` looks like a rosbag2 directory or a ``.mcap`` / ``.db3`` file.
+
+    A directory counts when it holds ``metadata.yaml`` or a bag file (also the
+    ``.mcap.zstd`` / ``.db3.zstd`` files of a file-compressed recording).
+    """
     p = Path(path)
     if p.is_dir():
-        return (p / 'metadata.yaml').exists() or any(p.glob('*.mcap')) or any(p.glob('*.db3'))
-    return p.suffix in ('.mcap', '.db3') and p.exists()
+        return (p / 'metadata.yaml').exists() or any(
+            _file_storage(f) is not None for f in p.iterdir())
+    return _file_storage(p) is not None and p.exists()
+
+
+def _metadata_storage(p: Path) -> str | None:
+    """The storage named by a bag directory's ``metadata.yaml``; ``None`` if it names none."""
+    import yaml
+    try:
+        with open(p / 'metadata.yaml', 'rb') as fh:
+            meta = yaml.safe_load(fh.read(1 << 20))
+        ident = meta['rosbag2_bagfile_information']['storage_identifier']
+    except (OSError, yaml.YAMLError, TypeError, KeyError, ValueError):
+        return None          # unreadable here: the reader reports it when it opens the bag
+    if not isinstance(ident, str) or not ident:
+        return None
+    if ident not in _STORAGE_IDS:
+        raise BagError(f'{p} is a rosbag2 bag of storage {ident!r}; soft_rom reads mcap and '
+                       'sqlite3 bags (convert it with `ros2 bag convert`).')
+    return _STORAGE_IDS[ident]
 
 
 def bag_storage(path: str | Path) -> str:
-    """``'mcap'`` or ``'sqlite3'`` from the files of the bag at ``path``."""
+    """``'mcap'`` or ``'sqlite3'``: from ``metadata.yaml``, else from the bag's files.
+
+    A file-compressed bag (``*.mcap.zstd``, ``*.db3.zstd``) is read through its directory
+    (rosbags decompresses it); given as a single file it is refused with that advice.
+    """
     p = Path(path)
+    if p.is_file() and p.name.endswith('.zstd') and _file_storage(p) is not None:
+        raise BagError(f'{p} is one file of a file-compressed bag: give its folder (the one '
+                       'with metadata.yaml), or decompress it (zstd -d).')
+    if p.is_dir() and (p / 'metadata.yaml').is_file():
+        kind = _metadata_storage(p)
+        if kind is not None:
+            return kind
     files = [p] if p.is_file() else list(p.iterdir()) if p.is_dir() else []
-    if any(f.suffix == '.mcap' for f in files):
-        return 'mcap'
-    if any(f.suffix == '.db3' for f in files):
-        return 'sqlite3'
+    kinds = {_file_storage(f) for f in files} - {None}
+    for kind in ('mcap', 'sqlite3'):
+        if kind in kinds:
+            return kind
     raise BagError(f'{p} holds no .mcap or .db3 file: not a ROS 2 bag.')
 
 

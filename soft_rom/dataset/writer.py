@@ -444,8 +444,8 @@ def adopt_legacy(path: Path) -> None:
     """
     if not path.is_dir() or path.is_symlink() or outputs.is_marked(path):
         return
-    if (path / 'metadata.yaml').exists() or any(
-            f.suffix in ('.mcap', '.db3') for f in path.iterdir()):
+    from soft_rom.bags.reader import is_bag
+    if is_bag(path):
         return
     try:
         attrs = json.loads((path / '.zattrs').read_text())
