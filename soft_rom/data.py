@@ -42,8 +42,16 @@ def as_signal(name: str, values: ArrayLike, *, rows: int | None = None,
     copy : bool
         Always return a copy.
     """
-    arr = np.array(values, dtype=np.float64, copy=True) if copy else np.asarray(
-        values, dtype=np.float64)
+    try:
+        if np.iscomplexobj(values):
+            raise DimensionError(f'{name} must be real; got complex values (casting them would '
+                                 'drop the imaginary parts).')
+        arr = np.array(values, dtype=np.float64, copy=True) if copy else np.asarray(
+            values, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        if isinstance(err, DimensionError):
+            raise
+        raise DimensionError(f'{name} must be an array of numbers; {err}.') from err
     if arr.ndim == 1:
         arr = arr[np.newaxis, :]
     if arr.ndim != 2:

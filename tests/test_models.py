@@ -92,6 +92,21 @@ def test_step_and_output_name_a_wrong_state_or_input() -> None:
                                    model.step(X[:, 2], u), rtol=0, atol=1e-12)
 
 
+def test_inputs_that_are_not_real_numbers_are_named() -> None:
+    """Complex, ragged or text inputs get a DimensionError naming the signal, not a cast."""
+    model = _second_order()
+    m = model.n_inputs
+    with pytest.raises(DimensionError, match='U must be real'):
+        model.simulate(np.ones((m, 5)) * (1 + 1j))
+    with pytest.raises(DimensionError, match='U must be an array of numbers'):
+        model.simulate([[0.0, 1.0], [0.0]] + [[0.0, 1.0]] * (m - 2))
+    with pytest.raises(DimensionError, match='U must be an array of numbers'):
+        model.simulate([['a', 'b']] * m)
+    # a list of real numbers and integer arrays are still accepted as they are
+    Y = model.simulate(np.ones((m, 5), dtype=int).tolist())
+    np.testing.assert_allclose(Y, model.simulate(np.ones((m, 5))), rtol=0, atol=0)
+
+
 def test_discrete_multiple_of_dt() -> None:
     model = _discrete()
     u = np.array([0.3, -1.0])
