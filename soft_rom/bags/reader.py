@@ -285,10 +285,34 @@ class BagReader:
         self._reader: Reader | None = None
         self._ts = typestore()
 
+    def _storage_path(self) -> Path:
+        """What rosbags opens: the bag, or the one storage file of a folder without metadata.
+
+        ``ros2 bag record`` writes ``metadata.yaml`` when it stops, so a recording whose
+        recorder was killed (or a copy of only its data file) is a folder holding the storage
+        file alone; with one uncompressed file that file is the bag.
+        """
+        p = self.path
+        if not p.is_dir() or (p / 'metadata.yaml').exists():
+            return p
+        files = sorted(f.name for f in p.iterdir() if _file_storage(f) is not None)
+        plain = [f for f in files if not f.endswith('.zstd')]
+        if len(files) == 1 and plain:
+            return p / plain[0]
+        if len(files) == 1:
+            raise BagError(f'bag {p} has no metadata.yaml and its one file {files[0]} is '
+                           'compressed: decompress it (zstd -d) and give the file, or recreate '
+                           f'the metadata with `ros2 bag reindex {p}`.')
+        raise BagError(f'bag {p} has no metadata.yaml and {len(files)} storage files '
+                       f'({", ".join(files[:4])}{", ..." if len(files) > 4 else ""}), so '
+                       'their order and compression are unknown (was the recorder killed?): '
+                       f'recreate it with `ros2 bag reindex {p}`.')
+
     def open(self) -> BagReader:
         """Open the bag (reads its metadata and index)."""
+        target = self._storage_path()
         try:
-            reader = Reader(self.path)
+            reader = Reader(target)
             reader.open()
         except (ReaderError, OSError, ValueError, KeyError, sqlite3.DatabaseError) as err:
             # rosbags 0.11.5 and older let sqlite3's DatabaseError through unwrapped.
@@ -324,10 +348,32 @@ class BagReader:
             raise BagError('BagReader is not open: use it as a context manager.')
         return self._reader
 
+    def _file_counts(self) -> dict[str, int] | None:
+        """Messages per topic counted in the storage files of a bag folder.
+
+        A folder's counts otherwise come from ``metadata.yaml``, which can disagree with the
+        files (a hand-edited bag; rosbag2's rewrite with message compression has written
+        wrong counts); the files' own indexes are what is read. ``None`` for a
+        single file (its counts are the file's) or where the storages are not reachable.
+        """
+        parts = getattr(getattr(self.reader, 'storage', None), 'storages', None)
+        if not isinstance(parts, list):
+            return None
+        counts: dict[str, int] = {}
+        try:
+            for part in parts:
+                for conn in part.connections:
+                    counts[conn.topic] = counts.get(conn.topic, 0) + int(conn.msgcount)
+        except (AttributeError, TypeError, ValueError):
+            return None
+        return counts
+
     @property
     def topics(self) -> dict[str, tuple[str, int]]:
-        """``{topic: (msgtype, message count)}``."""
-        return {name: (info.msgtype or 'mixed', int(info.msgcount))
+        """``{topic: (msgtype, message count)}``; counts from the storage files."""
+        counts = self._file_counts()
+        return {name: (info.msgtype or 'mixed',
+                       int(info.msgcount if counts is None else counts.get(name, 0)))
                 for name, info in self.reader.topics.items()}
 
     @property
@@ -343,14 +389,17 @@ class BagReader:
 
     @property
     def message_count(self) -> int:
-        """Total number of messages."""
-        return int(self.reader.message_count)
+        """Total number of messages (counted in the storage files)."""
+        counts = self._file_counts()
+        return int(self.reader.message_count) if counts is None else sum(counts.values())
 
     def raw(self, topics: Sequence[str]) -> Iterator[tuple[str, str, int, bytes]]:
         """Yield ``(topic, msgtype, log_ns, cdr bytes)`` of ``topics`` in log-time order."""
         conns = [c for c in self.reader.connections if c.topic in set(topics)]
         if not conns:
             return
+        for conn in conns:
+            self._check_definition(conn.topic, conn.msgtype, conn.digest)
         it = self.reader.messages(connections=conns)
         while True:
             try:
@@ -361,6 +410,22 @@ class BagReader:
                 raise BagError(f'bag {self.path} is truncated or corrupt while reading '
                                f'{sorted(topics)}: {type(err).__name__}: {err}') from err
             yield conn.topic, conn.msgtype, int(log_ns), data
+
+    def _check_definition(self, topic: str, msgtype: str, digest: str | None) -> None:
+        """Refuse a topic recorded with another definition of its type than the standard one.
+
+        Bags since Iron record each type's hash (``type_description_hash``, RIHS01); a
+        message of the same name but another definition would be decoded field by field
+        with the wrong layout, so it is refused here instead of being misread.
+        """
+        if not digest or not str(digest).startswith('RIHS01_') or msgtype not in SUPPORTED_TYPES:
+            return
+        want = self._ts.hash_rihs01(msgtype)
+        if digest != want:
+            raise BagError(f'{topic} in bag {self.path} was recorded with another definition '
+                           f'of {msgtype} than the standard ROS 2 one (type hash '
+                           f'{digest[:20]}..., expected {want[:20]}...); soft_rom decodes the '
+                           'standard definitions only.')
 
     def messages(self, topics: Sequence[str]) -> Iterator[BagMessage]:
         """Yield decoded :class:`BagMessage` of ``topics`` in log-time order."""
@@ -376,7 +441,8 @@ class BagReader:
             except Exception as err:  # noqa: BLE001 - corrupt CDR raises many kinds
                 raise BagError(f'{topic} at log time {log_ns * 1e-9:.9f} s: cannot decode '
                                f'{msgtype} ({type(err).__name__}: {err}); the message is '
-                               'corrupt.') from err
+                               'corrupt or was recorded with another definition of its '
+                               'type.') from err
             stamp, value, layout = decode(msgtype, msg)
             yield BagMessage(topic, msgtype, log_ns, stamp, value, layout)
 

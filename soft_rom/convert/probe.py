@@ -185,6 +185,11 @@ def probe_bag(path: Path, mapping: BagMapping, *, include_state: bool | None,
         if not any(p.first_ns is not None for p in plan.topics.values()):
             raise BagError(f'bag {path} is empty (no messages on the mapped topics).')
         raise BagError(f'output topic {out.topic} has no messages in bag {path}.')
+    for tp in plan.inputs:
+        if tp.first_ns is None:
+            raise BagError(f'input topic {tp.topic} has no messages in bag {path} (it is '
+                           f'listed with {tp.count} messages); record it again, or give the '
+                           'input topics in a mapping file (inputs.topics, --mapping).')
     return plan
 
 
@@ -194,6 +199,7 @@ def _probe(bag: BagReader, roles: list[tuple[str, str, str, InputSource | None]]
     seen: dict[str, list[BagMessage]] = {t: [] for t, *_ in roles}
     quota = {t: max(1, min(PROBE_STATE_MESSAGES if role == 'state' else PROBE_MESSAGES,
                            topics[t][1] or PROBE_MESSAGES)) for t, role, *_ in roles}
+    # the counts are the storage files' (BagReader.topics), not metadata.yaml's
     short = set(seen)
     for msg in bag.messages(list(seen)):
         got = seen[msg.topic]
