@@ -255,6 +255,23 @@ def bag_storage(path: str | Path) -> str:
     raise BagError(f'{p} holds no .mcap or .db3 file: not a ROS 2 bag.')
 
 
+def _open_advice(why: str, storage: str) -> str:
+    """What to do about a bag rosbags cannot open, from its reason."""
+    low = why.lower()
+    if 'not supported' in low or 'profile' in low:
+        return ('soft_rom reads bags through the rosbags package, which does not support this '
+                'one: update rosbags (pip install -U rosbags), or rewrite the bag with '
+                '`ros2 bag convert`.')
+    if 'does not exist' in low or 'no such file' in low or 'missing' in low:
+        return ('A file the bag lists is missing: copy the whole bag folder, or recreate its '
+                'metadata from the files that are there with `ros2 bag reindex`.')
+    if storage == 'mcap':
+        return ('The bag may be truncated or corrupt (was the recorder killed?); try '
+                '`mcap recover` or `ros2 bag reindex` on it.')
+    return ('The bag may be truncated or corrupt (was the recorder killed?); try '
+            '`ros2 bag reindex` on it.')
+
+
 class BagReader:
     """Open a ROS 2 bag for reading; use as a context manager.
 
@@ -318,8 +335,7 @@ class BagReader:
             # rosbags 0.11.5 and older let sqlite3's DatabaseError through unwrapped.
             why = str(err).rstrip('.')
             raise BagError(f'cannot open bag {self.path} ({self.storage}): {why}. '
-                           'The bag may be truncated or corrupt (was the recorder killed?); '
-                           'try `ros2 bag reindex` on it.') from err
+                           f'{_open_advice(why, self.storage)}') from err
         except Exception as err:  # noqa: BLE001 - storage backends raise many kinds
             raise BagError(f'cannot open bag {self.path} ({self.storage}): '
                            f'{type(err).__name__}: {err}') from err

@@ -136,6 +136,26 @@ def test_split_recording_with_a_file_missing_is_refused_naming_it(rig, tmp_path,
     assert not out.exists()
 
 
+def test_split_file_missing_is_not_called_corrupt(rig, tmp_path, capsys):
+    bags, _ = rig
+    bag = _split(bags['sqlite3'], tmp_path / 'run', 'sqlite3')
+    (bag / 'run_2.db3').unlink()
+    assert main(['convert', str(bag), '-o', str(tmp_path / 'run.zarr')]) == 2
+    err = _one_line_error(capsys, 'run_2.db3', 'copy the whole bag folder')
+    assert 'corrupt' not in err
+
+
+def test_metadata_version_rosbags_does_not_know_says_so(rig, tmp_path, capsys):
+    bags, _ = rig
+    bag = _split(bags['mcap'], tmp_path / 'run', 'mcap')
+    meta = _meta(bag)
+    meta['rosbag2_bagfile_information']['version'] = 99
+    _save_meta(bag, meta)
+    assert main(['convert', str(bag), '-o', str(tmp_path / 'run.zarr')]) == 2
+    err = _one_line_error(capsys, 'update rosbags')
+    assert 'corrupt' not in err
+
+
 @pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
 def test_folder_without_metadata_is_read_from_its_one_file(rig, tmp_path, storage, capsys):
     bags, sets = rig
