@@ -40,7 +40,7 @@ setup(
         'scipy>=1.10',
         'cvxpy>=1.4',
         'clarabel>=0.6',
-        'rosbags>=0.10.11',
+        'rosbags>=0.11',
         'zarr>=2.16',
         'PyYAML>=6.0',
         'matplotlib>=3.6',
