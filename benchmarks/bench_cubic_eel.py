@@ -39,6 +39,14 @@ Rows of the table, for each ``r``:
   the training episodes cut into windows of ``--window`` steps, each simulated from the
   true (projected) state, so the criterion is the prediction error over the window
   (between the equation error, one step, and the whole-episode simulation error);
+* ``--modes M`` (with ``oe``, ``oe-joint``, ``capacity``, ``capacity-joint``): ``G, H``
+  restricted to the monomials of ``M`` coordinates only (the first ``M``, or with
+  ``--modes-by amplitude`` the ``M`` of largest RMS output contribution ``|E_i| q_i`` on the
+  training episodes), ``--mode-parts G`` / ``H`` keeping only one of the two; ``oe-joint``
+  then moves ``K, C, B`` too (ridge ``--joint-lambda``). ``M = 2``: 4 cubic + 5 quartic
+  coefficients;
+* ``oe-lowrank``: ``G = Σ a_j c_j⊗³``, ``H = Σ b_j c_j⊗⁴`` over ``--rank`` learned directions
+  ``c_j`` (``K, C, B`` kept; ridge ``--oe-lambda``);
 * ``oe-lin``: the same output-error fit of the *linear* operators ``K, C, B`` (``G = H = 0``),
   to separate what the fitting criterion gives from what the nonlinearity gives;
 * ``capacity``, ``capacity-joint``, ``capacity-structured``, ``capacity-lin``
@@ -51,7 +59,8 @@ Run::
 
     .venv/bin/python benchmarks/bench_cubic_eel.py [--r 4 6] [--capacity] [--parity]
         [--variants library correction oe oe-joint oe-lin ms-oe ms-structured]
-        [--window 250]
+        [--window 250] [--modes M [--modes-by amplitude] [--mode-parts G|H]]
+        [--variants oe-lowrank --rank 1]
 
 Output of one run (two busy cores, 2026-12-02) is quoted in docs/methods_variants.md.
 """
@@ -77,7 +86,7 @@ from soft_rom.models_cubic import CubicSecondOrderModel, symmetric_entries
 
 TRAIN, TESTS = (1, 2), (3, 4, 5, 6)
 VARIANTS = ('library', 'correction', 'oe', 'oe-lin', 'oe-joint', 'oe-structured', 'ms-oe',
-            'ms-structured', 'capacity',
+            'ms-structured', 'oe-lowrank', 'capacity',
             'capacity-joint', 'capacity-lin', 'capacity-structured')
 
 
@@ -170,6 +179,32 @@ def parity_mask(lin: LOpInf, names_z: np.ndarray) -> tuple[np.ndarray, np.ndarra
     keep = [np.array([sum(odd[list(a)]) % 2 == 0 for a in lc.symmetric_index(r, d)])
             for d in (3, 4)]
     return keep[0], keep[1]
+
+
+def mode_mask(r: int, modes: tuple[int, ...], parts: str = 'GH'
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Entries of ``G`` and ``H`` on the monomials of the coordinates ``modes`` only.
+
+    ``V`` is then nonlinear in those (0-based) coordinates alone; ``parts`` ``'G'`` or ``'H'``
+    keeps one of the two tensors.
+    """
+    ms = set(modes)
+    keep = [np.array([set(a) <= ms and name in parts for a in lc.symmetric_index(r, d)],
+                     dtype=bool) for name, d in (('G', 3), ('H', 4))]
+    return keep[0], keep[1]
+
+
+def amplitude_modes(data: Data, m: int, lin: LOpInf | None = None) -> tuple[int, ...]:
+    """The ``m`` coordinates of largest RMS amplitude on the training episodes.
+
+    The amplitude of ``q_i``, or of its output contribution ``E[:, i] q_i`` when ``lin`` is
+    given.
+    """
+    Q = np.hstack([data.Q[i] for i in TRAIN])
+    amp = np.sqrt(np.mean(Q ** 2, axis=1))
+    if lin is not None:
+        amp = amp * np.linalg.norm(lin.model_.E, axis=0)
+    return tuple(sorted(int(i) for i in np.argsort(-amp)[:m]))
 
 
 # ------------------------------------------------------------------------------ variants
@@ -284,9 +319,15 @@ class OutputError:
             free = np.arange(o['G'], o['C'])
             if keep is not None:
                 free = free[np.concatenate(keep)]
+        elif which == 'all-masked':             # K, C, B and the entries of G, H in keep
+            assert keep is not None
+            free = np.r_[np.arange(o['K'], o['G']), np.arange(o['G'], o['C'])[
+                np.concatenate(keep)], np.arange(o['C'], self.P)]
         else:                                   # the linear operators
             free = np.r_[np.arange(o['K'], o['G']), np.arange(o['C'], self.P)]
         self.free = free
+        rows = (np.arange(r)[:, None] * self.P + free[None, :]).ravel()
+        self.Lfree = self.Lst[rows]             # the rows of Lst of the free unknowns only
         self.w = np.zeros(self.P)
         self.w[o['G']:o['C']] = np.concatenate([lay.tensor_weights('G'),
                                                 lay.tensor_weights('H')])
@@ -342,7 +383,7 @@ class OutputError:
             Kt = (K[None] + np.einsum('ijk,kb->bij', G, q)
                   + 0.5 * np.einsum('ijkl,kb,lb->bij', H, q, q))
             Z = np.vstack([q, q[a2[0]] * q[a2[1]], q[a3[0]] * q[a3[1]] * q[a3[2]], v, u])
-            Mz = (self.Lst @ Z).reshape(r, self.P, nb)[:, self.free].transpose(2, 0, 1)
+            Mz = (self.Lfree @ Z).reshape(r, nf, nb).transpose(2, 0, 1)
             return np.concatenate([S[:, r:], -Kt @ S[:, :r] - C @ S[:, r:] - Mz], axis=1)
 
         for j in range(k):
@@ -409,7 +450,7 @@ def oe(data: Data, lin: LOpInf, which: str, lam: float, iters: int,
     lam_k, lam_c = np.linalg.eigvalsh(K)[0], np.linalg.eigvalsh(C)[0]
     t4 = lc.quartic_lower_bound(H, target=0.0)[0] if which != 'lin' else 0.0
     how += f'; min eig K {lam_k:.3g}, C {lam_c:.3g}; quartic bound {t4:.3g}'
-    if which == 'all':
+    if which in ('all', 'all-masked'):
         how += f'; ridge {lam:g} on G, H and {lam_lin:g} on the change of K, C, B'
         return cubic_model(lin, G, H, K, C, Bs), how
     if which == 'nl':
@@ -420,6 +461,91 @@ def oe(data: Data, lin: LOpInf, which: str, lam: float, iters: int,
         how += ' (K or C not SPD)'
     return SecondOrderModel(K, C, Bs * lin.state_scale_ / lin.input_scale_[None, :], mod.E,
                             dt=mod.dt, y_ref=mod.y_ref), how
+
+
+class LowRankOutputError(OutputError):
+    """:class:`OutputError` of ``G, H`` of rank ``k`` in learned directions ``c_j``.
+
+    ``G = Σ a_j c_j⊗c_j⊗c_j``, ``H = Σ b_j c_j⊗c_j⊗c_j⊗c_j`` (``K, C, B`` of the linear
+    fit kept), so the nonlinear potential depends on ``k`` directions only (``k (r + 2)``
+    unknowns). ``parts`` ``'G'`` / ``'H'`` keeps one of the two. Starts from ``c_j = e_j``,
+    ``a = b = 0``.
+    """
+
+    def __init__(self, data: Data, lin: LOpInf, lam: float, eps: tuple[int, ...],
+                 rank: int = 1, parts: str = 'GH') -> None:
+        r = data.r
+        keep = (np.ones(len(lc.symmetric_index(r, 3)), bool),
+                np.ones(len(lc.symmetric_index(r, 4)), bool))
+        super().__init__(data, lin, 'nl', lam, eps, keep)
+        self.rank, self.parts = rank, parts
+        self.i3 = np.array(lc.symmetric_index(r, 3))
+        self.i4 = np.array(lc.symmetric_index(r, 4))
+        self.phi = np.concatenate([np.eye(r)[:rank].ravel(), np.zeros(2 * rank)])
+
+    def theta_of(self, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r, k, o = self.r, self.rank, self.lay.t_off
+        Cm = phi[:k * r].reshape(k, r)
+        a, b = phi[k * r:k * r + k], phi[k * r + k:]
+        if 'G' not in self.parts:
+            a = 0 * a
+        if 'H' not in self.parts:
+            b = 0 * b
+        nG, nH = len(self.i3), len(self.i4)
+        th = self.theta.copy()
+        D = np.zeros((nG + nH, len(phi)))        # d(G, H entries) / d phi
+        g = np.zeros(nG)
+        h = np.zeros(nH)
+        for j in range(k):
+            c = Cm[j]
+            P3 = c[self.i3].prod(axis=1)
+            P4 = c[self.i4].prod(axis=1)
+            g += a[j] * P3
+            h += b[j] * P4
+            for idx, amp, rows, deg in ((self.i3, a[j], slice(0, nG), 3),
+                                        (self.i4, b[j], slice(nG, nG + nH), 4)):
+                dP = np.zeros((len(idx), r))
+                for pos in range(deg):
+                    others = np.delete(idx, pos, axis=1)
+                    np.add.at(dP, (np.arange(len(idx)), idx[:, pos]),
+                              c[others].prod(axis=1))
+                D[rows, j * r:(j + 1) * r] = amp * dP
+            if 'G' in self.parts:
+                D[:nG, k * r + j] = P3
+            if 'H' in self.parts:
+                D[nG:, k * r + k + j] = P4
+        th[o['G']:o['H']] = g
+        th[o['H']:o['C']] = h
+        return th, D
+
+    def fit(self, iters: int) -> tuple[np.ndarray, str]:
+        def linearize(phi: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+            th, D = self.theta_of(phi)
+            J, JTJ, g = self.cost(th)
+            if JTJ is None:
+                return J, None, None
+            return J, D.T @ JTJ @ D, D.T @ g
+
+        phi, how = levenberg_marquardt(
+            self.phi.copy(), linearize,
+            lambda phi: self.cost(self.theta_of(phi)[0], sens=False)[0],
+            lambda phi, dx: phi + dx, iters)
+        self.phi_fit = phi
+        return self.theta_of(phi)[0], how
+
+
+def oe_lowrank(data: Data, lin: LOpInf, lam: float, iters: int, rank: int = 1,
+               parts: str = 'GH', eps: tuple[int, ...] = TRAIN
+               ) -> tuple[CubicSecondOrderModel, str]:
+    fit = LowRankOutputError(data, lin, lam, eps, rank, parts)
+    th, how = fit.fit(iters)
+    K, C, G, H, Bs = fit.lay.unpack(th)
+    t4 = lc.quartic_lower_bound(H, target=0.0)[0]
+    Cm = fit.phi_fit[:rank * data.r].reshape(rank, data.r)
+    how += (f'; rank-{rank} {parts}, directions '
+            + '; '.join(np.array2string(c / np.linalg.norm(c), precision=2) for c in Cm)
+            + f'; quartic bound {t4:.3g}; ridge {lam:g}')
+    return cubic_model(lin, G, H), how
 
 
 def _dgram(L: np.ndarray) -> np.ndarray:
@@ -545,6 +671,13 @@ def main() -> None:
     ap.add_argument('--window', type=int, default=250,
                     help='ms-oe, ms-structured: steps per multiple-shooting window')
     ap.add_argument('--capacity', action='store_true', help='add the capacity row')
+    ap.add_argument('--modes', type=int, default=0,
+                    help='G, H on the monomials of this many coordinates only (0: all)')
+    ap.add_argument('--modes-by', choices=('index', 'amplitude'), default='index',
+                    help='--modes: the first coordinates, or those of largest output amplitude')
+    ap.add_argument('--mode-parts', choices=('GH', 'G', 'H'), default='GH',
+                    help='--modes: keep G and H, or only one of them')
+    ap.add_argument('--rank', type=int, default=1, help='oe-lowrank: number of directions')
     args = ap.parse_args()
     if not args.data.exists():
         args.data.parent.mkdir(parents=True, exist_ok=True)
@@ -565,6 +698,16 @@ def main() -> None:
             ('floor', floor, '', 'E q with the true reduced coordinates')]
         is_z = np.array([i >= E.shape[0] // 2 for i in range(E.shape[0])])  # x1..x20, z1..z20
         keep = parity_mask(lin, is_z) if args.parity else None
+        if args.modes:
+            modes = (tuple(range(args.modes)) if args.modes_by == 'index'
+                     else amplitude_modes(data, args.modes, lin))
+            keep = mode_mask(r, modes, args.mode_parts)
+            if args.parity:
+                par = parity_mask(lin, is_z)
+                keep = (keep[0] & par[0], keep[1] & par[1])
+            print(f'r = {r}: G, H ({args.mode_parts}) on coordinates {modes}: '
+                  f'{int(keep[0].sum())} cubic, {int(keep[1].sum())} quartic entries')
+        joint = 'all' if keep is None else 'all-masked'
         for v in variants:
             t0 = time.perf_counter()
             with warnings.catch_warnings():
@@ -582,8 +725,11 @@ def main() -> None:
                 elif v == 'oe-lin':
                     model, how = oe(data, lin, 'lin', 0.0, args.oe_iters)
                 elif v == 'oe-joint':
-                    model, how = oe(data, lin, 'all', args.joint_lambda, args.oe_iters,
-                                    lam_lin=args.joint_lambda)
+                    model, how = oe(data, lin, joint, args.joint_lambda, args.oe_iters,
+                                    keep=keep, lam_lin=args.joint_lambda)
+                elif v == 'oe-lowrank':
+                    model, how = oe_lowrank(data, lin, args.oe_lambda, args.oe_iters,
+                                            rank=args.rank)
                 elif v == 'oe-structured':
                     model, how = oe_structured(data, lin, args.joint_lambda, args.oe_iters,
                                                lam_lin=args.joint_lambda)
@@ -601,8 +747,9 @@ def main() -> None:
                     model, how = oe(data, lin, 'nl', args.oe_lambda, args.capacity_iters,
                                     eps=TRAIN + TESTS, keep=keep)
                 elif v == 'capacity-joint':
-                    model, how = oe(data, lin, 'all', args.oe_lambda, args.capacity_iters,
-                                    eps=TRAIN + TESTS)
+                    model, how = oe(data, lin, joint, args.oe_lambda, args.capacity_iters,
+                                    eps=TRAIN + TESTS, keep=keep,
+                                    lam_lin=args.oe_lambda if keep is not None else 0.0)
                 else:
                     model, how = oe(data, lin, 'lin', 0.0, args.capacity_iters,
                                     eps=TRAIN + TESTS)
