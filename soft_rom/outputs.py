@@ -17,6 +17,11 @@ and moved into place at the end:
   together and moved in only when all were written; if moving one fails, the files
   already moved are put back.
 
+The checks run before the output is built; what appears at the destination meanwhile
+(another run writing the same path) is checked again when the output is moved in: without
+``--overwrite`` it is never replaced (``renameat2(RENAME_NOREPLACE)`` / a hard link, atomic
+where supported), with it only if soft_rom wrote it.
+
 Staging folders left by a killed run are removed by the next run in the same folder
 (:func:`clean_stale`); they are hidden and never read as outputs.
 """
@@ -28,6 +33,7 @@ import contextlib
 import ctypes
 import ctypes.util
 import errno
+import functools
 import json
 import os
 from pathlib import Path
@@ -203,8 +209,11 @@ def _stage_path(dest: Path) -> Path:
 _libc: list[ctypes.CDLL | None] = []
 
 
-def _exchange(a: Path, b: Path) -> bool:
-    """Atomically exchange two paths (Linux ``renameat2``); False where unsupported."""
+def _renameat2(a: Path, b: Path, flags: int) -> int:
+    """``renameat2(a, b, flags)`` (Linux): 0 on success, else the errno.
+
+    -1 where the C library has no ``renameat2``.
+    """
     if not _libc:
         name = ctypes.util.find_library('c')
         try:
@@ -213,16 +222,51 @@ def _exchange(a: Path, b: Path) -> bool:
             _libc.append(None)
     libc = _libc[0]
     if libc is None or not hasattr(libc, 'renameat2'):
+        return -1
+    at_fdcwd = -100
+    rc = libc.renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), flags)
+    return 0 if rc == 0 else ctypes.get_errno()
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Atomically exchange two paths (Linux ``renameat2``); False where unsupported."""
+    return _renameat2(a, b, 2) == 0          # RENAME_EXCHANGE
+
+
+def _move_new(stage: Path, dest: Path) -> bool:
+    """Move ``stage`` to ``dest`` only if ``dest`` does not exist; False if it does.
+
+    One ``renameat2(RENAME_NOREPLACE)`` where the kernel and file system support it, so an
+    output that appeared after the checks (another run writing the same path) is never
+    replaced; elsewhere a check followed by a rename.
+    """
+    rc = _renameat2(stage, dest, 1)          # RENAME_NOREPLACE
+    if rc == 0:
+        return True
+    if rc == errno.EEXIST:
         return False
-    at_fdcwd, rename_exchange = -100, 2
-    rc = libc.renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange)
-    return bool(rc == 0)
+    if dest.exists() or dest.is_symlink():
+        return False
+    os.rename(stage, dest)
+    return True
 
 
-def _swap_in(stage: Path, dest: Path) -> None:
-    if not dest.exists():
-        os.rename(stage, dest)
+def _swap_in(stage: Path, dest: Path, *, overwrite: bool, recheck: Callable[[], None],
+             what: str) -> None:
+    """Put the staged output at ``dest``.
+
+    The checks ran before the output was built, maybe minutes ago: something may have
+    appeared at ``dest`` since (another soft_rom run writing the same path, a user's
+    folder). Without ``overwrite`` it is never replaced; with it, ``recheck`` (the same
+    checks) runs again on what is there now, just before the exchange.
+    """
+    if _move_new(stage, dest):
         return
+    if not overwrite:
+        raise OutputExistsError(f'{dest} appeared while the {what} was being written (another '
+                                'soft-rom run?); nothing was replaced: choose another output '
+                                'or pass --overwrite')
+    recheck()
     if _exchange(stage, dest):
         shutil.rmtree(stage, ignore_errors=True)  # stage now holds the old output
         return
@@ -261,7 +305,8 @@ def atomic_dir(dest: str | os.PathLike[str], *, overwrite: bool, kind: str, what
     try:
         yield stage
         mark(stage, kind)
-        _swap_in(stage, dest)
+        _swap_in(stage, dest, overwrite=overwrite, what=what, recheck=functools.partial(
+            check_output, dest, overwrite=True, what=what, kinds=kinds or (kind,)))
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
@@ -283,7 +328,8 @@ def atomic_new_dir(dest: str | os.PathLike[str], *, overwrite: bool, kind: str, 
         if not stage.is_dir():
             raise OutputExistsError(f'internal: the {what} was not written')
         mark(stage, kind)
-        _swap_in(stage, dest)
+        _swap_in(stage, dest, overwrite=overwrite, what=what, recheck=functools.partial(
+            check_output, dest, overwrite=True, what=what, kinds=kinds or (kind,)))
     finally:
         shutil.rmtree(parent, ignore_errors=True)
 
@@ -318,9 +364,17 @@ def atomic_files(dests: Sequence[str | os.PathLike[str]], *, overwrite: bool, wh
             raise OutputExistsError(f'internal: {what}s not written: {", ".join(missing)}')
         for p, s in mapping.items():
             backup = None
-            if p.exists():
-                backup = s.with_name(s.name + '.previous')
-                os.replace(p, backup)
+            if _link_new(s, p):
+                moved.append((p, None))
+                continue
+            # p appeared since the checks (another run?) or exists: the checks again, now
+            if not overwrite:
+                raise OutputExistsError(f'{p} appeared while the {what} was being written '
+                                        '(another soft-rom run?); nothing was replaced: '
+                                        'choose another output or pass --overwrite')
+            check_output(p, overwrite=True, what=what, is_ours=is_ours)
+            backup = s.with_name(s.name + '.previous')
+            os.replace(p, backup)
             moved.append((p, backup))
             os.replace(s, p)
     except BaseException:
@@ -334,6 +388,25 @@ def atomic_files(dests: Sequence[str | os.PathLike[str]], *, overwrite: bool, wh
     finally:
         for stage in stages.values():
             shutil.rmtree(stage, ignore_errors=True)
+
+
+def _link_new(staged: Path, dest: Path) -> bool:
+    """Put the staged file at ``dest`` only if nothing is there; False if something is.
+
+    A hard link is created atomically or not at all (``dest`` existing), then the staged
+    name is removed; where links are not supported, a check followed by a rename.
+    """
+    try:
+        os.link(staged, dest)
+    except FileExistsError:
+        return False
+    except OSError:
+        if dest.exists() or dest.is_symlink():
+            return False
+        os.replace(staged, dest)
+        return True
+    staged.unlink()
+    return True
 
 
 def check_free_space(folder: str | os.PathLike[str], nbytes: float, what: str) -> None:

@@ -157,3 +157,73 @@ def test_atomic_new_dir_for_writers_that_create_their_folder(tmp_path: Path) -> 
         _make(stage, 'two')
     assert (dest / 'data.txt').read_text() == 'two'
     assert sorted(p.name for p in tmp_path.iterdir()) == ['bag']
+
+
+@pytest.mark.parametrize('no_renameat2', [False, True])
+def test_output_that_appears_while_writing_is_never_replaced(tmp_path: Path, monkeypatch,
+                                                             no_renameat2) -> None:
+    """The checks run before a long write; what appears at the path meanwhile is re-checked.
+
+    Two runs writing the same new path (a user starting `convert` twice): the later one to
+    finish must not replace the earlier one's output without --overwrite, and no run may
+    replace a folder it did not write (a recording copied there meanwhile) even with it.
+    Also without ``renameat2`` (another C library, another kernel).
+    """
+    if no_renameat2:
+        monkeypatch.setattr(outputs, '_renameat2', lambda a, b, flags: -1)
+    dest = tmp_path / 'set'
+    with pytest.raises(OutputExistsError, match='appeared while the training set'):
+        with outputs.atomic_dir(dest, overwrite=False, kind='t', what='training set') as d:
+            (d / 'v').write_text('mine')
+            with outputs.atomic_dir(dest, overwrite=False, kind='t', what='training set') as e:
+                (e / 'v').write_text('the other run')
+    assert (dest / 'v').read_text() == 'the other run'
+    # with --overwrite a soft_rom output that appeared is replaced ...
+    with outputs.atomic_dir(dest, overwrite=True, kind='t', what='training set') as d:
+        (d / 'v').write_text('mine')
+        with outputs.atomic_dir(dest, overwrite=True, kind='t', what='training set') as e:
+            (e / 'v').write_text('the other run')
+    assert (dest / 'v').read_text() == 'mine'
+    # ... but never a folder soft_rom did not write
+    new = tmp_path / 'new'
+    with pytest.raises(OutputExistsError, match='not written by soft_rom'):
+        with outputs.atomic_dir(new, overwrite=True, kind='t', what='training set') as d:
+            (d / 'v').write_text('mine')
+            _make(new, 'a recording')
+    assert (new / 'data.txt').read_text() == 'a recording'
+    with pytest.raises(OutputExistsError, match='appeared while the bag'):
+        with outputs.atomic_new_dir(tmp_path / 'bag', overwrite=False, kind='r',
+                                    what='bag') as stage:
+            _make(stage, 'mine')
+            _make(tmp_path / 'bag', 'the other run')
+    assert (tmp_path / 'bag' / 'data.txt').read_text() == 'the other run'
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith('.')]
+
+
+def test_file_that_appears_while_writing_is_never_replaced(tmp_path: Path) -> None:
+    a, b = tmp_path / 'a.npz', tmp_path / 'b.npz'
+
+    def ours(p: Path) -> bool:
+        return p.read_text().startswith('mine')
+
+    with pytest.raises(OutputExistsError, match='appeared while the model file'):
+        with outputs.atomic_files([a, b], overwrite=False, what='model file',
+                                  is_ours=ours) as m:
+            m[a].write_text('mine-a')
+            m[b].write_text('mine-b')
+            b.write_text('mine, from the other run')
+    assert not a.exists() and b.read_text() == 'mine, from the other run'
+    with pytest.raises(OutputExistsError, match='not written by soft_rom'):
+        with outputs.atomic_files([a, b], overwrite=True, what='model file',
+                                  is_ours=ours) as m:
+            m[a].write_text('mine-a')
+            m[b].write_text('mine-b')
+            b.write_text('a file of the user')
+    assert not a.exists() and b.read_text() == 'a file of the user'
+    b.unlink()
+    with outputs.atomic_files([a, b], overwrite=True, what='model file', is_ours=ours) as m:
+        m[a].write_text('mine-a')
+        m[b].write_text('mine-b')
+        b.write_text('mine, from the other run')
+    assert a.read_text() == 'mine-a' and b.read_text() == 'mine-b'
+    assert sorted(p.name for p in tmp_path.iterdir()) == ['a.npz', 'b.npz']
