@@ -50,6 +50,8 @@ SUPPORTED_TYPES = (
     'sensor_msgs/msg/PointCloud2',
 )
 
+#: The first bytes of a zstd frame.
+_ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
 _PF_DTYPES = {1: 'i1', 2: 'u1', 3: 'i2', 4: 'u2', 5: 'i4', 6: 'u4', 7: 'f4', 8: 'f8'}
 
 
@@ -455,6 +457,12 @@ class BagReader:
             try:
                 msg = self._ts.deserialize_cdr(data, msgtype)
             except Exception as err:  # noqa: BLE001 - corrupt CDR raises many kinds
+                if bytes(data[:4]) == _ZSTD_MAGIC:
+                    raise BagError(
+                        f'{topic} in bag {self.path}: the messages are zstd-compressed (recorded '
+                        'with --compression-mode message) but the bag does not say so (no '
+                        f'metadata.yaml?): recreate its metadata with `ros2 bag reindex '
+                        f'{self.path}`.') from err
                 raise BagError(f'{topic} at log time {log_ns * 1e-9:.9f} s: cannot decode '
                                f'{msgtype} ({type(err).__name__}: {err}); the message is '
                                'corrupt or was recorded with another definition of its '

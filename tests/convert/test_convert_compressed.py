@@ -106,3 +106,30 @@ def test_unreadable_metadata_falls_back_to_the_files(tmp_path):
     (bag / 'b_0.db3').write_bytes(b'')
     assert bag_storage(bag) == 'sqlite3'
     assert is_bag(bag) and is_bag(Path(tmp_path / 'b' / 'b_0.db3'))
+
+
+def test_message_compressed_file_without_its_metadata_says_so(recordings, tmp_path, capsys):
+    """The .db3 of a --compression-mode message bag copied alone: compressed, not corrupt."""
+    _, bags = recordings
+    (db3,) = [f for f in bags['sqlite3', 'message'].iterdir() if f.suffix == '.db3']
+    bag = tmp_path / 'copied'
+    bag.mkdir()
+    (bag / db3.name).write_bytes(db3.read_bytes())
+    assert main(['convert', str(bag), '-o', str(tmp_path / 'x.zarr')]) == 2
+    err = capsys.readouterr().err
+    assert 'zstd-compressed' in err and 'ros2 bag reindex' in err
+    assert 'Traceback' not in err and len(err.strip().splitlines()) == 1
+
+
+def test_mcap_cut_short_asks_for_mcap_recover(recordings, tmp_path, capsys):
+    """A recorder killed mid-file leaves an MCAP without its end: named, with the tool."""
+    _, bags = recordings
+    (mcap,) = [f for f in bags['mcap', 'none'].iterdir() if f.suffix == '.mcap']
+    bag = tmp_path / 'killed'
+    bag.mkdir()
+    data = mcap.read_bytes()
+    (bag / 'killed_0.mcap').write_bytes(data[:len(data) * 7 // 10])
+    assert main(['convert', str(bag), '-o', str(tmp_path / 'x.zarr')]) == 2
+    err = capsys.readouterr().err
+    assert 'mcap recover' in err and 'Traceback' not in err
+    assert len(err.strip().splitlines()) == 1
