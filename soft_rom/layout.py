@@ -78,6 +78,14 @@ class OutputLayout:
         """Row of ``y`` holding each ``(component, point index)``."""
         return {entry: row for row, entry in enumerate(self.entries())}
 
+    def describe(self) -> str:
+        """``'xz, component-major, points 1..10'`` (1-based points), for messages."""
+        pts = [i + 1 for i in self.points]
+        span = (f'{pts[0]}..{pts[-1]}'
+                if len(pts) > 2 and pts == list(range(pts[0], pts[-1] + 1))
+                else ', '.join(map(str, pts)))
+        return f'{self.component_string}, {self.order.replace("_", "-")}, points {span}'
+
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready form (stored in training sets and model metadata)."""
         return {'components': list(self.components), 'order': self.order,
@@ -152,10 +160,9 @@ def replay_components(model_layout: OutputLayout | None,
         are read component-major).
     """
     if model_layout is not None and data_layout is not None and model_layout != data_layout:
-        raise ConfigError(f'the model outputs {model_layout.names()[:4]}... '
-                          f'({model_layout.order}) but the bag gives '
-                          f'{data_layout.names()[:4]}... ({data_layout.order}); convert it with '
-                          'the mapping the model was trained with.')
+        raise ConfigError(f'the model outputs {model_layout.describe()} but the bag gives '
+                          f'{data_layout.describe()}; convert it with the output mapping the '
+                          'model was trained with.')
     layout = model_layout if model_layout is not None else data_layout
     if layout is None:
         return None

@@ -22,6 +22,7 @@ import json
 import math
 import os
 from pathlib import Path
+from typing import Any
 
 from soft_rom.resources import available_memory
 
@@ -31,6 +32,7 @@ __all__ = [
     'add_quiet',
     'available_memory',
     'check_apart',
+    'check_model_matches_data',
     'check_writable_folder',
     'finite_float',
     'int_range',
@@ -233,3 +235,53 @@ def is_training_set(path: Path) -> bool:
         if isinstance(attrs, dict) and attrs.get('format') == 'soft_rom.trainingset':
             return True
     return False
+
+
+
+def _units_text(units: Sequence[str]) -> str:
+    """``'Pa'`` when every channel has that unit, else the list."""
+    return units[0] if len(set(units)) == 1 else str(list(units))
+
+
+def check_model_matches_data(model: Any, label: str, data: str, *,
+                             input_units: Sequence[str] | None,
+                             output_units: Sequence[str] | None,
+                             layout: Any | None) -> None:
+    """Refuse data whose input/output units or output layout differ from the model's.
+
+    The counts may agree while the numbers mean something else (kPa fed to a model fitted
+    in Pa, a point-major or ``xy`` centerline to a component-major ``xz`` model): the
+    errors would be computed, and wrong. Units unknown on either side (empty) are not
+    compared; the layout only when both are known.
+
+    Parameters
+    ----------
+    model : LinearROM
+        The loaded model (``input_units``, ``output_units``, ``output_names``, metadata).
+    label : str
+        How the model is named in the message (its path).
+    data : str
+        What the data are (``'the training set x.zarr'``, ``'the bag run3'``).
+    input_units, output_units : sequence of str, optional
+        The data's units, one per channel.
+    layout : OutputLayout, optional
+        The data's output layout.
+    """
+    from soft_rom.errors import ConfigError
+    from soft_rom.layout import layout_of
+
+    for kind, mine, theirs in (('inputs', list(model.input_units), input_units),
+                               ('outputs', list(model.output_units), output_units)):
+        if theirs is None or len(theirs) != len(mine):
+            continue
+        if any(a and b and a != b for a, b in zip(mine, theirs)):
+            raise ConfigError(
+                f"{label}: the model's {kind} are in {_units_text(mine)} but those of {data} "
+                f'are in {_units_text(list(theirs))}; convert the data with the units (and '
+                'scale) the model was fitted with.')
+    ours = layout_of(model.metadata, model.output_names)
+    if ours is not None and layout is not None and ours != layout:
+        raise ConfigError(
+            f'{label}: the model outputs {ours.describe()} but {data} has '
+            f'{layout.describe()}; convert the data with the output mapping the model was '
+            'fitted with.')

@@ -20,6 +20,7 @@ from soft_rom.cli._common import (
     add_json,
     add_quiet,
     check_apart,
+    check_model_matches_data,
     check_writable_folder,
     finite_float,
     is_summary_json,
@@ -73,6 +74,9 @@ def _check_layout(model: LinearROM, path: str, ts: Any) -> None:
         raise DimensionError(
             f'{path}: the model has {model.n_inputs} inputs and {model.n_outputs} outputs but '
             f'the data have {m} inputs and {p} outputs; evaluate it on data of the same layout.')
+    check_model_matches_data(model, path, f'the training set {ts.path}',
+                             input_units=ts.input_units, output_units=ts.output_units,
+                             layout=ts.output_layout)
 
 
 _EVAL_JSON = is_summary_json(('model', 'episode', 'segment'))
@@ -105,11 +109,12 @@ def run(args: argparse.Namespace) -> int:
         _check_layout(model, path, ts)
     rows: list[dict[str, Any]] = []
     predictions: list[tuple[str, LinearROM, dict[str, np.ndarray]]] = []
+    labels = _labels([path for path, _ in models])
     for path, model in models:
         ev = evaluate(model, episodes, t_split=args.t_split, initial=args.initial,
                       return_predictions=args.plots is not None)
         for row in ev.rows:
-            rows.append({'model': Path(path).name, 'method': model.method, 'r': model.r,
+            rows.append({'model': labels[path][0], 'method': model.method, 'r': model.r,
                          'trusted': model.trusted, **row})
         if args.plots is not None:
             predictions.append((path, model, ev.predictions))
@@ -119,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
             for path, model, pred in predictions:
                 for ep in episodes:
                     plot_outputs(ep, pred[ep.name], model,
-                                 stage / f'{Path(path).stem}__{ep.name}.png',
+                                 stage / f'{labels[path][1]}__{ep.name}.png',
                                  outputs=args.outputs, t_split=args.t_split)
     if args.json is not None:
         from soft_rom.cli._common import write_text_output
@@ -133,6 +138,24 @@ def run(args: argparse.Namespace) -> int:
     if args.plots is not None and not args.quiet:
         print(f'plots written to {args.plots}/', file=sys.stderr)
     return 0
+
+
+def _labels(paths: list[str]) -> dict[str, tuple[str, str]]:
+    """Table label and plot file stem of each model file.
+
+    Its name when the names are distinct; else (models of the same name from different
+    folders, e.g. two fits compared) the path as given and a stem made of its folders, so
+    that neither the rows nor the plots of one model can pass for the other's.
+    """
+    names = [Path(p).name for p in paths]
+    if len(set(names)) == len(set(paths)):
+        return {p: (Path(p).name, Path(p).stem) for p in paths}
+    out = {}
+    for p in paths:
+        parts = [{'..': 'up'}.get(x, x) for x in Path(p).with_suffix('').parts
+                 if x not in ('/', '.')]
+        out[p] = (str(p), '_'.join(parts))
+    return out
 
 
 def format_table(rows: list[dict[str, Any]]) -> str:

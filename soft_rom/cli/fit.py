@@ -190,6 +190,16 @@ def _check_outputs_early(args: argparse.Namespace, outdir: Path, prefix: str) ->
                              what='model file', is_ours=_MODEL_FILE)
 
 
+def _basis_r(model: Any) -> int:
+    """The ``r`` asked for: the basis size.
+
+    A ``--dmdc-variant stable`` model has ``2r + m`` states (``model.r``); its
+    ``metadata['r']`` is the basis size.
+    """
+    r = model.metadata.get('r') if model.method == 'dmdc' else None
+    return int(r) if isinstance(r, int) and not isinstance(r, bool) else int(model.r)
+
+
 def _label(method: str, args: argparse.Namespace) -> str:
     """File-name label: ``lopinf_cubic`` for the cubic LOpInf models."""
     return 'lopinf_cubic' if method == 'lopinf' and args.forces == 'cubic' else method
@@ -260,14 +270,14 @@ def run(args: argparse.Namespace) -> int:
                                 refine=args.refine,
                                 lopinf_options=lopinf_options, dmdc_options=dmdc_options)
         for model, seconds in fitted:
-            path = outdir / f'{prefix}_{_label(method, args)}_r{model.r}.npz'
+            path = outdir / f'{prefix}_{_label(method, args)}_r{_basis_r(model)}.npz'
             models[path] = model
             train_eps = episodes
             if method == 'era':
                 train_eps = [e for e in episodes
                              if e.name in model.metadata['training']['episodes']]
             ev = evaluate(model, train_eps).get()
-            rows.append({'method': _label(method, args), 'r': model.r, 'dt': model.dt,
+            rows.append({'method': _label(method, args), 'r': _basis_r(model), 'dt': model.dt,
                          'train_relative_error': ev['relative_error'],
                          'train_relative_deviation_error': ev['relative_deviation_error'],
                          'stability_margin': model.stability_margin(),

@@ -27,6 +27,7 @@ from soft_rom.cli._common import (
     add_json,
     add_quiet,
     check_apart,
+    check_model_matches_data,
     check_writable_folder,
     finite_float,
     is_summary_json,
@@ -51,7 +52,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap',
                         help='storage of the output bag (default mcap)')
     parser.add_argument('--mapping', default=None,
-                        help='topic mapping YAML for reading the bag (see soft-rom convert)')
+                        help='topic mapping YAML for reading the bag (see soft-rom convert); '
+                             'not with --stream, which reads the topics of --config')
     parser.add_argument('--config', default=None,
                         help='predictor params file (default: none; config/predictor.yaml '
                              'layout); command-line options override it')
@@ -91,7 +93,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     return parser
 
 
-def _read(bag: str, mapping_path: str | None, model: Any) -> tuple[Any, Any, str | None]:
+def _read(bag: str, mapping_path: str | None, model: Any,
+          model_path: str) -> tuple[Any, Any, str | None]:
     """Episode, conversion report and output components of ``bag`` replayed by ``model``.
 
     The components are the output layout stored in the model file, else the one the
@@ -101,6 +104,15 @@ def _read(bag: str, mapping_path: str | None, model: Any) -> tuple[Any, Any, str
     from soft_rom.layout import layout_of, replay_components
 
     episode, report = read_episode(bag, load_mapping(mapping_path))
+    meta = episode.metadata
+    if episode.U.shape[0] != model.n_inputs or episode.Y.shape[0] not in (0, model.n_outputs):
+        raise ConfigError(f'{model_path}: the model has {model.n_inputs} inputs and '
+                          f'{model.n_outputs} outputs but the bag {bag} gives '
+                          f'{episode.U.shape[0]} inputs and {episode.Y.shape[0]} outputs; '
+                          'replay it with a model of the same layout (or --mapping).')
+    check_model_matches_data(model, str(model_path), f'the bag {bag}',
+                             input_units=meta.get('input_units'),
+                             output_units=meta.get('output_units'), layout=None)
     return episode, report, replay_components(layout_of(model.metadata),
                                               layout_of(episode.metadata))
 
@@ -162,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
     model = predictor.model
     if args.stream:
         return _run_stream(args, values, predictor)
-    episode, _report, components = _read(args.bag, args.mapping, model)
+    episode, _report, components = _read(args.bag, args.mapping, model, args.model)
     if components is not None:
         values.setdefault('output_components', components)
     publish_rate = float(values.get('publish_rate_hz', 0.0) or 0.0)
@@ -210,6 +222,47 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+_ARRAY_TYPES = ('std_msgs/msg/Float64MultiArray', 'std_msgs/msg/Float32MultiArray')
+
+
+def _check_stream_topics(args: argparse.Namespace, v: dict[str, Any]) -> None:
+    """Refuse a ``--stream`` replay whose input topics the bag lacks or has as another type.
+
+    ``--stream`` takes its topics from ``--config`` (the node's parameters), never from a
+    ``--mapping``; a missing input topic would otherwise replay nothing (or every message
+    of the bag, as the wrong type). A missing measured topic only leaves the errors out
+    (said in the summary), as on the node.
+    """
+    from soft_rom.bags import BagReader
+
+    where = ('--config' if args.config else "the node's defaults; set them with --config")
+    if args.mapping is not None:
+        raise ConfigError(f'--stream reads the bag as the node does, with the topics, scale '
+                          f'and offset of {where}, not --mapping {args.mapping}; set '
+                          'input_topics (or array_topic), input_scale, input_offset and '
+                          'measured_topic there, or replay without --stream')
+    with BagReader(args.bag) as reader:
+        have = reader.topics
+    wanted: dict[str, tuple[str, ...]]
+    if str(v['input_mode']) == 'array':
+        key, wanted = 'array_topic', {str(v['array_topic']): _ARRAY_TYPES}
+    else:
+        key = 'input_topics'
+        wanted = {str(tp): ('sensor_msgs/msg/FluidPressure',) for tp in v['input_topics']}
+    missing = [tp for tp in wanted if tp not in have]
+    if missing:
+        raise ConfigError(f'the bag {args.bag} has no input topic {", ".join(missing)} '
+                          f'({key}: {where}); it has {sorted(have)}')
+    measured = str(v['measured_topic']) if not args.no_measured else ''
+    if measured in have:
+        wanted[measured] = ('geometry_msgs/msg/PoseArray',)
+    wrong = [f'{tp} is {have[tp][0]}, not {" or ".join(types)}'
+             for tp, types in wanted.items() if have[tp][0] not in types]
+    if wrong:
+        raise ConfigError(f'the bag {args.bag}: {"; ".join(wrong)} (input_mode '
+                          f'{v["input_mode"]!r}, {key} and measured_topic: {where})')
+
+
 def _run_stream(args: argparse.Namespace, values: dict[str, Any], predictor: Any) -> int:
     """``replay --stream``: message by message, with the node's parameters."""
     from soft_rom.bags.replay_io import replay_stream_to_bag
@@ -222,13 +275,15 @@ def _run_stream(args: argparse.Namespace, values: dict[str, Any], predictor: Any
     if components is not None:
         v['output_components'] = components
     v.update(values)
+    measured_topic = '' if args.no_measured else str(v['measured_topic'])
+    _check_stream_topics(args, v)
     with atomic_new_dir(args.output, overwrite=args.overwrite, kind='replay',
                         what='replay bag') as stage:
         summary = replay_stream_to_bag(
             predictor, args.bag, stage, input_mode=str(v['input_mode']),
             input_topics=list(v['input_topics']), array_topic=str(v['array_topic']),
             input_scale=float(v['input_scale']), input_offset=float(v['input_offset']),
-            measured_topic='' if args.no_measured else str(v['measured_topic']),
+            measured_topic=measured_topic,
             components=str(v['output_components']),
             publish_rate_hz=float(v['publish_rate_hz']),
             centerline_rate_hz=float(v['centerline_rate_hz']), storage=args.storage,

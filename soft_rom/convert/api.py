@@ -37,9 +37,15 @@ def _paths(bags: Iterable[str | Path]) -> list[Path]:
     out = [Path(b) for b in bags]
     if not out:
         raise BagError('no bag given.')
+    seen: dict[Path, Path] = {}
     for p in out:
         if not p.exists():
             raise FileNotFoundError(f'bag {p} does not exist.')
+        first = seen.setdefault(p.resolve(), p)
+        if first is not p:
+            raise BagError(f'bag {p} is given twice (also as {first}); it would become two '
+                           'identical episodes (one in training, one held out, say): give '
+                           'each recording once.')
     return out
 
 

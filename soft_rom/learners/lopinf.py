@@ -326,10 +326,18 @@ class LOpInf:
                                  'moved away from q_ref, so there is nothing to learn.')
         s_q = float(_rms(all_q)[0]) if self.scale else 1.0
         s_u = _rms(all_u, axis=1) if self.scale else np.ones(m)
-        too_short = [i for i, q in enumerate(Qhat) if q.shape[1] <= 2 * _half_width(estimator)]
+        need = 2 * _half_width(estimator)
+        too_short = [i for i, q in enumerate(Qhat) if q.shape[1] <= need]
         if too_short:
-            raise DimensionError(f'episodes {too_short} are too short for the derivative '
-                                 f'estimator {estimator!r}; drop them or use a lower order.')
+            label = ', '.join(
+                f'{names[i]!r}' if names is not None and i < len(names) else str(i)
+                for i in too_short)
+            counts = ', '.join(str(Qhat[i].shape[1]) for i in too_short)
+            raise DimensionError(
+                f'episode(s) {label} ({counts} samples) too short for the derivative '
+                f'estimator {estimator!r}, which needs more than {need} samples per episode; '
+                'drop them or use a shorter estimator (soft-rom fit --ddt fd2, or '
+                'savgol:WINDOW with a smaller window).')
         Qs, Qd, Qdd, (Us,) = _episodes(estimator, [q / s_q for q in Qhat], dt,
                                        [[u / s_u[:, None] for u in U]])
         self.nonlinear_: dict[str, Any] | None = None

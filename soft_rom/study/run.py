@@ -136,6 +136,12 @@ def simulate_bags(bag_dir: Path, cfg: StudyConfig, *, progress: bool = True) -> 
             raise ConfigError(
                 f'{bag_dir / f"ep{i}"} exists but was recorded with other settings; '
                 'remove it or use another --bags folder.')
+        if (bag_dir / f'ep{i}').exists() or (bag_dir / f'ep{i}').is_symlink():
+            raise ConfigError(
+                f'{bag_dir / f"ep{i}"} exists but was not recorded by soft-rom simulate (no '
+                f"ep{i}.json beside it): --bags reuses only the embedded eel's episodes and "
+                'never replaces other bags; use another --bags folder (your own recordings '
+                'go through convert, fit and evaluate).')
         todo.append(i)
     if todo:
         record_episodes(bag_dir, todo, resolution=cfg.resolution, jobs=cfg.jobs,
