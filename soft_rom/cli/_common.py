@@ -237,7 +237,6 @@ def is_training_set(path: Path) -> bool:
     return False
 
 
-
 def _units_text(units: Sequence[str]) -> str:
     """``'Pa'`` when every channel has that unit, else the list."""
     return units[0] if len(set(units)) == 1 else str(list(units))
