@@ -34,6 +34,7 @@ __all__ = [
     'check_apart',
     'check_model_matches_data',
     'check_writable_folder',
+    'dumps_strict',
     'finite_float',
     'int_range',
     'is_model_file',
@@ -284,3 +285,23 @@ def check_model_matches_data(model: Any, label: str, data: str, *,
             f'{label}: the model outputs {ours.describe()} but {data} has '
             f'{layout.describe()}; convert the data with the output mapping the model was '
             'fitted with.')
+
+
+def _finite(obj: Any) -> Any:
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    return obj
+
+
+def dumps_strict(obj: Any, **kwargs: Any) -> str:
+    """``json.dumps`` that writes strict JSON: NaN and infinities become ``null``.
+
+    Python's ``json`` writes them as ``NaN`` / ``Infinity``, which strict parsers (jq,
+    JavaScript, most languages' JSON libraries) refuse; an error that cannot be computed
+    (a segment with no samples, a model that blew up) is then ``null``.
+    """
+    return json.dumps(_finite(obj), allow_nan=False, **kwargs)

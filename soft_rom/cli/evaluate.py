@@ -9,7 +9,6 @@ Examples::
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 import sys
 from typing import Any
@@ -127,8 +126,8 @@ def run(args: argparse.Namespace) -> int:
                                  stage / f'{labels[path][1]}__{ep.name}.png',
                                  outputs=args.outputs, t_split=args.t_split)
     if args.json is not None:
-        from soft_rom.cli._common import write_text_output
-        write_text_output(args.json, json.dumps(rows, indent=2) + '\n',
+        from soft_rom.cli._common import dumps_strict, write_text_output
+        write_text_output(args.json, dumps_strict(rows, indent=2) + '\n',
                           overwrite=args.overwrite, what='evaluation summary',
                           is_ours=_EVAL_JSON)
     print(format_table(rows))

@@ -27,6 +27,7 @@ from soft_rom.cli._common import (
     add_quiet,
     check_apart,
     check_writable_folder,
+    dumps_strict,
     finite_float,
     int_range,
     is_model_file,
@@ -296,7 +297,8 @@ def run(args: argparse.Namespace) -> int:
         for path, model in models.items():
             model.save(staged[path])
         if args.json is not None:
-            staged[args.json].write_text(json.dumps(rows, indent=2) + '\n', encoding='utf-8')
+            staged[args.json].write_text(dumps_strict(rows, indent=2) + '\n',
+                                         encoding='utf-8')
     print(format_table(rows))
     untrusted = [r for r in rows if r['trust']]
     for r in untrusted:

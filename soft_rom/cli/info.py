@@ -140,7 +140,7 @@ _INFO_JSON_KEYS = ('kind',)
 
 def run(args: argparse.Namespace) -> int:
     """Run ``info``; returns the exit code."""
-    from soft_rom.cli._common import check_apart, is_summary_json, write_text_output
+    from soft_rom.cli._common import check_apart, dumps_strict, is_summary_json, write_text_output
 
     paths = list(args.paths)
     if not paths and args.json not in (None, '-'):
@@ -149,7 +149,7 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError('give at least one PATH (bag, training set or model file)')
     out = [describe(p) for p in paths]
     if args.json is not None:
-        text = json.dumps(out if len(out) > 1 else out[0], indent=2, default=str)
+        text = dumps_strict(out if len(out) > 1 else out[0], indent=2, default=str)
         if args.json == '-':
             print(text)
         else:

@@ -18,7 +18,6 @@ may not be the input bag.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ from soft_rom.cli._common import (
     check_apart,
     check_model_matches_data,
     check_writable_folder,
+    dumps_strict,
     finite_float,
     is_summary_json,
     write_text_output,
@@ -145,7 +145,7 @@ def _check_paths(args: argparse.Namespace) -> None:
 
 def _write_json(args: argparse.Namespace, summary: dict[str, Any]) -> None:
     if args.json is not None:
-        write_text_output(args.json, json.dumps(summary, indent=2, default=str),
+        write_text_output(args.json, dumps_strict(summary, indent=2, default=str),
                           overwrite=args.overwrite, what='replay summary', is_ours=_REPLAY_JSON)
 
 

@@ -22,6 +22,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 import json
 import logging
+import math
 from pathlib import Path
 import time
 from typing import Any
@@ -480,7 +481,9 @@ def _jsonable(obj: Any) -> Any:
     if isinstance(obj, (list, tuple)):
         return [_jsonable(v) for v in obj]
     if isinstance(obj, (np.floating, np.integer)):
-        return obj.item()
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None                      # strict JSON: an error that blew up is null
     if isinstance(obj, Path):
         return str(obj)
     return obj
@@ -558,7 +561,8 @@ def run_study(out_dir: str | Path, cfg: StudyConfig | None = None, *, progress: 
         timings['replay'] = time.perf_counter() - t0
     summary['conclusions'] = _conclusions(summary.get('study1'), summary.get('study2'))
     summary['timings'] = timings
-    (out / 'summary.json').write_text(json.dumps(_jsonable(summary), indent=2))
+    (out / 'summary.json').write_text(json.dumps(_jsonable(summary), indent=2,
+                                                    allow_nan=False))
     (out / 'report.md').write_text(study_report(summary))
     return summary
 

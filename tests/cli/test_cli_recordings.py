@@ -187,3 +187,26 @@ def test_evaluate_tells_apart_models_of_the_same_name(lab, capsys) -> None:
     # (both were 'lab_dmdc_r2.npz', and the second plot replaced the first)
     assert {row.split()[0] for row in rows} == {first, second}
     assert len(list((root / 'plots_same').glob('*__lab2.png'))) == 2
+
+
+def test_json_summaries_are_strict_json_when_an_error_cannot_be_computed(lab) -> None:
+    """``--t-split`` past an episode's end leaves its test part empty: ``null``, not NaN.
+
+    Python writes NaN / Infinity by default, which strict JSON parsers (jq, JavaScript)
+    refuse; the summaries are read by such tools.
+    """
+    import json
+
+    def strict(text: str) -> object:
+        def refuse(c: str) -> None:
+            raise ValueError(f'non-JSON constant {c}')
+        return json.loads(text, parse_constant=refuse)
+
+    root = lab['root']
+    out = root / 'eval_split.json'
+    assert main(['evaluate', str(lab['model']), '--data', str(root / 'lab.zarr'),
+                 '--episodes', 'lab2', '--t-split', '100', '--json', str(out), '--quiet']) == 0
+    rows = strict(out.read_text())
+    test = [r for r in rows if r['segment'] == 'test']
+    assert test and all(r['n_samples'] == 0 and r['relative_error'] is None for r in test)
+    assert all(isinstance(r['relative_error'], float) for r in rows if r['segment'] == 'all')
