@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 import time
 
-from soft_rom.cli.study import add_study_options, prepare_study
+from soft_rom.cli.study import add_study_options, study_output
 
 __all__ = ['add_parser', 'run']
 
@@ -29,13 +29,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from soft_rom.study.run import run_study, StudyConfig
 
-    prepare_study(args)
-    out = Path(args.output)
     cfg = StudyConfig(resolution=args.resolution, n_episodes=args.episodes, seed=args.seed,
                       storage=args.storage, r_lopinf=DEMO_R_LOPINF, r_dmdc=DEMO_R_DMDC,
                       r_era=DEMO_R_ERA, jobs=args.jobs)
     t0 = time.perf_counter()
-    summary = run_study(out, cfg, progress=not args.quiet, replay=True, bag_dir=args.bags)
+    with study_output(args) as out:
+        summary = run_study(out, cfg, progress=not args.quiet, replay=True, bag_dir=args.bags)
     elapsed = time.perf_counter() - t0
     print(f'\nsoft-rom demo finished in {elapsed:.0f} s')
     print(f'report: {out / "report.md"} (figures beside it)')

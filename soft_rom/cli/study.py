@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Iterator
+import contextlib
 from pathlib import Path
+import shutil
 
 from soft_rom.cli._common import (
     add_output,
@@ -15,7 +18,7 @@ from soft_rom.cli._common import (
     parse_r_list,
 )
 
-__all__ = ['add_parser', 'add_study_options', 'prepare_study', 'run']
+__all__ = ['add_parser', 'add_study_options', 'prepare_study', 'run', 'study_output']
 
 
 def add_study_options(parser: argparse.ArgumentParser, *, default_output: Path) -> None:
@@ -59,11 +62,11 @@ def _check_study_folder(out: Path) -> None:
                             'choose a new or empty -o folder')
 
 
-def prepare_study(args: argparse.Namespace) -> None:
+def prepare_study(args: argparse.Namespace) -> bool:
     """Check the folders and resources of a study before any work, then mark its folder.
 
     Refused: an output folder that is not a study's, a simulation that cannot fit in
-    memory or on disk (with the estimate).
+    memory or on disk (with the estimate). Returns whether the folder was created here.
     """
     from soft_rom.cli.simulate import estimate_resources
     from soft_rom.errors import ResourceError
@@ -83,9 +86,30 @@ def prepare_study(args: argparse.Namespace) -> None:
             'lower --resolution or fewer --jobs')
     check_free_space(Path(args.bags or args.output), disk,
                      f'the study bags at --resolution {args.resolution}')
+    created = not Path(args.output).exists()
     Path(args.output).mkdir(parents=True, exist_ok=True)
     from soft_rom.outputs import mark
     mark(args.output, 'study')
+    return created
+
+
+@contextlib.contextmanager
+def study_output(args: argparse.Namespace) -> Iterator[Path]:
+    """:func:`prepare_study`, then the run (yields the output folder).
+
+    A folder this run created is removed if the run stops before writing anything into it
+    (a refused ``--bags`` folder, Ctrl-C at once).
+    """
+    from soft_rom.outputs import MARKER
+
+    out = Path(args.output)
+    created = prepare_study(args)
+    try:
+        yield out
+    except BaseException:
+        if created and {f.name for f in out.iterdir()} <= {MARKER}:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -112,14 +136,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from soft_rom.study.run import run_study, StudyConfig
 
-    prepare_study(args)
     cfg = StudyConfig(resolution=args.resolution, n_episodes=args.episodes, seed=args.seed,
                       storage=args.storage, t_train=args.t_train, r_lopinf=args.r_lopinf,
                       r_dmdc=args.r_dmdc, r_era=args.r_era, jobs=args.jobs)
     studies = (args.only,) if args.only else (1, 2)
-    out = Path(args.output)
-    summary = run_study(out, cfg, progress=not args.quiet, studies=studies,
-                        bag_dir=args.bags)
+    with study_output(args) as out:
+        summary = run_study(out, cfg, progress=not args.quiet, studies=studies,
+                            bag_dir=args.bags)
     print(f'report: {out / "report.md"}')
     for line in summary.get('conclusions', []):
         print(f'  - {line}')

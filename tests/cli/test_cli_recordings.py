@@ -148,6 +148,13 @@ def test_study_does_not_take_a_users_recordings_for_its_episodes(lab, capsys,
     err = capsys.readouterr().err
     assert 'was not recorded by soft-rom simulate' in err and 'overwrite=True' not in err
     assert sorted(p.name for p in (lab['root'] / 'lab1').iterdir()) == before
+    # the study folder this run would have created is not left behind, empty but marked;
+    # one that was there already stays
+    assert not (tmp_path / 'study').exists()
+    (tmp_path / 'mine').mkdir()
+    assert main(['demo', '--bags', str(bags), '--episodes', '2',
+                 '-o', str(tmp_path / 'mine'), '--quiet']) == 2
+    assert (tmp_path / 'mine').is_dir()
 
 
 def test_convert_refuses_the_same_recording_twice(lab, capsys) -> None:
