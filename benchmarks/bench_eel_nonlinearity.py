@@ -32,6 +32,14 @@ random pressures, 1 ms):
    ``z → -z``, and the static tail deflection (8 s at 5 ms steps, pressures ramped over 1 s)
    under ``±50 kPa`` on the last segment's pair, nonlinear and linearized.
 
+5. **Do the equations generalize from Ep 1 + Ep 2 at all?** Unconstrained least squares
+   of ``q̈`` on ``[q, q̇, u]`` (a linear second-order model, no SPD constraint), and on the same
+   plus the ``q³`` monomials (all ``r`` coordinates, or only the first two), at several ``r``
+   (``--gen-r``), low-passed like 3., ridge weight best on the test episodes: the relative
+   equation error on the training and on the test episodes. A linear model that fits the
+   training equations to 1 % and misses the test ones by 40 % says that two episodes do not
+   pin down even the linear operators at the equation level, before any nonlinear term.
+
 The reduced episodes come from ``--data`` (default ``/tmp/cubic_cache/eel_reduced.npz``,
 made by ``bench_cubic_eel.py`` with the study's pipeline when missing; never inside the
 repository). The FEM runs take about 45 s.
@@ -39,6 +47,7 @@ repository). The FEM runs take about 45 s.
 Run::
 
     .venv/bin/python benchmarks/bench_eel_nonlinearity.py [--r 6] [--cutoff 5]
+        [--gen-r 4 8 22] [--only-gen]
 
 Figures of one run are quoted in docs/methods_variants.md (cubic LOpInf section).
 """
@@ -165,6 +174,50 @@ def residual_families(data: bce.Data, cutoff: float) -> None:
               f'(ridge {best[2]:g})')
 
 
+def _derivatives(data: bce.Data, eps: tuple[int, ...]) -> list[list[np.ndarray]]:
+    """``[Q, Q̇, Q̈, U]`` of the episodes ``eps``, one array per episode in each list."""
+    Q, Qd, Qdd, (U,) = FiniteDifference(order=8).episodes(
+        [data.Q[i] for i in eps], data.dt, [[data.U[i] for i in eps]])
+    return [[x] if isinstance(x, np.ndarray) else list(x) for x in (Q, Qd, Qdd, U)]
+
+
+def _equation_rows(parts: list[list[np.ndarray]], nl: int, scale: list[np.ndarray],
+                   ba: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Low-passed regressors ``[q, q̇, u, (q³ of the first nl)]`` and accelerations."""
+    F, A = [], []
+    for q, v, acc, u in zip(*parts):
+        rows = [q / scale[0], v / scale[1], u[0::2] / scale[2][0::2]]
+        if nl:
+            rows.append(_monomials(q[:nl] / scale[0][:nl], 3))
+        F.append(ss.filtfilt(*ba, np.vstack(rows), axis=1))
+        A.append(ss.filtfilt(*ba, acc, axis=1))
+    return np.concatenate(F, axis=1), np.concatenate(A, axis=1)
+
+
+def equation_generalization(path: Path, rs: tuple[int, ...], cutoff: float) -> None:
+    """Unconstrained equation-error fits on Ep 1 + Ep 2, scored on Ep 3 - 6 (5)."""
+    print(f'5. Unconstrained equation-error fits (low-passed at {cutoff:g} Hz): relative '
+          'equation error, train / test')
+    for r in rs:
+        data = bce.Data(path, r)
+        ba = ss.butter(4, cutoff, fs=1.0 / data.dt)
+        tr, te = _derivatives(data, bce.TRAIN), _derivatives(data, bce.TESTS)
+        scale = [np.sqrt(np.mean(np.concatenate(tr[k], axis=1) ** 2, axis=1))[:, None]
+                 for k in (0, 1, 3)]
+        for label, nl in (('linear', 0), ('+ q³ of q1, q2', 2), (f'+ q³ of all {r}', r)):
+            Ftr, Atr = _equation_rows(tr, nl, scale, ba)
+            Fte, Ate = _equation_rows(te, nl, scale, ba)
+            G, g = Ftr @ Ftr.T, Ftr @ Atr.T
+            best = (np.inf, np.inf)
+            for lam in (1e-10, 1e-8, 1e-6, 1e-4):
+                W = np.linalg.solve(G + lam * np.trace(G) / len(G) * np.eye(len(G)), g)
+                e_te = float(np.linalg.norm(Ate - W.T @ Fte) / np.linalg.norm(Ate))
+                e_tr = float(np.linalg.norm(Atr - W.T @ Ftr) / np.linalg.norm(Atr))
+                best = min(best, (e_te, e_tr))
+            print(f'   r = {r:2d} {label:16s} {Ftr.shape[0]:4d} terms: train {best[1]:.4f}, '
+                  f'test {best[0]:.4f}', flush=True)
+
+
 def mirror_check(amplitude: float = 50e3) -> None:
     """Mesh symmetry under ``z -> -z`` and the static tail deflection under ``±u`` (4)."""
     model = EelModel()
@@ -194,15 +247,20 @@ def main() -> None:
     ap.add_argument('--data', type=Path, default=Path('/tmp/cubic_cache/eel_reduced.npz'))
     ap.add_argument('--r', type=int, default=6)
     ap.add_argument('--cutoff', type=float, default=5.0, help='low-pass cut-off (Hz)')
+    ap.add_argument('--gen-r', type=int, nargs='+', default=[4, 8, 22],
+                    help='r of the equation-generalization check (5.)')
+    ap.add_argument('--only-gen', action='store_true', help='run the check 5. only')
     args = ap.parse_args()
     if not args.data.exists():
         args.data.parent.mkdir(parents=True, exist_ok=True)
         bce.build_data(args.data)
     data = bce.Data(args.data, args.r)
     t0 = time.perf_counter()
-    amplitude_scan(data.U[3], (1.0, 0.3, 0.1, 0.01))
-    residual_families(data, args.cutoff)
-    mirror_check()
+    if not args.only_gen:
+        amplitude_scan(data.U[3], (1.0, 0.3, 0.1, 0.01))
+        residual_families(data, args.cutoff)
+        mirror_check()
+    equation_generalization(args.data, tuple(args.gen_r), args.cutoff)
     print(f'({time.perf_counter() - t0:.0f} s)')
 
 
