@@ -62,6 +62,10 @@ def select_episodes(ts: Any, names: str | list[str] | None,
                            f'available: {available}.')
     if not wanted:
         raise DatasetError('no episodes selected.')
+    twice = sorted({n for n in wanted if wanted.count(n) > 1})
+    if twice:
+        raise DatasetError(f'episode(s) {twice} selected more than once; a repeated episode '
+                           'would count double in a fit and in the pooled errors.')
     eps = [ts[n] for n in wanted]
     if t_max is not None:
         if t_max <= 0:

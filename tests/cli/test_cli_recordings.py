@@ -217,3 +217,14 @@ def test_json_summaries_are_strict_json_when_an_error_cannot_be_computed(lab) ->
     test = [r for r in rows if r['segment'] == 'test']
     assert test and all(r['n_samples'] == 0 and r['relative_error'] is None for r in test)
     assert all(isinstance(r['relative_error'], float) for r in rows if r['segment'] == 'all')
+
+
+def test_an_episode_selected_twice_is_refused(lab, capsys) -> None:
+    root = lab['root']
+    for cmd in (['fit', str(root / 'lab.zarr'), '--method', 'dmdc', '--r', '2',
+                 '-o', str(root / 'twice'), '--quiet'],
+                ['evaluate', str(lab['model']), '--data', str(root / 'lab.zarr'), '--quiet']):
+        assert main([*cmd, '--episodes', 'lab2, lab2']) == 2
+        err = capsys.readouterr().err
+        assert "['lab2'] selected more than once" in err and 'Traceback' not in err
+    assert not (root / 'twice').exists()
