@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import zipfile
 
 import numpy as np
@@ -90,6 +91,22 @@ def test_step_and_output_name_a_wrong_state_or_input() -> None:
         np.testing.assert_allclose(Y[:, 1], model.output(X[:, 1]), rtol=0, atol=1e-12)
         np.testing.assert_allclose(model.step(X, np.zeros((m, 3)))[:, 2],
                                    model.step(X[:, 2], u), rtol=0, atol=1e-12)
+
+
+def test_step_and_output_refuse_a_vector_mixed_with_columns() -> None:
+    """``u`` as a column (MATLAB habit) with a vector ``x`` broadcast to an (n, n) "state"."""
+    for model in (_discrete(), _second_order()):
+        n, m = model.n_states, model.n_inputs
+        x, u = np.ones(n), np.ones(m)
+        for xs, us in ((x, u[:, None]), (x[:, None], u), (np.ones((n, 3)), np.ones((m, 2))),
+                       (np.ones((n, 2)), u)):
+            with pytest.raises(DimensionError,
+                               match=re.escape(f'x has shape {xs.shape} and u {us.shape}')):
+                model.step(xs, us)
+            with pytest.raises(DimensionError, match='give both as vectors'):
+                model.output(xs, us)
+        np.testing.assert_allclose(model.step(x[:, None], u[:, None])[:, 0], model.step(x, u),
+                                   rtol=0, atol=1e-12)
 
 
 def test_inputs_that_are_not_real_numbers_are_named() -> None:
