@@ -226,6 +226,28 @@ def test_bad_files_are_refused(tmp_path, case, match) -> None:
         load_model(bad)
 
 
+def test_a_newer_file_with_arrays_this_version_does_not_know_says_it_is_newer(tmp_path) -> None:
+    """As the cubic model's G and H were to the soft_rom before it: not "not a model file"."""
+    good = _second_order().save(tmp_path / 'good.npz')
+    newer = tmp_path / 'newer.npz'
+    _rewrite(good, newer, arrays={'N': np.eye(4)},
+             header_update={'format_version': 99, 'class': 'FutureModel'})
+    with pytest.raises(ModelFileError, match='format version 99 is not supported by this '
+                                             'soft_rom.*upgrade soft_rom'):
+        load_model(newer)
+    _rewrite(good, newer, arrays={'N': np.eye(4)}, header_update={'class': 'FutureModel'})
+    with pytest.raises(ModelFileError, match="unknown model class 'FutureModel' "
+                                             r'\(a newer soft_rom may read it\)'):
+        load_model(newer)
+    # an extra entry in a file that is no newer, or no model file at all: refused as before
+    _rewrite(good, newer, arrays={'N': np.eye(4)})
+    with pytest.raises(ModelFileError, match="unexpected archive entry 'N.npy'"):
+        load_model(newer)
+    np.savez(newer, a=np.eye(2))
+    with pytest.raises(ModelFileError, match="unexpected archive entry 'a.npy'"):
+        load_model(newer)
+
+
 def test_missing_and_corrupt_files(tmp_path) -> None:
     with pytest.raises(FileNotFoundError):
         load_model(tmp_path / 'nope.npz')
