@@ -358,9 +358,9 @@ class LinearROM(ABC):
 
         For the second-order model only ``q`` is observed; the velocity is set to zero.
         """
-        dy = np.asarray(y, dtype=np.float64) - self.y_ref
+        dy = _arr('y', y, (self.n_outputs,)) - self.y_ref
         if u is not None:
-            dy = dy - self.system.D @ np.asarray(u, dtype=np.float64)
+            dy = dy - self.system.D @ _arr('u', u, (self.n_inputs,))
         x, *_ = np.linalg.lstsq(self.system.C, dy, rcond=None)
         return np.asarray(x, dtype=np.float64)
 
@@ -608,7 +608,9 @@ class SecondOrderModel(LinearROM):
         return issues
 
     def state_from_output(self, y: ArrayLike, u: ArrayLike | None = None) -> Array:
-        dy = np.asarray(y, dtype=np.float64) - self.y_ref
+        dy = _arr('y', y, (self.n_outputs,)) - self.y_ref
+        if u is not None:
+            _arr('u', u, (self.n_inputs,))
         q, *_ = np.linalg.lstsq(self.E, dy, rcond=None)
         return np.concatenate([q, np.zeros(self.r)])
 

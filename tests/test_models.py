@@ -109,6 +109,18 @@ def test_step_and_output_refuse_a_vector_mixed_with_columns() -> None:
                                    rtol=0, atol=1e-12)
 
 
+def test_state_from_output_names_a_wrong_or_non_finite_measurement() -> None:
+    for model in (_discrete(), _second_order()):
+        p, m = model.n_outputs, model.n_inputs
+        with pytest.raises(DimensionError, match=re.escape(f'y must have shape ({p},)')):
+            model.state_from_output(np.zeros(p + 1))
+        with pytest.raises(DimensionError, match='y contains NaN or Inf'):
+            model.state_from_output(np.full(p, np.nan))
+        with pytest.raises(DimensionError, match=re.escape(f'u must have shape ({m},)')):
+            model.state_from_output(model.y_ref, np.zeros(m + 1))
+        assert np.abs(model.state_from_output(model.y_ref)).max() < 1e-12
+
+
 def test_inputs_that_are_not_real_numbers_are_named() -> None:
     """Complex, ragged or text inputs get a DimensionError naming the signal, not a cast."""
     model = _second_order()
