@@ -26,7 +26,7 @@ model of the class the file names (:func:`register_model_class`).
 from __future__ import annotations
 
 import ast
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 import hashlib
 import json
 import math
@@ -191,8 +191,27 @@ def _read_member(path: Path, zf: zipfile.ZipFile, info: zipfile.ZipInfo,
     return arr
 
 
+def _explain_refusal(path: Path, zf: zipfile.ZipFile, first: str,
+                     explain: Callable[[NDArray[Any]], None]) -> None:
+    """Hand the entry ``first`` (the metadata) to ``explain`` if it reads as a small array."""
+    try:
+        info = zf.getinfo(f'{first}.npy')
+    except KeyError:
+        return
+    if (info.file_size > MAX_JSON_BYTES + MAX_HEADER_BYTES + 16 or info.flag_bits & 0x1
+            or info.compress_type not in _ZIP_METHODS):
+        return
+    try:
+        arr = _read_member(path, zf, info, first)
+    except Exception:  # noqa: BLE001  (unreadable: the refusal as it was stands)
+        return
+    explain(arr)
+
+
 def read_archive(path: str | os.PathLike[str], allowed: Collection[str],
-                 first: str | None = None) -> dict[str, NDArray[Any]]:
+                 first: str | None = None,
+                 explain: Callable[[NDArray[Any]], None] | None = None
+                 ) -> dict[str, NDArray[Any]]:
     """Read the arrays of a model archive, checking every size before reading.
 
     Parameters
@@ -203,6 +222,10 @@ def read_archive(path: str | os.PathLike[str], allowed: Collection[str],
         Entry names (without ``.npy``) that may appear; any other refuses the file.
     first : str, optional
         Name of an entry that must be present.
+    explain : callable, optional
+        When the archive holds an entry not in ``allowed`` (a file of a newer format with
+        arrays this version does not know), called with the entry ``first`` (if it is
+        there and small) before the refusal; it may raise a clearer ``ModelFileError``.
 
     Returns
     -------
@@ -224,7 +247,12 @@ def read_archive(path: str | os.PathLike[str], allowed: Collection[str],
                           f'reads ({MAX_ARCHIVE_BYTES // 2**20} MiB of arrays).')
     try:
         with zipfile.ZipFile(path) as zf:
-            entries = _check_directory(path, zf.infolist(), allowed)
+            try:
+                entries = _check_directory(path, zf.infolist(), allowed)
+            except ModelFileError:
+                if explain is not None and first is not None:
+                    _explain_refusal(path, zf, first, explain)
+                raise
             if first is not None and first not in entries:
                 raise _fail(path, f'not a soft_rom model file (no {first} entry); write '
                                   'models with LinearROM.save().')
@@ -421,6 +449,29 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
     return h.hexdigest()
 
 
+def _header_of(path: Path, meta_arr: NDArray[Any]) -> dict[str, Any]:
+    """The metadata document of a model file, which must declare the model format."""
+    if meta_arr.dtype != np.uint8 or meta_arr.ndim != 1:
+        raise ModelFileError(f'{path}: metadata entry must be a 1-D uint8 array.')
+    header = parse_json(path, meta_arr.tobytes())
+    if not isinstance(header, dict) or header.get('format') != FORMAT_NAME:
+        raise ModelFileError(f'{path}: metadata does not declare format {FORMAT_NAME!r}.')
+    return header
+
+
+def _check_version(path: Path, header: dict[str, Any]) -> int:
+    version = header.get('format_version')
+    if not isinstance(version, int) or isinstance(version, bool):
+        raise ModelFileError(f'{path}: model file format version must be an integer; got '
+                             f'{json.dumps(version)[:30]}.')
+    if version not in READ_VERSIONS:
+        raise ModelFileError(
+            f'{path}: model file format version {str(version)[:20]} is not supported by this '
+            f'soft_rom (it reads versions {", ".join(map(str, READ_VERSIONS))}); upgrade '
+            'soft_rom or re-export the model.')
+    return version
+
+
 def load_model(path: str | os.PathLike[str], *, strict: bool = False) -> LinearROM:
     """Load a model file written by :meth:`LinearROM.save`, without executing any code.
 
@@ -459,22 +510,22 @@ def load_model(path: str | os.PathLike[str], *, strict: bool = False) -> LinearR
     allowed = {_META_KEY, 'y_ref'}
     for known in _CLASSES.values():
         allowed.update(known._matrix_names, known._optional_matrices)
-    raw = read_archive(path, allowed, first=_META_KEY)
-    meta_arr = raw.pop(_META_KEY)
-    if meta_arr.dtype != np.uint8 or meta_arr.ndim != 1:
-        raise ModelFileError(f'{path}: metadata entry must be a 1-D uint8 array.')
-    header = parse_json(path, meta_arr.tobytes())
-    if not isinstance(header, dict) or header.get('format') != FORMAT_NAME:
-        raise ModelFileError(f'{path}: metadata does not declare format {FORMAT_NAME!r}.')
-    version = header.get('format_version')
-    if not isinstance(version, int) or isinstance(version, bool):
-        raise ModelFileError(f'{path}: model file format version must be an integer; got '
-                             f'{json.dumps(version)[:30]}.')
-    if version not in READ_VERSIONS:
-        raise ModelFileError(
-            f'{path}: model file format version {str(version)[:20]} is not supported by this '
-            f'soft_rom (it reads versions {", ".join(map(str, READ_VERSIONS))}); upgrade '
-            'soft_rom or re-export the model.')
+
+    def newer(meta: NDArray[Any]) -> None:
+        """Arrays this version does not know: say so if the metadata is of a newer one."""
+        try:
+            header = _header_of(path, meta)
+        except ModelFileError:
+            return
+        _check_version(path, header)
+        if str(header.get('class'))[:100] not in _CLASSES:
+            raise ModelFileError(f'{path}: unknown model class '
+                                 f'{str(header.get("class"))[:60]!r} (a newer soft_rom may '
+                                 'read it).')
+
+    raw = read_archive(path, allowed, first=_META_KEY, explain=newer)
+    header = _header_of(path, raw.pop(_META_KEY))
+    version = _check_version(path, header)
     cls = _CLASSES.get(str(header.get('class'))[:100])
     if cls is None:
         raise ModelFileError(f'{path}: unknown model class {str(header.get("class"))[:60]!r}.')

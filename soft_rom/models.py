@@ -152,6 +152,20 @@ def _leading(name: str, value: ArrayLike, n: int) -> Array:
     return a
 
 
+def _state_and_input(x: ArrayLike, u: ArrayLike, n: int, m: int) -> tuple[Array, Array]:
+    """``x`` (n,) with ``u`` (m,), or ``x`` (n, k) with ``u`` (m, k): never mixed.
+
+    Mixed shapes broadcast into nonsense (``x`` (n,) with ``u`` (m, 1) gives an (n, n)
+    "state"), so they are refused.
+    """
+    xs, us = _leading('x', x, n), _leading('u', u, m)
+    if xs.shape[1:] != us.shape[1:]:
+        raise DimensionError(f'x has shape {xs.shape} and u {us.shape}: give both as vectors '
+                             f'(({n},) and ({m},)) or both with k columns (({n}, k) and '
+                             f'({m}, k)).')
+    return xs, us
+
+
 def _state_input_output(square: tuple[str, ArrayLike], inp: tuple[str, ArrayLike],
                         out: tuple[str, ArrayLike]) -> tuple[Array, Array, Array, int]:
     """The constructors' shape checks: ``square (r, r)``, ``inp (r, m)``, ``out (p, r)``."""
@@ -295,17 +309,20 @@ class LinearROM(ABC):
         dt : float, optional
             Step length; default the native :attr:`dt`.
         """
+        xs, us = _state_and_input(x, u, self.n_states, self.n_inputs)
         sys_ = self.system if dt is None else self.discretize(dt)
-        return (sys_.A @ _leading('x', x, self.n_states)
-                + sys_.B @ _leading('u', u, self.n_inputs))
+        return sys_.A @ xs + sys_.B @ us
 
     def output(self, x: ArrayLike, u: ArrayLike | None = None) -> Array:
         """Absolute output ``y = C x + D u + y_ref``, shape (p,)."""
         sys_ = self.system
-        xs = _leading('x', x, self.n_states)
+        if u is None:
+            xs = _leading('x', x, self.n_states)
+        else:
+            xs, us = _state_and_input(x, u, self.n_states, self.n_inputs)
         y = sys_.C @ xs + (self.y_ref if xs.ndim == 1 else self.y_ref[:, None])
         if u is not None:
-            y = y + sys_.D @ _leading('u', u, self.n_inputs)
+            y = y + sys_.D @ us
         return y
 
     def simulate(self, U: ArrayLike, x0: ArrayLike | None = None, *,
@@ -341,9 +358,9 @@ class LinearROM(ABC):
 
         For the second-order model only ``q`` is observed; the velocity is set to zero.
         """
-        dy = np.asarray(y, dtype=np.float64) - self.y_ref
+        dy = _arr('y', y, (self.n_outputs,)) - self.y_ref
         if u is not None:
-            dy = dy - self.system.D @ np.asarray(u, dtype=np.float64)
+            dy = dy - self.system.D @ _arr('u', u, (self.n_inputs,))
         x, *_ = np.linalg.lstsq(self.system.C, dy, rcond=None)
         return np.asarray(x, dtype=np.float64)
 
@@ -591,7 +608,9 @@ class SecondOrderModel(LinearROM):
         return issues
 
     def state_from_output(self, y: ArrayLike, u: ArrayLike | None = None) -> Array:
-        dy = np.asarray(y, dtype=np.float64) - self.y_ref
+        dy = _arr('y', y, (self.n_outputs,)) - self.y_ref
+        if u is not None:
+            _arr('u', u, (self.n_inputs,))
         q, *_ = np.linalg.lstsq(self.E, dy, rcond=None)
         return np.concatenate([q, np.zeros(self.r)])
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import zipfile
 
 import numpy as np
@@ -90,6 +91,34 @@ def test_step_and_output_name_a_wrong_state_or_input() -> None:
         np.testing.assert_allclose(Y[:, 1], model.output(X[:, 1]), rtol=0, atol=1e-12)
         np.testing.assert_allclose(model.step(X, np.zeros((m, 3)))[:, 2],
                                    model.step(X[:, 2], u), rtol=0, atol=1e-12)
+
+
+def test_step_and_output_refuse_a_vector_mixed_with_columns() -> None:
+    """``u`` as a column (MATLAB habit) with a vector ``x`` broadcast to an (n, n) "state"."""
+    for model in (_discrete(), _second_order()):
+        n, m = model.n_states, model.n_inputs
+        x, u = np.ones(n), np.ones(m)
+        for xs, us in ((x, u[:, None]), (x[:, None], u), (np.ones((n, 3)), np.ones((m, 2))),
+                       (np.ones((n, 2)), u)):
+            with pytest.raises(DimensionError,
+                               match=re.escape(f'x has shape {xs.shape} and u {us.shape}')):
+                model.step(xs, us)
+            with pytest.raises(DimensionError, match='give both as vectors'):
+                model.output(xs, us)
+        np.testing.assert_allclose(model.step(x[:, None], u[:, None])[:, 0], model.step(x, u),
+                                   rtol=0, atol=1e-12)
+
+
+def test_state_from_output_names_a_wrong_or_non_finite_measurement() -> None:
+    for model in (_discrete(), _second_order()):
+        p, m = model.n_outputs, model.n_inputs
+        with pytest.raises(DimensionError, match=re.escape(f'y must have shape ({p},)')):
+            model.state_from_output(np.zeros(p + 1))
+        with pytest.raises(DimensionError, match='y contains NaN or Inf'):
+            model.state_from_output(np.full(p, np.nan))
+        with pytest.raises(DimensionError, match=re.escape(f'u must have shape ({m},)')):
+            model.state_from_output(model.y_ref, np.zeros(m + 1))
+        assert np.abs(model.state_from_output(model.y_ref)).max() < 1e-12
 
 
 def test_inputs_that_are_not_real_numbers_are_named() -> None:
@@ -207,6 +236,28 @@ def test_bad_files_are_refused(tmp_path, case, match) -> None:
         _rewrite(good, bad, header_update={'format': 'something.else'})
     with pytest.raises(ModelFileError, match=match):
         load_model(bad)
+
+
+def test_a_newer_file_with_arrays_this_version_does_not_know_says_it_is_newer(tmp_path) -> None:
+    """As the cubic model's G and H were to the soft_rom before it: not "not a model file"."""
+    good = _second_order().save(tmp_path / 'good.npz')
+    newer = tmp_path / 'newer.npz'
+    _rewrite(good, newer, arrays={'N': np.eye(4)},
+             header_update={'format_version': 99, 'class': 'FutureModel'})
+    with pytest.raises(ModelFileError, match='format version 99 is not supported by this '
+                                             'soft_rom.*upgrade soft_rom'):
+        load_model(newer)
+    _rewrite(good, newer, arrays={'N': np.eye(4)}, header_update={'class': 'FutureModel'})
+    with pytest.raises(ModelFileError, match="unknown model class 'FutureModel' "
+                                             r'\(a newer soft_rom may read it\)'):
+        load_model(newer)
+    # an extra entry in a file that is no newer, or no model file at all: refused as before
+    _rewrite(good, newer, arrays={'N': np.eye(4)})
+    with pytest.raises(ModelFileError, match="unexpected archive entry 'N.npy'"):
+        load_model(newer)
+    np.savez(newer, a=np.eye(2))
+    with pytest.raises(ModelFileError, match="unexpected archive entry 'a.npy'"):
+        load_model(newer)
 
 
 def test_missing_and_corrupt_files(tmp_path) -> None:

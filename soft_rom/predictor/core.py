@@ -46,11 +46,12 @@ Bad values (each counted in :attr:`Predictor.counters`)
   reset to the reference when ``auto_reset``;
 * more than ``max_catchup_steps`` due at once (clock stall or jump): ``catchup_skipped``
   steps skipped, ``clock_jump`` counted, ``WARN``;
-* measurements of wrong size, non-finite, outside the output envelope, too old for the
+* measurements with a bad time, of wrong size, non-finite (one NaN, e.g. an occluded
+  marker, drops the whole measurement), outside the output envelope, too old for the
   history, or stamped more than ``clock_reset_s`` ahead of the model time (a clock the
-  model will not reach soon; ``0``: no horizon): ``measured_dropped``, the last two with
-  the reason (``WARN``). At most :data:`MAX_QUEUED_MEASUREMENTS` measurements wait for
-  their step (``'event'``); one more is dropped the same way.
+  model will not reach soon; ``0``: no horizon): ``measured_dropped``; all but the
+  too-old ones with the reason (``WARN``). At most :data:`MAX_QUEUED_MEASUREMENTS`
+  measurements wait for their step (``'event'``); one more is dropped the same way.
 
 With ``kalman=True`` a measurement at the current step corrects the state with a
 steady-state Kalman gain designed on the discretized model.
@@ -129,6 +130,16 @@ class Predictor(Stepping):
         Counts every :meth:`reset` (a restarted clock, ``reset()``, a reload): model time
         starts over, possibly earlier than before. Whoever schedules on model time (the
         runtime loop) compares it with the value it last saw and re-anchors.
+
+    Notes
+    -----
+    Not thread-safe: calls that feed or move it (inputs, measurements, ``advance_to*``,
+    ``step``, ``reset``, ``reload``, ``set_config``) must come from one thread at a time
+    (hold a lock of your own around them). Reading from another thread does not disturb
+    the one that steps it: each step binds a new state array that is never written again
+    (a reference to :attr:`x` stays the state of its step), and :meth:`output` without
+    ``out`` returns a new array computed from the state alone. For a state, input and
+    time that belong together, read them under the same lock.
     """
 
     def __init__(self, model: Any, config: PredictorConfig | None = None) -> None:
@@ -150,7 +161,6 @@ class Predictor(Stepping):
     def _init_buffers(self) -> None:
         d = self._dyn
         self.x = d.initial_state()
-        self._xn = np.zeros(d.n)
         self.u = np.zeros(d.m)
         self._Bu = np.zeros(d.n)
         self._y = np.zeros(d.p)
@@ -443,6 +453,8 @@ class Predictor(Stepping):
         t = to_ns(stamp)
         if t is None:
             self.counters['measured_dropped'] += 1
+            self._alarm('measured', None, 'measurement dropped: time not finite or out of '
+                                          'range')
             return None
         return self.measure_ns(y, t)
 
@@ -465,16 +477,28 @@ class Predictor(Stepping):
         """
         y = np.array(y, dtype=np.float64)
         d = self._dyn
-        if not _ok_ns(stamp_ns) or y.shape != (d.p,):
+        if not _ok_ns(stamp_ns):
             self.counters['measured_dropped'] += 1
+            self._alarm('measured', None, 'measurement dropped: time not finite or out of '
+                                          'range')
             return None
         stamp_ns = int(stamp_ns)
-        dev = float(np.max(np.abs(y - d.y_ref))) if d.p else 0.0
-        if not self._env.output_ok(dev):            # NaN and Inf fail it too
+        if y.shape != (d.p,):
             self.counters['measured_dropped'] += 1
-            if _finite(y):
-                self._alarm('measured', stamp_ns, f'measurement outside the output envelope '
-                                                  f'(max |y - y_ref| = {dev:.3g})')
+            self._alarm('measured', stamp_ns, f'measurement of shape {y.shape} dropped; '
+                                              f'the model has {d.p} outputs')
+            return None
+        if not _finite(y):
+            self.counters['measured_dropped'] += 1
+            bad = int(np.count_nonzero(~np.isfinite(y)))
+            self._alarm('measured', stamp_ns, f'measurement with {bad} NaN/Inf value(s) of '
+                                              f'{d.p} dropped')
+            return None
+        dev = float(np.max(np.abs(y - d.y_ref))) if d.p else 0.0
+        if not self._env.output_ok(dev):
+            self.counters['measured_dropped'] += 1
+            self._alarm('measured', stamp_ns, f'measurement outside the output envelope '
+                                              f'(max |y - y_ref| = {dev:.3g})')
             return None
         if self._k is not None and self._ahead(stamp_ns, self._k):
             return None
@@ -516,7 +540,7 @@ class Predictor(Stepping):
         d = self._dyn
         current = k == self._k
         if current and self._awaiting_init:
-            self.x[:] = self.model.state_from_output(y, self.u)
+            self.x = np.array(self.model.state_from_output(y, self.u), dtype=np.float64)
             self._awaiting_init = False
         if current:
             yhat = self._output_into(self._y)
@@ -535,7 +559,7 @@ class Predictor(Stepping):
         self.totals[1] += float(y @ y)
         self.totals[2] += float(self._dev @ self._dev)
         if d.L is not None and current:
-            self.x += d.L @ self._dy
+            self.x = self.x + d.L @ self._dy      # a new array (see step)
         self.counters['measurements'] += 1
         self.channels.measured_one(stamp_ns)
         return self.windowed_error()

@@ -352,7 +352,7 @@ class RuntimeLoop:
         pred = self.predictor
         if arr.ndim == 2:
             if arr.shape[1] != 3 or arr.shape[0] != self._n_points:
-                pred.counters['measured_dropped'] += 1
+                pred.measure_ns(arr, self._stamp(stamp_ns, now_ns))   # dropped, said
                 return self._collect(now_ns)
             arr = points_to_outputs(arr, self.settings.components)
         before = pred.counters['measured_dropped']

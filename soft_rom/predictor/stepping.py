@@ -58,7 +58,6 @@ class Stepping:
     _queued_measurements: int
     _seq: int
     _newest: int
-    _xn: Array
     _Bu: Array
     _y: Array
     _dev: Array
@@ -184,9 +183,11 @@ class Stepping:
         """One step ``h`` with the held inputs (the hot path; no checks)."""
         d = self._dyn
         if d.linear:
-            np.dot(d.A, self.x, out=self._xn)
-            self._xn += self._Bu
-            self.x, self._xn = self._xn, self.x
+            # a new array each step, never written again: a reference to ``x`` kept by the
+            # caller (a history, another thread) stays the state of its step
+            xn = d.A @ self.x
+            xn += self._Bu
+            self.x = xn
         else:
             self.x = d.stepper(self.x, self.u)
         self.counters['steps'] += 1
@@ -316,9 +317,14 @@ class Stepping:
         return y
 
     def output(self, out: Array | None = None) -> Array:
-        """Predicted absolute output at the model time, shape (p,)."""
-        y = self._output_into(self._y if out is None else out)
-        return y if out is not None else y.copy()
+        """Predicted absolute output at the model time, shape (p,).
+
+        Without ``out`` a new array; reads the state only (no scratch buffer of the
+        predictor is written, so a reader does not disturb the thread that steps it).
+        """
+        if out is None:
+            out = np.empty(self._dyn.p)
+        return self._output_into(out)
 
     def _check_output(self, t_ns: int | None, y: Array | None = None) -> bool:
         """Divergence check; returns False if the state was found outside the envelope."""

@@ -1,0 +1,111 @@
+"""The predictor inside a controller's own loop (no ROS): references, threads, bad data."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from soft_rom.models import SecondOrderModel
+from soft_rom.predictor import Level, Predictor, PredictorConfig
+
+DT = 1e-3
+T0_NS = 1_700_000_000_000_000_000
+
+
+def _model(r: int = 4, m: int = 3, p: int = 8, seed: int = 0) -> SecondOrderModel:
+    rng = np.random.default_rng(seed)
+    M = rng.standard_normal((r, r))
+    K = (M @ M.T / r + 4.0 * np.eye(r)) * 100.0
+    return SecondOrderModel(K, 0.5 * np.eye(r) + 0.01 * K, rng.standard_normal((r, m)),
+                            rng.standard_normal((p, r)), dt=DT, y_ref=rng.standard_normal(p))
+
+
+def _inputs(model: SecondOrderModel, k: int, seed: int = 1) -> np.ndarray:
+    return np.random.default_rng(seed).standard_normal((model.n_inputs, k))
+
+
+def test_kept_state_references_stay_the_state_of_their_step() -> None:
+    model = _model()
+    U = _inputs(model, 200)
+    _, X = model.simulate(U, return_states=True)
+    pred = Predictor(model)
+    kept = []
+    for j in range(U.shape[1]):
+        pred.set_input_ns(U[:, j], T0_NS + j * 1_000_000)
+        kept.append(pred.x)                 # no copy, as a controller's history would
+    np.testing.assert_allclose(np.array(kept).T, X, rtol=0, atol=1e-12 * np.abs(X).max())
+
+
+def test_output_writes_nothing_the_stepping_uses() -> None:
+    model = _model()
+    pred = Predictor(model, PredictorConfig(kalman=True))
+    pred.set_input_ns(np.ones(model.n_inputs), T0_NS)
+    before = {k: v.copy() for k, v in vars(pred).items() if isinstance(v, np.ndarray)}
+    y = pred.output()
+    y[:] = np.nan                          # the caller owns what it got
+    after = {k: v for k, v in vars(pred).items() if isinstance(v, np.ndarray)}
+    assert before.keys() == after.keys()
+    for key, value in before.items():
+        np.testing.assert_array_equal(after[key], value, err_msg=key)
+    assert np.isfinite(pred.output()).all()
+
+
+def test_a_reader_thread_does_not_disturb_the_stepping_thread() -> None:
+    model = _model()
+    U = _inputs(model, 5000)
+    Y = model.simulate(U)
+    pred = Predictor(model)
+    stop = threading.Event()
+
+    def reader() -> None:
+        while not stop.is_set():
+            pred.output()
+
+    th = threading.Thread(target=reader)
+    th.start()
+    try:
+        out = np.empty_like(Y)
+        for j in range(U.shape[1]):
+            pred.set_input_ns(U[:, j], T0_NS + j * 1_000_000)
+            out[:, j] = pred.output()
+    finally:
+        stop.set()
+        th.join()
+    assert np.abs(out - Y).max() <= 1e-12 * np.abs(Y).max()
+    assert pred.counters['diverged'] == 0
+
+
+def _running(kalman: bool = True) -> tuple[SecondOrderModel, Predictor, np.ndarray]:
+    model = _model()
+    U = _inputs(model, 50)
+    pred = Predictor(model, PredictorConfig(kalman=kalman))
+    for j in range(U.shape[1]):
+        pred.set_input_ns(U[:, j], T0_NS + j * 1_000_000)
+    return model, pred, model.simulate(U)[:, -1]
+
+
+def test_an_occluded_marker_drops_the_measurement_and_says_so() -> None:
+    model, pred, y = _running()
+    x = pred.x
+    y_occluded = y.copy()
+    y_occluded[[1, 5]] = np.nan
+    assert pred.measure_ns(y_occluded, T0_NS + 49_000_000) is None
+    assert pred.counters['measured_dropped'] == 1 and pred.counters['measurements'] == 0
+    assert pred.x is x                      # no correction from a partial measurement
+    health = pred.health()
+    assert health.level == Level.WARN
+    assert 'measurement with 2 NaN/Inf value(s) of 8 dropped' in health.message
+    assert pred.measure_ns(y, T0_NS + 49_000_000) is not None   # a whole one is used
+
+
+def test_a_measurement_of_wrong_length_or_time_is_dropped_with_the_reason() -> None:
+    model, pred, y = _running()
+    assert pred.measure_ns(y[:-1], T0_NS + 49_000_000) is None
+    assert 'measurement of shape (7,) dropped; the model has 8 outputs' in pred.health().message
+    assert pred.health().level == Level.WARN
+    _, pred, y = _running()
+    assert pred.measure(y, float('nan')) is None
+    assert pred.measure_ns(y, 1.7e18) is None                    # float where int ns is due
+    assert pred.counters['measured_dropped'] == 2
+    assert 'time not finite or out of range' in pred.health().message
