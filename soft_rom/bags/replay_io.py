@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from rosbags.rosbag2 import Reader, StoragePlugin, Writer
+from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import get_typestore, Stores
 
 from soft_rom.data import Episode
@@ -410,18 +410,22 @@ def read_messages(path: str | os.PathLike[str],
 
 def read_messages_ns(path: str | os.PathLike[str],
                      topics: list[str] | None = None) -> Iterator[tuple[str, int, Any]]:
-    """Yield ``(topic, bag_time_ns, message)`` from any rosbag2 bag, in time order."""
-    try:
-        reader = Reader(Path(path))
-        reader.open()
-    except Exception as err:
-        raise BagError(f'cannot open bag {path}: {err}') from err
-    try:
-        conns = [c for c in reader.connections if topics is None or c.topic in topics]
-        for conn, ns, raw in reader.messages(connections=conns):
-            yield conn.topic, int(ns), _TS.deserialize_cdr(raw, conn.msgtype)
-    finally:
-        reader.close()
+    """Yield ``(topic, bag_time_ns, message)`` from any rosbag2 bag, in time order.
+
+    ``topics``: only these (none of them in the bag: nothing); ``None``: every topic.
+    Through :class:`~soft_rom.bags.reader.BagReader`, so a bag is opened, checked and its
+    errors reported as ``convert`` does.
+    """
+    from soft_rom.bags.reader import BagReader
+    with BagReader(Path(path)) as bag:
+        names = list(bag.topics) if topics is None else list(topics)
+        for topic, msgtype, ns, raw in bag.raw(names):
+            try:
+                msg = _TS.deserialize_cdr(raw, msgtype)
+            except Exception as err:  # noqa: BLE001 - corrupt CDR raises many kinds
+                raise BagError(f'{topic} at log time {ns * 1e-9:.9f} s in bag {path}: cannot '
+                               f'decode {msgtype} ({type(err).__name__}: {err}).') from err
+            yield topic, ns, msg
 
 
 def replay_stream_to_bag(predictor: Predictor, bag: str | os.PathLike[str],

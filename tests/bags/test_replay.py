@@ -248,3 +248,24 @@ def test_replay_stamps_at_the_recordings_epoch_start(tmp_path) -> None:
     for _, _, m in read_messages(tmp_path / 'o', [f'{NODE}/centerline']):
         stamps.append(m.header.stamp.sec * 10 ** 9 + m.header.stamp.nanosec)
     assert stamps[0] == t0_ns and stamps[1] == t0_ns + 33 * 1_000_000    # exact int ns
+
+
+def test_stream_replay_of_topics_the_bag_lacks_reads_nothing(tmp_path) -> None:
+    """An empty topic selection is not "every topic" (rosbags reads every message for none).
+
+    The stream replay of topics the bag does not have feeds no message.
+    """
+    from soft_rom.bags.replay_io import read_messages_ns, replay_stream_to_bag
+
+    model = _model()
+    ep = _episode(model, k=60)
+    bag = write_input_bag(tmp_path / 'in', ep, storage='sqlite3')
+    assert list(read_messages_ns(bag, ['/not/in/the/bag'])) == []
+    assert len(list(read_messages_ns(bag))) == sum(1 for _ in read_messages_ns(
+        bag, list({tp for tp, _, _ in read_messages_ns(bag)})))
+    summary = replay_stream_to_bag(Predictor(model), bag, tmp_path / 'pred',
+                                   input_topics=[f'/rig/valve{i}' for i in range(3)],
+                                   measured_topic='/mocap/spine')
+    assert summary['messages'] == {'inputs': 0, 'measured': 0, 'published': 0}
+    with pytest.raises(FileNotFoundError, match='does not exist'):
+        list(read_messages_ns(tmp_path / 'missing'))
