@@ -665,6 +665,8 @@ class DiscreteModel(LinearROM):
         """
         if dt is None or abs(dt - self.dt) <= 1e-9 * self.dt:
             return DiscreteSystem(self.A, self.B, self.C, self.D, self.dt)
+        if not np.isfinite(dt) or dt <= 0:
+            raise DimensionError(f'dt must be positive; got {dt!r}.')
         ratio = dt / self.dt
         j = int(round(ratio))
         if j < 1 or abs(ratio - j) > 1e-6:

@@ -410,7 +410,21 @@ class CubicSecondOrderModel(LinearROM):
             Step length; default the native :attr:`dt`.
         """
         h = self.dt if dt is None else float(dt)
-        return self._advance(_vector('x', x, self.n_states), _vector('u', u, self.n_inputs), h)
+        return self._advance(*self._finite_step_args(x, u, h), h)
+
+    def _finite_step_args(self, x: ArrayLike, u: ArrayLike, h: float) -> tuple[Array, Array]:
+        """``x``, ``u`` as vectors; refused when not finite, and a ``dt`` that is not positive.
+
+        The implicit step has no answer for them (its sub-stepping would end in a misleading
+        "did not converge").
+        """
+        xs, us = _vector('x', x, self.n_states), _vector('u', u, self.n_inputs)
+        for name, a in (('x', xs), ('u', us)):
+            if not np.all(np.isfinite(a)):
+                raise DimensionError(f'{name} must be finite; got {a.tolist()!r}.')
+        if not (np.isfinite(h) and h > 0):
+            raise DimensionError(f'dt must be positive; got {h!r}.')
+        return xs, us
 
     def step_jacobian(self, x: ArrayLike, u: ArrayLike, dt: float | None = None
                       ) -> tuple[Array, Array, Array]:
@@ -422,9 +436,8 @@ class CubicSecondOrderModel(LinearROM):
         A : ndarray, shape (2r, 2r)
         Bu : ndarray, shape (2r, m)
         """
-        x = _vector('x', x, self.n_states)
-        u = _vector('u', u, self.n_inputs)
         h = self.dt if dt is None else float(dt)
+        x, u = self._finite_step_args(x, u, h)
         cache = self.step_cache(h)
         out = self._solve_step(cache, x, cache.Bd @ u, None)
         if out is None:               # fall back to the sub-stepped map, linearized

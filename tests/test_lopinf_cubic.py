@@ -315,3 +315,29 @@ def test_conic_certificate_is_the_gram_matrix_bound() -> None:
     model = CubicSecondOrderModel(sol.K, sol.C, sol.G, sol.H, sol.B, base.E, dt=DT)
     res = Qdd + sol.C @ Qd + np.column_stack([model.force(q) for q in Q.T]) - sol.B @ U
     assert np.max(np.abs(res @ U.T)) <= 1e-6 * np.linalg.norm(res) * np.linalg.norm(U)
+
+
+def test_step_with_a_non_finite_state_input_or_dt_is_named() -> None:
+    """A NaN input, state or dt is refused at once.
+
+    Not after a sub-stepping search that ended in "did not converge (state norm 0)"; the
+    discrete linear models name a NaN dt.
+    """
+    from soft_rom.models import DiscreteModel
+
+    model = duffing_chain(3)
+    x, u = model.initial_state(), np.zeros(model.n_inputs)
+    for bad_x, bad_u, what in ((x, np.array([np.nan, 0.0]), 'u must be finite'),
+                               (np.full(x.shape, np.inf), u, 'x must be finite')):
+        with pytest.raises(DimensionError, match=what):
+            model.step(bad_x, bad_u)
+        with pytest.raises(DimensionError, match=what):
+            model.step_jacobian(bad_x, bad_u)
+    for dt in (float('nan'), -DT, 0.0):
+        with pytest.raises(DimensionError, match='dt must be positive'):
+            model.step(x, u, dt=dt)
+    assert np.all(np.isfinite(model.step(x, np.ones(model.n_inputs))))
+    disc = DiscreteModel(0.5 * np.eye(2), np.ones((2, 1)), np.ones((1, 2)), np.zeros((1, 1)),
+                         dt=0.01)
+    with pytest.raises(DimensionError, match='dt must be positive'):
+        disc.step(np.zeros(2), np.zeros(1), dt=float('nan'))
