@@ -243,11 +243,13 @@ def _units_text(units: Sequence[str]) -> str:
     return units[0] if len(set(units)) == 1 else str(list(units))
 
 
-def check_model_matches_data(model: Any, label: str, data: str, *,
+def check_model_matches_data(model: Any, label: str, data: str, *, counts: tuple[int, int],
                              input_units: Sequence[str] | None,
                              output_units: Sequence[str] | None,
                              layout: Any | None) -> None:
-    """Refuse data whose input/output units or output layout differ from the model's.
+    """Refuse data whose input/output counts, units or output layout differ from the model's.
+
+    ``counts``: the data's numbers of inputs and outputs (0 outputs: none recorded, accepted).
 
     The counts may agree while the numbers mean something else (kPa fed to a model fitted
     in Pa, a point-major or ``xy`` centerline to a component-major ``xz`` model): the
@@ -267,9 +269,14 @@ def check_model_matches_data(model: Any, label: str, data: str, *,
     layout : OutputLayout, optional
         The data's output layout.
     """
-    from soft_rom.errors import ConfigError
+    from soft_rom.errors import ConfigError, DimensionError
     from soft_rom.layout import layout_of
 
+    m, p = counts
+    if model.n_inputs != m or p not in (0, model.n_outputs):
+        raise DimensionError(
+            f'{label}: the model has {model.n_inputs} inputs and {model.n_outputs} outputs but '
+            f'{data} has {m} inputs and {p} outputs; use data of the same layout.')
     for kind, mine, theirs in (('inputs', list(model.input_units), input_units),
                                ('outputs', list(model.output_units), output_units)):
         if theirs is None or len(theirs) != len(mine):

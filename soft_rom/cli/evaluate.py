@@ -68,12 +68,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def _check_layout(model: LinearROM, path: str, ts: Any) -> None:
-    m, p = len(ts.input_names), len(ts.output_names)
-    if model.n_inputs != m or model.n_outputs != p:
-        raise DimensionError(
-            f'{path}: the model has {model.n_inputs} inputs and {model.n_outputs} outputs but '
-            f'the data have {m} inputs and {p} outputs; evaluate it on data of the same layout.')
     check_model_matches_data(model, path, f'the training set {ts.path}',
+                             counts=(len(ts.input_names), len(ts.output_names)),
                              input_units=ts.input_units, output_units=ts.output_units,
                              layout=ts.output_layout)
 

@@ -105,12 +105,8 @@ def _read(bag: str, mapping_path: str | None, model: Any,
 
     episode, report = read_episode(bag, load_mapping(mapping_path))
     meta = episode.metadata
-    if episode.U.shape[0] != model.n_inputs or episode.Y.shape[0] not in (0, model.n_outputs):
-        raise ConfigError(f'{model_path}: the model has {model.n_inputs} inputs and '
-                          f'{model.n_outputs} outputs but the bag {bag} gives '
-                          f'{episode.U.shape[0]} inputs and {episode.Y.shape[0]} outputs; '
-                          'replay it with a model of the same layout (or --mapping).')
     check_model_matches_data(model, str(model_path), f'the bag {bag}',
+                             counts=(episode.U.shape[0], episode.Y.shape[0]),
                              input_units=meta.get('input_units'),
                              output_units=meta.get('output_units'), layout=None)
     return episode, report, replay_components(layout_of(model.metadata),
