@@ -39,13 +39,15 @@ def _peak_memory_mb() -> dict[str, float]:
     return {'study process': own, 'largest child process (simulation)': kids}
 
 
-def _episodes(path: Path) -> tuple[list[Episode], np.ndarray | None, np.ndarray]:
-    """The episodes of a training set in episode order, states in memory."""
+def _episodes(path: Path, states: bool = True
+              ) -> tuple[list[Episode], np.ndarray | None, np.ndarray]:
+    """The episodes of a training set in episode order, states in memory (or dropped)."""
     from soft_rom.dataset import TrainingSet
     from soft_rom.study.run import _in_memory
     ts = TrainingSet.open(path)
     names = sorted(ts.episode_names, key=lambda s: int(s[2:]) if s[2:].isdigit() else 0)
-    eps = [_in_memory(ts[name]) for name in names]
+    eps = [_in_memory(ts[name]) if states else
+           Episode(t=ts[name].t, U=ts[name].U, Y=ts[name].Y, name=name) for name in names]
     q_ref = np.asarray(ts.q_ref, dtype=np.float64) if ts.q_ref is not None else None
     return eps, q_ref, np.asarray(ts.y_ref, dtype=np.float64)
 
@@ -137,7 +139,7 @@ def load_curve_data(root: Path, cfg: CurveConfig, amplitude: float, *,
     if 'era' in cfg.methods:
         long_z = _recorded_set(root, bags, tag, 'long', cfg, amplitude, 1, cfg.seed + 2,
                                n_max * cfg.duration, progress)
-        long = _episodes(long_z)[0][0]
+        long = _episodes(long_z, states=False)[0][0]
     test = [Episode(t=ep.t, U=ep.U, Y=ep.Y, name=ep.name) for ep in test]   # no states
     return CurveData(train=train, test=test, q_ref=q_ref, y_ref=y_ref, long=long,
                      info={'amplitude_pa': float(amplitude), 'tag': tag})
