@@ -25,11 +25,11 @@ ROS_PACKAGES = {
 # `rosdep install` fail for everyone).
 VERIFIED_ROSDEP_KEYS = {
     'python3-numpy', 'python3-scipy', 'python3-yaml', 'python3-matplotlib', 'python3-tqdm',
-    'python3-cvxpy-pip', 'python3-rosbags-pip', 'python3-pytest',
+    'python3-cvxpy-pip', 'python3-rosbags-pip', 'python3-pytest', 'python3-hypothesis',
 }
 # Dependencies without any rosdep key (no zarr key of any spelling exists): setup.py
 # requires them, package.xml says in a comment how to get them, and so does the README.
-NO_ROSDEP_KEY = {'zarr': "pip install 'zarr>=2.16'"}
+NO_ROSDEP_KEY = {'zarr': "pip install 'zarr>=2.16'", 'daqp': "pip install 'daqp>=0.8.7'"}
 
 # Python import name -> the rosdep key / ROS package that provides it (None: NO_ROSDEP_KEY).
 ROSDEP_OF = {
@@ -41,6 +41,7 @@ ROSDEP_OF = {
     'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'yaml': 'python3-yaml',
     'matplotlib': 'python3-matplotlib', 'tqdm': 'python3-tqdm',
     'cvxpy': 'python3-cvxpy-pip', 'rosbags': 'python3-rosbags-pip', 'zarr': None,
+    'daqp': None, 'osqp': 'python3-cvxpy-pip',      # osqp: a dependency of cvxpy
 }
 # Imported lazily for extras (dask, mesh); clarabel is the cvxpy solver cvxpy installs;
 # threadpoolctl, when installed, limits BLAS threads during ERA/OKID fits.

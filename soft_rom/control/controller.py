@@ -1,0 +1,212 @@
+"""The controller core: estimator + MPC + reference, with the safety rules of the node.
+
+:class:`Controller` is what both the in-process closed loop (:mod:`soft_rom.control.loop`)
+and the ROS node (``ros2 run soft_rom controller``) run. It never raises on bad data and
+never returns a command outside the bounds or not finite:
+
+* a measurement of the wrong size, with NaN/Inf, or older than the last one is dropped
+  (counted, with the reason);
+* a reference of the wrong size, with NaN/Inf, or ending before the current time is
+  refused; the one in force stays;
+* without a measurement yet (``missing``), or with none for ``stale_after`` seconds
+  (``stale``), the last command is held (clipped into the bounds);
+* an infeasible or failed QP holds the last command (clipped into the bounds).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+import time
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from soft_rom.control.estimator import EstimatorConfig, OffsetFreeEstimator
+from soft_rom.control.mpc import MPC, MPCConfig
+from soft_rom.control.reference import Reference
+from soft_rom.errors import DimensionError
+
+__all__ = ['Command', 'Controller']
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Command:
+    """One control step's result.
+
+    Attributes
+    ----------
+    u : ndarray, shape (m,)
+        The command (finite, within the bounds).
+    status : str
+        ``'ok'``, ``'missing'`` (no measurement yet), ``'stale'``, ``'no_reference'``,
+        ``'infeasible'`` or ``'failed'`` (QP).
+    solve_s : float
+        QP solve wall time (0 when none ran).
+    step_s : float
+        Whole control step wall time (estimate, reference, solve).
+    saturated : int
+        Inputs at a bound.
+    tracking_error : float
+        ``||y_est - r|| / sqrt(p)`` at the step (RMS over outputs, output units; NaN
+        without a reference).
+    detail : str
+    """
+
+    u: Array
+    status: str
+    solve_s: float = 0.0
+    step_s: float = 0.0
+    saturated: int = 0
+    tracking_error: float = float('nan')
+    detail: str = ''
+
+
+@dataclass
+class _Counters:
+    measurements: int = 0
+    measurements_dropped: int = 0
+    references_refused: int = 0
+    steps: int = 0
+    qp_failed: int = 0
+    qp_infeasible: int = 0
+    held: int = 0
+    last_problem: str = ''
+    by_status: dict[str, int] = field(default_factory=dict)
+
+
+class Controller:
+    """MPC with an offset-free estimator on a linear ROM.
+
+    Parameters
+    ----------
+    model : LinearROM
+    mpc : MPCConfig, optional
+    estimator : EstimatorConfig, optional
+    stale_after : float
+        Seconds without a measurement after which the command is held (default 0.1 s).
+    """
+
+    def __init__(self, model: Any, mpc: MPCConfig | None = None,
+                 estimator: EstimatorConfig | None = None, *, stale_after: float = 0.1) -> None:
+        self.model = model
+        self.mpc = MPC(model, mpc)
+        self.estimator = OffsetFreeEstimator(model, estimator)
+        self.stale_after = float(stale_after)
+        self.reference: Reference | None = None
+        self.u = self.mpc.fallback(np.zeros(self.mpc.m))
+        self.t_measured: float | None = None
+        self.started = False
+        self.counters = _Counters()
+
+    @property
+    def h(self) -> float:
+        """Control step (s)."""
+        return self.mpc.h
+
+    def start(self, t: float) -> None:
+        """Anchor the estimator at time ``t`` at rest, with the current command held."""
+        self.estimator.reset(t, self.u)
+        self.started = True
+
+    # -- inputs -------------------------------------------------------------------------
+    def set_reference(self, ref: Reference, now: float | None = None) -> str:
+        """Use ``ref`` from now on; returns ``''`` or why it was refused (the old one stays)."""
+        why = ''
+        if not isinstance(ref, Reference):
+            why = 'not a reference'
+        elif ref.n_outputs != self.mpc.p:
+            why = f'reference has {ref.n_outputs} outputs; the model has {self.mpc.p}'
+        elif not (np.all(np.isfinite(ref.Y)) and np.all(np.isfinite(ref.t))):
+            why = 'reference has NaN/Inf'
+        elif now is not None and ref.t[-1] < now and ref.t.size > 1:
+            why = f'reference ends at {ref.t[-1]:.3f} s, before now ({now:.3f} s)'
+        if why:
+            self.counters.references_refused += 1
+            self.counters.last_problem = why
+            return why
+        self.reference = ref
+        return ''
+
+    def measure(self, y: ArrayLike, t: float) -> str:
+        """A measured absolute output at time ``t``; returns ``''`` or why it was dropped."""
+        why = ''
+        try:
+            y = np.asarray(y, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            y = np.zeros(0)
+        if y.shape != (self.mpc.p,):
+            why = f'measurement of {y.size} values; the model has {self.mpc.p} outputs'
+        elif not np.all(np.isfinite(y)):
+            why = f'measurement with {int(np.count_nonzero(~np.isfinite(y)))} NaN/Inf value(s)'
+        elif not math.isfinite(t):
+            why = 'measurement time not finite'
+        elif self.t_measured is not None and t <= self.t_measured:
+            why = f'measurement at {t:.4f} s is not newer than the last ({self.t_measured:.4f} s)'
+        if why:
+            self.counters.measurements_dropped += 1
+            self.counters.last_problem = why
+            return why
+        if not self.started:
+            self.start(t)
+        self.estimator.predict_to(t)
+        self.estimator.correct(y)
+        self.t_measured = t
+        self.counters.measurements += 1
+        return ''
+
+    # -- the control step ---------------------------------------------------------------
+    def step(self, t: float) -> Command:
+        """The command to apply from time ``t`` for one control step."""
+        t0 = time.perf_counter()
+        self.counters.steps += 1
+        status, detail, solve_s, sat, err = 'ok', '', 0.0, 0, float('nan')
+        ref = self.reference
+        if self.t_measured is None:
+            status, detail = 'missing', 'no measurement yet: command held'
+        elif t - self.t_measured > self.stale_after:
+            status, detail = 'stale', (f'last measurement {t - self.t_measured:.3f} s old '
+                                       f'(> {self.stale_after:g} s): command held')
+        elif ref is None:
+            status, detail = 'no_reference', 'no reference: command held'
+        if status != 'ok' or ref is None:
+            u = self.mpc.fallback(self.u)
+        else:
+            est = self.estimator
+            est.predict_to(t)
+            times = t + self.h * np.arange(1, self.mpc.N + 1)
+            R = ref.at(times)
+            err = float(np.linalg.norm(est.output() - ref.at([t])[:, 0])
+                        / math.sqrt(self.mpc.p))
+            try:
+                res = self.mpc.solve(est.x, est.d, R, self.u)
+            except DimensionError as e:       # cannot happen with checked inputs; be safe
+                res = None
+                detail = str(e)
+            if res is None:
+                status, u = 'failed', self.mpc.fallback(self.u)
+            else:
+                solve_s = res.qp.seconds
+                u, sat = res.u, res.saturated
+                if not res.qp.ok:
+                    status = res.qp.status if res.qp.status == 'infeasible' else 'failed'
+                    detail = f'QP {res.qp.status} ({res.qp.detail}): command held'
+        if not np.all(np.isfinite(u)):         # belt and braces: never a NaN command
+            u = self.mpc.centre.copy()
+        u = np.clip(u, self.mpc.lo, self.mpc.hi)
+        if status in ('failed', 'infeasible'):
+            setattr(self.counters, f'qp_{status}', getattr(self.counters, f'qp_{status}') + 1)
+        if status != 'ok':
+            self.counters.held += 1
+            self.counters.last_problem = detail
+        self.counters.by_status[status] = self.counters.by_status.get(status, 0) + 1
+        self.u = u
+        if self.started:
+            self.estimator.predict_to(t)
+            self.estimator.set_input(u)
+        return Command(u=u.copy(), status=status, solve_s=solve_s,
+                       step_s=time.perf_counter() - t0, saturated=sat, tracking_error=err,
+                       detail=detail)
