@@ -20,6 +20,7 @@ ROS_WHEELS = [
     'ros-jazzy-geometry-msgs>=5.3',
     'ros-jazzy-visualization-msgs>=5.3',
     'ros-jazzy-diagnostic-msgs>=5.3',
+    'ros-jazzy-rosgraph-msgs>=2.0',
 ]
 
 setup(
@@ -67,6 +68,8 @@ setup(
         'console_scripts': [
             'soft-rom = soft_rom.cli:main',
             'predictor = soft_rom.ros:main',
+            'controller = soft_rom.ros:controller_main',
+            'plant = soft_rom.ros:plant_main',
         ],
     },
 )

@@ -38,6 +38,7 @@ ROSDEP_OF = {
     'visualization_msgs': 'visualization_msgs', 'diagnostic_msgs': 'diagnostic_msgs',
     'builtin_interfaces': 'builtin_interfaces', 'rcl_interfaces': 'rcl_interfaces',
     'lifecycle_msgs': 'lifecycle_msgs', 'launch': 'launch', 'launch_ros': 'launch_ros',
+    'rosgraph_msgs': 'rosgraph_msgs',
     'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'yaml': 'python3-yaml',
     'matplotlib': 'python3-matplotlib', 'tqdm': 'python3-tqdm',
     'cvxpy': 'python3-cvxpy-pip', 'rosbags': 'python3-rosbags-pip', 'zarr': None,
@@ -118,7 +119,7 @@ def test_colcon_build_installs_executables_and_marker(tmp_path) -> None:
                          capture_output=True, text=True, timeout=300, check=False)
     assert out.returncode == 0, out.stdout + out.stderr
     install = tmp_path / 'install' / 'soft_rom'
-    for exe in ('predictor', 'soft-rom'):
+    for exe in ('predictor', 'soft-rom', 'controller', 'plant'):
         assert (install / 'lib' / 'soft_rom' / exe).is_file(), exe
     index = install / 'share' / 'ament_index' / 'resource_index' / 'packages'
     assert (index / 'soft_rom').is_file()

@@ -9,7 +9,8 @@ never returns a command outside the bounds or not finite:
 * a reference of the wrong size, with NaN/Inf, or ending before the current time is
   refused; the one in force stays;
 * without a measurement yet (``missing``), or with none for ``stale_after`` seconds
-  (``stale``), the last command is held (clipped into the bounds);
+  (``stale``), the last command is held (clipped into the bounds); with an external state
+  estimate (``external_state``, the predictor node's ``~/state``) the same holds for it;
 * an infeasible or failed QP holds the last command (clipped into the bounds).
 """
 
@@ -69,6 +70,7 @@ class Command:
 class _Counters:
     measurements: int = 0
     measurements_dropped: int = 0
+    states_dropped: int = 0
     references_refused: int = 0
     steps: int = 0
     qp_failed: int = 0
@@ -88,11 +90,20 @@ class Controller:
     estimator : EstimatorConfig, optional
     stale_after : float
         Seconds without a measurement after which the command is held (default 0.1 s).
+    external_state : bool
+        The ROM state comes from outside (:meth:`set_state`: the predictor node running the
+        model on the applied commands); the measurements then correct the disturbance
+        only, which is the offset-free estimator with state noise 0 (internal model
+        control). The state is carried to each control time on the commands applied since.
     """
 
     def __init__(self, model: Any, mpc: MPCConfig | None = None,
-                 estimator: EstimatorConfig | None = None, *, stale_after: float = 0.1) -> None:
+                 estimator: EstimatorConfig | None = None, *, stale_after: float = 0.1,
+                 external_state: bool = False) -> None:
         self.model = model
+        self.external_state = bool(external_state)
+        self.state: tuple[float, Array] | None = None
+        self._history: list[tuple[float, Array]] = []
         self.mpc = MPC(model, mpc)
         self.estimator = OffsetFreeEstimator(model, estimator)
         self.stale_after = float(stale_after)
@@ -158,6 +169,49 @@ class Controller:
         self.counters.measurements += 1
         return ''
 
+    def set_state(self, x: ArrayLike, t: float) -> str:
+        """An external state estimate at time ``t``; returns ``''`` or why it was dropped."""
+        why = ''
+        try:
+            x = np.asarray(x, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            x = np.zeros(0)
+        if x.shape != (self.mpc.n,):
+            why = f'state of {x.size} values; the model has {self.mpc.n} states'
+        elif not np.all(np.isfinite(x)):
+            why = 'state with NaN/Inf'
+        elif not math.isfinite(t):
+            why = 'state time not finite'
+        elif self.state is not None and t < self.state[0]:
+            why = f'state at {t:.4f} s is older than the last ({self.state[0]:.4f} s)'
+        if why:
+            self.counters.states_dropped += 1
+            self.counters.last_problem = why
+            return why
+        self.state = (float(t), x.copy())
+        return ''
+
+    def _carry_state(self, t: float) -> None:
+        """The external state carried to ``t`` on the commands applied since its time."""
+        if self.state is None:
+            return
+        ts, x = self.state
+        est = self.estimator
+        u = self._history[0][1] if self._history else self.u
+        later = []
+        for tc, uc in self._history:
+            if tc <= ts + 1e-9:
+                u = uc
+            else:
+                later.append((tc, uc))
+        est.x, est.t, est.u = x.copy(), ts, u.copy()
+        for tc, uc in later:
+            if tc > t:
+                break
+            est.predict_to(tc)
+            est.u = uc.copy()
+        est.predict_to(t)
+
     # -- the control step ---------------------------------------------------------------
     def step(self, t: float) -> Command:
         """The command to apply from time ``t`` for one control step."""
@@ -170,12 +224,20 @@ class Controller:
         elif t - self.t_measured > self.stale_after:
             status, detail = 'stale', (f'last measurement {t - self.t_measured:.3f} s old '
                                        f'(> {self.stale_after:g} s): command held')
+        elif self.external_state and self.state is None:
+            status, detail = 'missing', 'no state estimate yet: command held'
+        elif self.external_state and self.state is not None and \
+                t - self.state[0] > self.stale_after:
+            status, detail = 'stale', (f'state estimate {t - self.state[0]:.3f} s old '
+                                       f'(> {self.stale_after:g} s): command held')
         elif ref is None:
             status, detail = 'no_reference', 'no reference: command held'
         if status != 'ok' or ref is None:
             u = self.mpc.fallback(self.u)
         else:
             est = self.estimator
+            if self.external_state:
+                self._carry_state(t)
             est.predict_to(t)
             times = t + self.h * np.arange(1, self.mpc.N + 1)
             R = ref.at(times)
@@ -204,6 +266,8 @@ class Controller:
             self.counters.last_problem = detail
         self.counters.by_status[status] = self.counters.by_status.get(status, 0) + 1
         self.u = u
+        self._history.append((float(t), u.copy()))
+        del self._history[:-64]
         if self.started:
             self.estimator.predict_to(t)
             self.estimator.set_input(u)
