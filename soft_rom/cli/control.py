@@ -78,7 +78,58 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         metavar='{1..4}', help='FOM mesh resolution (default 1)')
     add_quiet(parser)
     parser.set_defaults(func=run)
+    study = subparsers.add_parser(
+        'control-study', help='the closed-loop study (MPC on several ROMs, the FOM as plant)',
+        description="The follow-up paper's experiments 1 and 2 on the embedded eel: MPC on each "
+                    'model (same horizon, bounds, weight chosen once on a training reference) '
+                    "tracks feasible references (the FOM's responses to held-out random "
+                    'pressures) and the travelling wave; plus the offset-free check. Writes '
+                    'OUT/report.md, summary.json and figures.')
+    study.add_argument('models', type=Path, nargs='+',
+                       help="linear model files of the eel (e.g. the study's models/*.npz)")
+    study.add_argument('-o', '--output', type=Path, required=True, metavar='OUT',
+                       help='output folder')
+    study.add_argument('--overwrite', action='store_true',
+                       help='replace an OUT that soft-rom control-study wrote before')
+    study.add_argument('--duration', type=finite_float(0.0, 60.0, lo_open=True), default=2.0,
+                       help='seconds per closed loop (default 2)')
+    study.add_argument('--references', type=int, choices=range(1, 21), default=4,
+                       metavar='{1..20}', help='feasible references (default 4)')
+    study.add_argument('--seed', type=int, default=100,
+                       help="seed of the references' random pressures (default 100; not a "
+                            'training seed)')
+    study.add_argument('--wave', default='wave:f=2,wavelength=0.8,reach=0.25',
+                       help='the travelling wave (default %(default)s)')
+    study.add_argument('--jobs', type=int, choices=range(1, 65), default=1, metavar='N',
+                       help='closed loops run at once (default 1)')
+    add_quiet(study)
+    study.set_defaults(func=run_study)
     return parser
+
+
+def run_study(args: argparse.Namespace) -> int:
+    """``soft-rom control-study``; returns the exit code."""
+    from soft_rom.control.study import ControlStudyConfig, load_models, run_control_study
+    from soft_rom.outputs import atomic_dir, check_output
+
+    out = Path(args.output)
+    check_output(out, overwrite=args.overwrite, what='closed-loop study',
+                 kinds=('control-study',))
+    models = load_models(args.models)
+    from soft_rom.models import load_model
+    for label, path in models.items():
+        if getattr(load_model(path), 'is_nonlinear', False):
+            raise ConfigError(f'{label}: a cubic LOpInf model is nonlinear; the MPC is linear.')
+    if not args.wave.startswith('wave:'):
+        raise ConfigError(f'--wave must be a wave:... reference; got {args.wave!r}')
+    cfg = ControlStudyConfig(duration=args.duration, n_references=args.references,
+                             seed=args.seed, wave=args.wave)
+    log = (lambda text: None) if args.quiet else (lambda text: print(text, flush=True))
+    with atomic_dir(out, overwrite=args.overwrite, kind='control-study',
+                    what='closed-loop study') as stage:
+        run_control_study(stage, models, cfg, jobs=args.jobs, log=log)
+    print(f'wrote {out}/report.md, summary.json and figures')
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:
