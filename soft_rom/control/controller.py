@@ -49,6 +49,9 @@ class Command:
         QP solve wall time (0 when none ran).
     step_s : float
         Whole control step wall time (estimate, reference, solve).
+    step_cpu_s : float
+        The same in thread CPU time (what the step costs, without preemption by other
+        processes on a loaded machine).
     saturated : int
         Inputs at a bound.
     tracking_error : float
@@ -61,6 +64,7 @@ class Command:
     status: str
     solve_s: float = 0.0
     step_s: float = 0.0
+    step_cpu_s: float = 0.0
     saturated: int = 0
     tracking_error: float = float('nan')
     detail: str = ''
@@ -216,6 +220,7 @@ class Controller:
     def step(self, t: float) -> Command:
         """The command to apply from time ``t`` for one control step."""
         t0 = time.perf_counter()
+        c0 = time.thread_time()
         self.counters.steps += 1
         status, detail, solve_s, sat, err = 'ok', '', 0.0, 0, float('nan')
         ref = self.reference
@@ -272,5 +277,6 @@ class Controller:
             self.estimator.predict_to(t)
             self.estimator.set_input(u)
         return Command(u=u.copy(), status=status, solve_s=solve_s,
-                       step_s=time.perf_counter() - t0, saturated=sat, tracking_error=err,
+                       step_s=time.perf_counter() - t0, step_cpu_s=time.thread_time() - c0,
+                       saturated=sat, tracking_error=err,
                        detail=detail)

@@ -143,6 +143,8 @@ class ClosedLoopResult:
         Control tick times.
     solve_s, step_s : ndarray, shape (n,)
         QP solve and whole control step wall times (s).
+    step_cpu_s : ndarray, shape (n,)
+        Whole control step thread CPU times (s).
     status : ndarray of str, shape (n,)
         Status of each control step.
     u_min, u_max : ndarray, shape (m,)
@@ -160,6 +162,7 @@ class ClosedLoopResult:
     t_control: Array
     solve_s: Array
     step_s: Array
+    step_cpu_s: Array
     status: NDArray[np.str_]
     u_min: Array
     u_max: Array
@@ -190,6 +193,7 @@ class ClosedLoopResult:
             'tracking_deviation_error_after_1s': _finite(self.tracking_error(1.0))
             if self.t[-1] > 1.0 else None,
             'solve': pct(solves), 'control_step': step,
+            'control_step_cpu': pct(self.step_cpu_s),
             'control_step_p99_fraction_of_period': (
                 step['p99_ms'] / (1e3 * period) if period and step['p99_ms'] is not None
                 else None),
@@ -207,8 +211,9 @@ class ClosedLoopResult:
         with open(tmp, 'wb') as fh:
             np.savez(fh, t=self.t, U=self.U, Y=self.Y, Y_ref=self.Y_ref, t_meas=self.t_meas,
                      Y_meas=self.Y_meas, t_control=self.t_control, solve_s=self.solve_s,
-                     step_s=self.step_s, status=self.status.astype('U16'), u_min=self.u_min,
-                     u_max=self.u_max, y_ref=self.y_ref)
+                     step_s=self.step_s, step_cpu_s=self.step_cpu_s,
+                     status=self.status.astype('U16'), u_min=self.u_min, u_max=self.u_max,
+                     y_ref=self.y_ref)
         tmp.replace(path)
         return path
 
@@ -266,7 +271,7 @@ def run_closed_loop(model: Any, reference: Reference, *, plant: Any = None,
     is_frame = np.zeros(k, dtype=bool)
     is_frame[frames] = True
     t_meas, Y_meas = [], []
-    t_ctl, solve_s, step_s, status = [], [], [], []
+    t_ctl, solve_s, step_s, step_cpu, status = [], [], [], [], []
     ctl.start(0.0)
     t_start = time.perf_counter()
     for j in range(k):
@@ -282,6 +287,7 @@ def run_closed_loop(model: Any, reference: Reference, *, plant: Any = None,
             t_ctl.append(t[j])
             solve_s.append(cmd.solve_s)
             step_s.append(cmd.step_s)
+            step_cpu.append(cmd.step_cpu_s)
             status.append(cmd.status)
         U[:, j] = ctl.u
         plant.step(ctl.u)
@@ -297,7 +303,8 @@ def run_closed_loop(model: Any, reference: Reference, *, plant: Any = None,
     return ClosedLoopResult(
         t=t, U=U, Y=Y, Y_ref=reference.at(t), t_meas=np.array(t_meas),
         Y_meas=np.array(Y_meas).T.reshape(p, -1), t_control=np.array(t_ctl),
-        solve_s=np.array(solve_s), step_s=np.array(step_s), status=np.array(status, dtype='U16'),
+        solve_s=np.array(solve_s), step_s=np.array(step_s), step_cpu_s=np.array(step_cpu),
+        status=np.array(status, dtype='U16'),
         u_min=ctl.mpc.lo.copy(), u_max=ctl.mpc.hi.copy(), y_ref=np.asarray(model.y_ref).copy(),
         info=info)
 
