@@ -276,7 +276,7 @@ def _figures(out: Path, s: dict[str, Any]) -> None:
     labels = list(s['experiment1'])
     refs = list(next(iter(s['experiment1'].values())))
     fig, axes = plt.subplots(1, 2, figsize=(10, 3.8), constrained_layout=True,
-                             gridspec_kw={'width_ratios': [len(refs) + 1, 2]})
+                             gridspec_kw={'width_ratios': [len(refs) + 1, 2.5]})
     ax = axes[0]
     w = 0.8 / len(labels)
     x = np.arange(len(refs))
@@ -298,10 +298,12 @@ def _figures(out: Path, s: dict[str, Any]) -> None:
            label='closed loop', color='C0')
     ax.bar(x + 0.2, [s['experiment2'][lab]['open_loop_applied'] for lab in labels], 0.4,
            label='open loop (planned on the ROM)', color='C7')
-    ax.set_xticks(x, labels)
+    ax.set_xticks(x, [lab.replace(' r=', '\nr=') for lab in labels])
     ax.set_ylabel('tracking deviation error')
     ax.set_title('Experiment 2: travelling wave', fontsize=9)
-    ax.legend(fontsize=8)
+    top = max(max(e['closed_loop'], e['open_loop_applied']) for e in s['experiment2'].values())
+    ax.set_ylim(0, 1.35 * top)
+    ax.legend(fontsize=7, loc='upper left')
     ax.grid(alpha=0.3, axis='y')
     fig.savefig(out / 'errors.png', dpi=110)
     plt.close(fig)
