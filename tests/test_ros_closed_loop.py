@@ -53,7 +53,10 @@ def test_ros_loop_tracks_like_the_in_process_loop(setup) -> None:
     tmp, model, model_path, ref_path, ref, inproc = setup
     record = tmp / 'plant_record.npz'
     nodes = [
-        NodeProcess(tmp, {'duration_s': DURATION, 'record_path': str(record)},
+        # lockstep: the plant waits for each command (up to 60 s of wall time: a loaded
+        # CI machine must not change the loop)
+        NodeProcess(tmp, {'duration_s': DURATION, 'record_path': str(record),
+                          'command_timeout_s': 60.0},
                     name='soft_rom_plant', exe='plant'),
         NodeProcess(tmp, {'model_path': str(model_path), 'use_sim_time': True},
                     name='soft_rom_predictor'),
