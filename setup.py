@@ -20,6 +20,7 @@ ROS_WHEELS = [
     'ros-jazzy-geometry-msgs>=5.3',
     'ros-jazzy-visualization-msgs>=5.3',
     'ros-jazzy-diagnostic-msgs>=5.3',
+    'ros-jazzy-rosgraph-msgs>=2.0',
 ]
 
 setup(
@@ -40,6 +41,7 @@ setup(
         'scipy>=1.10',
         'cvxpy>=1.4',
         'clarabel>=0.6',
+        'daqp>=0.8.7',
         'rosbags>=0.11',
         'zarr>=2.16',
         'PyYAML>=6.0',
@@ -47,7 +49,8 @@ setup(
         'tqdm>=4.64',
     ],
     extras_require={
-        'test': ['pytest>=7', 'ruff>=0.5', 'mypy>=1.8', 'colcon-common-extensions>=0.3'],
+        'test': ['pytest>=7', 'ruff>=0.5', 'mypy>=1.8', 'colcon-common-extensions>=0.3',
+                 'hypothesis>=6.0'],
         'dask': ['dask[array]>=2023.1', 'distributed>=2023.1'],
         # The ROS 2 Jazzy runtime from PyPI, for `predictor` and the node tests without an apt
         # installation. These wheels are built for CPython 3.11 only; on Ubuntu 24.04 (Python
@@ -65,6 +68,8 @@ setup(
         'console_scripts': [
             'soft-rom = soft_rom.cli:main',
             'predictor = soft_rom.ros:main',
+            'controller = soft_rom.ros:controller_main',
+            'plant = soft_rom.ros:plant_main',
         ],
     },
 )

@@ -25,11 +25,11 @@ ROS_PACKAGES = {
 # `rosdep install` fail for everyone).
 VERIFIED_ROSDEP_KEYS = {
     'python3-numpy', 'python3-scipy', 'python3-yaml', 'python3-matplotlib', 'python3-tqdm',
-    'python3-cvxpy-pip', 'python3-rosbags-pip', 'python3-pytest',
+    'python3-cvxpy-pip', 'python3-rosbags-pip', 'python3-pytest', 'python3-hypothesis',
 }
 # Dependencies without any rosdep key (no zarr key of any spelling exists): setup.py
 # requires them, package.xml says in a comment how to get them, and so does the README.
-NO_ROSDEP_KEY = {'zarr': "pip install 'zarr>=2.16'"}
+NO_ROSDEP_KEY = {'zarr': "pip install 'zarr>=2.16'", 'daqp': "pip install 'daqp>=0.8.7'"}
 
 # Python import name -> the rosdep key / ROS package that provides it (None: NO_ROSDEP_KEY).
 ROSDEP_OF = {
@@ -38,9 +38,11 @@ ROSDEP_OF = {
     'visualization_msgs': 'visualization_msgs', 'diagnostic_msgs': 'diagnostic_msgs',
     'builtin_interfaces': 'builtin_interfaces', 'rcl_interfaces': 'rcl_interfaces',
     'lifecycle_msgs': 'lifecycle_msgs', 'launch': 'launch', 'launch_ros': 'launch_ros',
+    'rosgraph_msgs': 'rosgraph_msgs',
     'numpy': 'python3-numpy', 'scipy': 'python3-scipy', 'yaml': 'python3-yaml',
     'matplotlib': 'python3-matplotlib', 'tqdm': 'python3-tqdm',
     'cvxpy': 'python3-cvxpy-pip', 'rosbags': 'python3-rosbags-pip', 'zarr': None,
+    'daqp': None, 'osqp': 'python3-cvxpy-pip',      # osqp: a dependency of cvxpy
 }
 # Imported lazily for extras (dask, mesh); clarabel is the cvxpy solver cvxpy installs;
 # threadpoolctl, when installed, limits BLAS threads during ERA/OKID fits.
@@ -117,7 +119,7 @@ def test_colcon_build_installs_executables_and_marker(tmp_path) -> None:
                          capture_output=True, text=True, timeout=300, check=False)
     assert out.returncode == 0, out.stdout + out.stderr
     install = tmp_path / 'install' / 'soft_rom'
-    for exe in ('predictor', 'soft-rom'):
+    for exe in ('predictor', 'soft-rom', 'controller', 'plant'):
         assert (install / 'lib' / 'soft_rom' / exe).is_file(), exe
     index = install / 'share' / 'ament_index' / 'resource_index' / 'packages'
     assert (index / 'soft_rom').is_file()

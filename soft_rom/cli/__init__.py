@@ -35,7 +35,7 @@ from soft_rom.errors import ConfigError, ResourceError, SoftRomError, SolverErro
 
 __all__ = ['main', 'VERBS', 'build_parser']
 
-VERBS = ('simulate', 'convert', 'fit', 'evaluate', 'replay', 'study', 'demo', 'info')
+VERBS = ('simulate', 'convert', 'fit', 'evaluate', 'replay', 'control', 'study', 'demo', 'info')
 
 USAGE, RUNTIME = 2, 1
 

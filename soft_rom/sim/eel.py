@@ -73,8 +73,8 @@ from soft_rom.sim.fem import CorotationalFEM
 from soft_rom.sim.inputs import DEFAULT_AMPLITUDE, random_pressures
 from soft_rom.sim.mesh import box_grid, cavity_faces, TetMesh, tetrahedralize
 
-__all__ = ['EelConfig', 'EelModel', 'Linearization', 'SimulationResult', 'StepCallback',
-           'simulate_episode']
+__all__ = ['EelConfig', 'EelModel', 'EelStepper', 'Linearization', 'SimulationResult',
+           'StepCallback', 'simulate_episode']
 
 Array = NDArray[np.float64]
 
@@ -404,6 +404,21 @@ class EelModel:
         return self._factor[dt]
 
     # ------------------------------------------------------------------ simulation
+    def stepper(self, dt: float = 1e-3, *, jacobian: str = 'rest', linear: bool = False,
+                cg_rtol: float = 1e-8, cg_maxiter: int = 50) -> EelStepper:
+        """A time stepper at rest (``q = q_ref``, ``v = 0``) that takes one input at a time.
+
+        :meth:`simulate` runs the same stepper over a whole input sequence; a closed loop
+        (:mod:`soft_rom.control`) computes each input from the outputs so far. Arguments as
+        in :meth:`simulate`.
+        """
+        if jacobian not in ('corotated', 'rest'):
+            raise ConfigError(f"jacobian must be 'corotated' or 'rest'; got {jacobian!r}.")
+        if not dt > 0:
+            raise ConfigError(f'need dt > 0; got {dt}.')
+        return EelStepper(self, float(dt), jacobian=jacobian, linear=linear, cg_rtol=cg_rtol,
+                          cg_maxiter=cg_maxiter)
+
     def simulate(self, pressures: ArrayLike | Callable[[float], ArrayLike], n_steps: int,
                  dt: float = 1e-3, *, jacobian: str = 'rest', linear: bool = False,
                  store_states: bool = False, callback: StepCallback | None = None,
@@ -454,72 +469,118 @@ class EelModel:
         if not all_finite(U):
             raise DimensionError('pressures contain NaN or Inf.')
 
-        cfg = self.config
         t0 = time.perf_counter()
-        lu, K0f, m = self._rest_factor(dt)
+        stepper = self.stepper(dt, jacobian=jacobian, linear=linear, cg_rtol=cg_rtol,
+                               cg_maxiter=cg_maxiter)
         t_factor = time.perf_counter() - t0
-        free = self.free
-        fem = self.fem
-        X = self.mesh.nodes
-        x = X.copy()
-        v = np.zeros(self.n_dof)
-        follower = cfg.follower and not linear
-        BU = None if follower else (self.B @ U)[free]      # (n_free, k)
-        alpha, beta = cfg.rayleigh_mass, cfg.rayleigh_stiffness
-        h = dt
-        W = self.centerline_map
         t = np.arange(n_steps, dtype=np.float64) * dt
+        W = self.centerline_map
         centerline = np.empty((W.shape[0], 3, n_steps))
         states = np.empty((self.n_nodes, 3, n_steps)) if store_states else None
-        cg_iters = 0
-        cg_worst = 0.0
-
-        def apply_A(R: list[Array], p_free: Array) -> Array:
-            full = np.zeros(self.n_dof)
-            full[free] = p_free
-            kw = fem.warped_matvec(R, full.reshape(-1, 3)).ravel()[free]
-            return m * (1 + h * alpha) * p_free + h * beta * (K0f @ p_free) + h * h * kw
-
+        BU = None if stepper.follower else (self.B @ U)[self.free]      # (n_free, k)
         for j in range(n_steps):
-            centerline[:, :, j] = W @ x
+            centerline[:, :, j] = stepper.centerline()
             if states is not None:
-                states[:, :, j] = x
+                states[:, :, j] = stepper.x
             if callback is not None:
-                callback(j, float(t[j]), U[:, j], centerline[:, :, j], x)
-            if linear:
-                f = -(K0f @ (x - X).ravel()[free])
-                R = None
-            elif jacobian == 'corotated':
-                f_all, R3 = fem.elastic_force(x, return_rotations=True)
-                R = fem.rotation_entries(R3)
-                f = f_all.ravel()[free]
-            else:
-                f = fem.elastic_force(x).ravel()[free]
-                R = None
-            if BU is None:
-                fp = self.pressure_force(x, U[:, j]).ravel()[free]
-            else:
-                fp = BU[:, j]
-            rhs = m * v[free] + h * (f + fp)
-            vf = lu.solve(rhs)
-            if R is not None:
-                vf, it, res = _pcg(functools.partial(apply_A, R), lu.solve, rhs, vf, cg_rtol,
-                                   cg_maxiter)
-                cg_iters += it
-                cg_worst = max(cg_worst, res)
-            if not all_finite(vf):
-                raise SolverError(f'the simulation diverged at step {j} (t = {t[j]:.4f} s); '
-                                  'lower the pressures or the time step.')
-            v[free] = vf
-            x = x + h * v.reshape(-1, 3)
+                callback(j, float(t[j]), U[:, j], centerline[:, :, j], stepper.x)
+            stepper.step(U[:, j], None if BU is None else BU[:, j])
+        lu = stepper.factor
+        cg_iters, cg_worst = stepper.cg_iterations, stepper.cg_worst_residual
         wall = time.perf_counter() - t0
         info = {'solver': lu.kind, 'n_dof': self.n_dof, 'n_nodes': self.n_nodes,
-                'n_tets': int(len(fem.tets)),
+                'n_tets': int(len(self.fem.tets)),
                 'n_steps': n_steps, 'dt': dt, 'jacobian': 'linear' if linear else jacobian,
                 'wall_s': wall, 'factor_s': t_factor, 'cg_iterations': cg_iters,
                 'cg_worst_residual': cg_worst}
         return SimulationResult(t=t, pressures=U, centerline=centerline, states=states, info=info)
 
+
+class EelStepper:
+    """One implicit-Euler step at a time of an :class:`EelModel` (see its module docstring).
+
+    Attributes
+    ----------
+    x : ndarray, shape (n_nodes, 3)
+        Nodal positions at the current sample (replaced, never written in place, by
+        :meth:`step`).
+    v : ndarray, shape (n_dof,)
+        Nodal velocities.
+    j : int
+        Steps taken; the current sample time is ``j * dt``.
+    """
+
+    def __init__(self, model: EelModel, dt: float, *, jacobian: str = 'rest',
+                 linear: bool = False, cg_rtol: float = 1e-8, cg_maxiter: int = 50) -> None:
+        self.model = model
+        self.dt = dt
+        self.jacobian = jacobian
+        self.linear = linear
+        self.cg_rtol, self.cg_maxiter = cg_rtol, cg_maxiter
+        self.factor, self._K0f, self._m = model._rest_factor(dt)
+        self.follower = model.config.follower and not linear
+        self.x: Array = model.mesh.nodes.copy()
+        self.v = np.zeros(model.n_dof)
+        self.j = 0
+        self.cg_iterations = 0
+        self.cg_worst_residual = 0.0
+
+    @property
+    def t(self) -> float:
+        """Time of the current sample (s)."""
+        return self.j * self.dt
+
+    def centerline(self) -> Array:
+        """Centerline points at the current sample, shape (N, 3)."""
+        return np.asarray(self.model.centerline_map @ self.x)
+
+    def _apply_A(self, R: list[Array], p_free: Array) -> Array:
+        model, h = self.model, self.dt
+        cfg = model.config
+        full = np.zeros(model.n_dof)
+        full[model.free] = p_free
+        kw = model.fem.warped_matvec(R, full.reshape(-1, 3)).ravel()[model.free]
+        return (self._m * (1 + h * cfg.rayleigh_mass) * p_free
+                + h * cfg.rayleigh_stiffness * (self._K0f @ p_free) + h * h * kw)
+
+    def step(self, u: Array, dead_load: Array | None = None) -> None:
+        """Advance one step with chamber pressures ``u`` (6,) held over it.
+
+        ``dead_load`` is ``(B u)[free]`` when the loads do not follow the walls (given by
+        :meth:`EelModel.simulate`, which forms it for all steps at once).
+        """
+        model, h = self.model, self.dt
+        free = model.free
+        x = self.x
+        if self.linear:
+            f = -(self._K0f @ (x - model.mesh.nodes).ravel()[free])
+            R = None
+        elif self.jacobian == 'corotated':
+            f_all, R3 = model.fem.elastic_force(x, return_rotations=True)
+            R = model.fem.rotation_entries(R3)
+            f = f_all.ravel()[free]
+        else:
+            f = model.fem.elastic_force(x).ravel()[free]
+            R = None
+        if self.follower:
+            fp = model.pressure_force(x, u).ravel()[free]
+        elif dead_load is not None:
+            fp = dead_load
+        else:
+            fp = (model.B @ u)[free]
+        rhs = self._m * self.v[free] + h * (f + fp)
+        vf = self.factor.solve(rhs)
+        if R is not None:
+            vf, it, res = _pcg(functools.partial(self._apply_A, R), self.factor.solve, rhs, vf,
+                               self.cg_rtol, self.cg_maxiter)
+            self.cg_iterations += it
+            self.cg_worst_residual = max(self.cg_worst_residual, res)
+        if not all_finite(vf):
+            raise SolverError(f'the simulation diverged at step {self.j} (t = {self.t:.4f} s); '
+                              'lower the pressures or the time step.')
+        self.v[free] = vf
+        self.x = x + h * self.v.reshape(-1, 3)
+        self.j += 1
 
 def simulate_episode(model: EelModel, episode: int, *, seed: int = 0, n_steps: int = 2000,
                      dt: float = 1e-3, amplitude: float = DEFAULT_AMPLITUDE,

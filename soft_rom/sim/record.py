@@ -36,7 +36,8 @@ def record_episode(model: EelModel, episode: int, path: str | Path, *, seed: int
                    amplitude: float = DEFAULT_AMPLITUDE, antagonistic: bool = True,
                    bias: float = 0.0, state: bool = True, overwrite: bool = False,
                    progress: bool = False,
-                   jacobian: str = 'rest') -> dict[str, Any]:
+                   jacobian: str = 'rest', pressures: np.ndarray | None = None,
+                   source: str | None = None) -> dict[str, Any]:
     """Simulate episode ``Ep <episode>`` and write it as a bag at ``path``.
 
     Parameters
@@ -55,6 +56,9 @@ def record_episode(model: EelModel, episode: int, path: str | Path, *, seed: int
         Write the full nodal positions on the state topic.
     progress : bool
         Show a tqdm bar over the steps.
+    pressures : ndarray, shape (6, n_steps), optional
+        Given pressures (``soft-rom simulate --inputs``) instead of the random sequence;
+        ``source`` names where they came from (for the sidecar).
 
     Returns
     -------
@@ -64,8 +68,14 @@ def record_episode(model: EelModel, episode: int, path: str | Path, *, seed: int
     from soft_rom.bags import EpisodeBagWriter
 
     path = Path(path)
-    U = random_pressures(n_steps, dt, seed=seed, episode=episode, amplitude=amplitude,
-                         antagonistic=antagonistic, bias=bias, n_chambers=model.n_chambers)
+    if pressures is None:
+        U = random_pressures(n_steps, dt, seed=seed, episode=episode, amplitude=amplitude,
+                             antagonistic=antagonistic, bias=bias, n_chambers=model.n_chambers)
+        generator = {'generator': 'soft_rom.sim.random_pressures', 'amplitude_pa': amplitude,
+                     'antagonistic': bool(antagonistic), 'bias_pa': bias}
+    else:
+        U = np.asarray(pressures, dtype=np.float64)
+        generator = {'generator': 'given', 'source': source}
     bar = None
     if progress:
         from tqdm import tqdm
@@ -88,8 +98,7 @@ def record_episode(model: EelModel, episode: int, path: str | Path, *, seed: int
         'format': SIDECAR_FORMAT, 'version': 1, 'soft_rom_version': __version__,
         'episode': int(episode), 'name': path.name, 'seed': int(seed), 'bag': path.name,
         'storage': storage, 'n_steps': int(n_steps), 'dt': float(dt),
-        'pressures': {'generator': 'soft_rom.sim.random_pressures', 'amplitude_pa': amplitude,
-                      'antagonistic': bool(antagonistic), 'bias_pa': bias},
+        'pressures': generator,
         'state_written': bool(state), 'resolution': int(model.config.resolution),
         'simulator': model.config.to_dict(),
         'n_dof': model.n_dof, 'n_nodes': model.n_nodes, 'n_tets': int(len(model.fem.tets)),
