@@ -1,0 +1,149 @@
+"""Steady-state gain of a linear ROM against the range of its training data (a trust check).
+
+A model can be stable, with symmetric positive stiffness and damping, and still be absurd:
+``B`` a thousand times too large moves the robot by kilometres for the pressures it was
+trained on. What the model predicts for an input held long enough is its steady state
+
+.. math::
+
+    y_\\infty - y_{ref} = G u, \\qquad G = C (I - A)^{-1} B + D
+    \\quad (\\text{LOpInf: } G = E K^{-1} B),
+
+and over the training input box ``u_min <= u <= u_max`` (recorded in the model file,
+``metadata['envelope']``, see :mod:`soft_rom.envelope`) output ``i`` moves at most
+
+.. math::
+
+    g_i = \\max_{u_{min} \\le u \\le u_{max}} |G_i u|
+        = \\max\\Big(\\sum_j \\max(G_{ij} u^{min}_j, G_{ij} u^{max}_j),\\;
+                    -\\sum_j \\min(G_{ij} u^{min}_j, G_{ij} u^{max}_j)\\Big)
+
+(a linear function on a box is largest at a corner, chosen per input by the sign of
+``G_ij``). :func:`gain_issue` compares ``max_i g_i`` with the largest deviation of the
+training outputs ``S = max |Y - y_ref|``: beyond :data:`GAIN_FACTOR` ``S`` (100, the
+predictor's default divergence bound ``output_envelope_factor``) the model is not trusted.
+The steady state is the cheap and robust measure: one ``r x r`` solve, no frequency grid,
+and it is what a pressure held for a while produces. Unstable models are left to the
+stability check (their steady state is not reached); a singular ``I - A`` (a pure
+integrator) is an infinite gain.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ['GAIN_FACTOR', 'box_response', 'gain_issue', 'steady_state_gain']
+
+Array = NDArray[np.float64]
+
+#: A steady state beyond this multiple of the largest training output deviation is absurd.
+GAIN_FACTOR = 100.0
+
+
+def steady_state_gain(model: Any) -> Array:
+    """Steady-state gain ``G`` (p, m) of a linear model: ``y_inf - y_ref = G u``.
+
+    Parameters
+    ----------
+    model : LinearROM
+        A second-order model (``K``, ``B``, ``E``: ``G = E K^{-1} B``, exact, without the
+        discretization's rounding) or any model with a native discrete :attr:`system`
+        (``G = C (I - A)^{-1} B + D``).
+
+    Returns
+    -------
+    ndarray, shape (p, m)
+        ``inf`` in every entry when the system matrix is singular (an integrator).
+    """
+    K, B, E = (getattr(model, name, None) for name in ('K', 'B', 'E'))
+    if isinstance(K, np.ndarray) and isinstance(E, np.ndarray) and isinstance(B, np.ndarray):
+        M, rhs, out, feed = K, B, E, None
+    else:
+        A, B, C, D, _ = model.system
+        M, rhs, out, feed = np.eye(A.shape[0]) - A, B, C, D
+    p, m = out.shape[0], rhs.shape[1]
+    if M.size == 0:
+        return np.zeros((p, m)) if feed is None else np.array(feed, dtype=np.float64)
+    try:
+        with np.errstate(all='ignore'):
+            X = np.linalg.solve(M, rhs)
+            cond = np.linalg.cond(M)
+    except np.linalg.LinAlgError:
+        return np.full((p, m), np.inf)
+    if not math.isfinite(cond) or cond > 1.0 / np.finfo(np.float64).eps:
+        return np.full((p, m), np.inf)
+    with np.errstate(all='ignore'):
+        G = out @ X
+        if feed is not None:
+            G = G + feed
+    return np.asarray(G, dtype=np.float64)
+
+
+def box_response(G: Array, u_min: Array, u_max: Array) -> Array:
+    """Largest ``|G_i u|`` per output over the box ``u_min <= u <= u_max``; shape (p,)."""
+    with np.errstate(all='ignore'):
+        lo, hi = G * u_min[None, :], G * u_max[None, :]
+        top = np.where(np.isnan(lo) | np.isnan(hi), np.inf, np.maximum(lo, hi)).sum(axis=1)
+        bottom = np.where(np.isnan(lo) | np.isnan(hi), -np.inf, np.minimum(lo, hi)).sum(axis=1)
+    return np.maximum(np.abs(top), np.abs(bottom))
+
+
+def gain_issue(model: Any, metadata: Mapping[str, Any] | None = None,
+               factor: float = GAIN_FACTOR) -> str | None:
+    """Why the model's steady state over its training inputs is absurd, or ``None``.
+
+    Parameters
+    ----------
+    model : LinearROM
+        Its linear part for a nonlinear model (the linearization at the reference: a
+        stiffening potential only lowers the gain for large inputs).
+    metadata : dict, optional
+        Holds the training ``envelope`` (default ``model.metadata``); without a recorded
+        input range and output deviation nothing is checked.
+    factor : float
+        Allowed multiple of the largest training output deviation.
+    """
+    meta = model.metadata if metadata is None else metadata
+    env = meta.get('envelope') if isinstance(meta, Mapping) else None
+    if not isinstance(env, Mapping):
+        return None
+    m = int(model.n_inputs)
+    u_min, u_max = _floats(env.get('u_min'), m), _floats(env.get('u_max'), m)
+    dev = env.get('y_dev_max')
+    if u_min is None or u_max is None or not isinstance(dev, (int, float)) \
+            or isinstance(dev, bool) or not (math.isfinite(dev) and dev > 0):
+        return None
+    if not np.all(u_min <= u_max):
+        return None
+    peak = box_response(steady_state_gain(model), u_min, u_max)
+    if not peak.size:
+        return None
+    i = int(np.argmax(np.where(np.isnan(peak), np.inf, peak)))
+    worst = float(peak[i])
+    if worst <= factor * dev:
+        return None
+    names = list(getattr(model, 'output_names', ()) or ())
+    units = list(getattr(model, 'output_units', ()) or ())
+    name = names[i] if i < len(names) else f'y{i + 1}'
+    unit = f' {units[i]}' if i < len(units) and units[i] else ''
+    if not math.isfinite(worst):
+        return (f'absurd gain: the steady state is unbounded (I - A is singular), while the '
+                f'training outputs moved at most {dev:.3g}{unit}')
+    return (f'absurd gain: inputs held within the training range move output {name} by '
+            f'{worst:.3g}{unit} at steady state, {worst / dev:.3g} x the largest training '
+            f'deviation ({dev:.3g}{unit}; limit {factor:g} x)')
+
+
+def _floats(values: Any, m: int) -> Array | None:
+    if not isinstance(values, (list, tuple)) or len(values) != m:
+        return None
+    try:
+        arr = np.array([float(v) for v in values], dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    return arr if bool(np.all(np.isfinite(arr))) else None
