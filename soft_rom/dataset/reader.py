@@ -203,7 +203,8 @@ class TrainingSet:
         with translated(f'{self._corrupt(where)}:', self._advice(),
                         what='its metadata (.zarray) cannot be read'):
             raw = group[key]
-            folder = self.path if name is None else self.path / 'episodes' / name
+            base = self.path.absolute()      # a Dask worker's working folder is its own
+            folder = base if name is None else base / 'episodes' / name
             hint = 'was the copy interrupted?'
             if self.attrs.get(ALL_CHUNKS) is not True and key != 'Q':
                 hint += (' Sets written with zarr 3 by soft_rom before it stored every chunk '
