@@ -543,7 +543,7 @@ class CubicSecondOrderModel(LinearROM):
     def _check_trust(self) -> list[str]:
         issues = self._linear._check_trust()
         if not any(i.startswith('unstable') for i in issues):
-            gain = gain_issue(self._linear, self.metadata)   # the linearization at q = 0
+            gain = gain_issue(self)          # its equilibria, not its linear part's
             if gain is not None:
                 issues.append(gain)
         if self.r <= 16:      # certificate cost grows like r^6

@@ -108,3 +108,28 @@ def test_just_below_the_limit_is_not_flagged(fitted):
     assert gain_issue(model, factor=0.99 * ratio) is not None
     assert gain_issue(model, factor=1.01 * ratio) is None
     assert gain_issue(model, metadata={}) is None          # no recorded range: not judged
+
+
+def test_a_stiffening_cubic_model_is_judged_by_its_equilibria():
+    from soft_rom.models_cubic import CubicSecondOrderModel, symmetrize
+    r = 2
+    I2 = np.eye(r)
+    H = 6e6 * symmetrize(np.einsum('ij,kl->ijkl', I2, I2))     # V = 1e6 |q|^4 / 4 + ...
+    B, E = np.array([[1.0, 0.0], [0.0, 2.0]]), np.array([[1.0, 0.5]])
+    env = {'u_min': [0.0, 0.0], 'u_max': [1e3, 1e3], 'y_dev_max': 0.2, 'samples': 10}
+    model = CubicSecondOrderModel(0.01 * I2, I2, np.zeros((r, r, r)), H, B, E, dt=1e-3,
+                                  metadata={'envelope': env})
+    q = equilibrium_of(model, B @ np.array([1e3, 1e3]))
+    np.testing.assert_allclose(model.force(q), B @ np.array([1e3, 1e3]), rtol=1e-9)
+    # its linear part alone (K = 0.01) would move the output by 2.5e5 / 0.2 = 1e6 x ...
+    assert gain_issue(model.linear_part(), {'envelope': env}) is not None
+    # ... but the quartic stiffness holds it near 0.1: trusted
+    assert model.trust_issues() == []
+    stiff = CubicSecondOrderModel(0.01 * I2, I2, np.zeros((r, r, r)), H * 1e-12, B, E,
+                                  dt=1e-3, metadata={'envelope': env})
+    assert any(i.startswith('absurd gain') for i in stiff.trust_issues())
+
+
+def equilibrium_of(model, force):
+    from soft_rom.gain import equilibrium
+    return equilibrium(model, force)
