@@ -132,7 +132,7 @@ def _period_ns(rate_hz: float, h: float) -> int:
 
 #: Messages after which a sequence trailing the reception clock must show that it catches up
 #: (a burst after a stall of the node) or is moved to the reception time (the sender paused).
-_CATCH_UP_MESSAGES = 8
+_CATCH_UP_MESSAGES = 32
 
 
 class SequenceClock:
@@ -153,9 +153,9 @@ class SequenceClock:
     :attr:`resyncs`:
 
     * it trails the reception clock by more than ``resync_ns`` and does not catch up over
-      the next 8 messages (by at least half a period per message, as the backlog of a
-      stalled node does): the sender paused or slowed, no burst is coming, and the stamps
-      jump to the reception time;
+      the next 32 messages (by at least 2 periods; the backlog of a stalled node catches
+      up, however slowly a loaded machine takes it): the sender paused or slowed, no burst
+      is coming, and the stamps jump to the reception time;
     * it leads the reception clock by more than ``resync_ns`` (a sender faster than its
       period): the next step, or the previous stamp for a sender faster than the model
       (stamps never go backwards).
@@ -261,8 +261,7 @@ class SequenceClock:
             if self._late is None:
                 self._late = (self._count, lag)
             elif self._count - self._late[0] >= _CATCH_UP_MESSAGES:
-                n = self._count - self._late[0]
-                if self._late[1] - lag >= n * self.period // 2:
+                if self._late[1] - lag >= 2 * self.period:
                     self._late = (self._count, lag)     # catching up: a burst after a stall
                 else:
                     t = now_ns                           # behind and not catching up
@@ -549,6 +548,7 @@ class RuntimeLoop:
                    ('output.rate_hz', _fmt(float(o_rate))),
                    ('input_rate_hz', _fmt((pred.counters['inputs'] - mark[4]) / dt)
                     if mark and dt > 0 else 'nan'),
+                   ('outputs_published', str(self.counts['outputs'])),
                    ('stamp_fallback', str(self.counts['stamp_fallback'])),
                    ('stamp_resync', str(sum(c.resyncs for c in self._clocks.values())))]
         values += list(extra or [])
