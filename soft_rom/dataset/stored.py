@@ -173,6 +173,14 @@ def chunk_problem(directory: Path, shape: tuple[int, ...],
     return None
 
 
+def _listing(directory: Path) -> list[Path]:
+    """The entries of ``directory`` (none if it is missing or unreadable)."""
+    try:
+        return list(directory.iterdir())
+    except OSError:
+        return []
+
+
 def _chunk_files(directory: Path, nested: bool) -> set[str]:
     """Names (``'0.3'``, or ``'0/3'`` when ``nested``) of the chunk files in ``directory``."""
     if not nested:
@@ -321,6 +329,14 @@ class StoredArray:
             found = chunk_problem(self.directory, self.shape, self.chunks)
         except BadMetadata as err:
             found = (str(err), False)
+            worker = dask_worker()
+            if worker and not any(p.name != '.zarray' for p in _listing(self.directory)):
+                first = self._name((0,) * self.ndim)
+                raise DatasetError(
+                    f'{self.label}: its folder {self.directory} is missing or empty on Dask '
+                    f'worker {worker}: no .zarray, and chunk {first} and every other chunk '
+                    'are missing (does this worker see the same storage as the client? a '
+                    f'mount missing on its host?); {self.advice}') from err
         except PASS_THROUGH as err:
             raise self._located(err) from err
         except Exception as err:  # noqa: BLE001 - json and numpy raise many kinds

@@ -211,3 +211,18 @@ def test_no_scheduler_is_one_line_after_the_timeout(tmp_path, capsys):
     assert main(['fit', str(ts.path), '--method', 'dmdc', '--dask', addr, '--dask-timeout',
                  '0', '-o', str(tmp_path / 'out'), '--quiet']) == 2
     assert '--dask-timeout must be a number of seconds > 0' in capsys.readouterr().err
+
+
+def test_a_worker_that_cannot_see_the_folder_says_so(tmp_path, cluster):
+    # what a worker on a host without the shared mount sees: no folder at the path
+    ts = _set(tmp_path / 'ts.zarr')
+    q = ts.q_array('ep1')
+    q.check()                                      # the client sees it
+    (tmp_path / 'ts.zarr').rename(tmp_path / 'elsewhere.zarr')
+    with pytest.raises(DatasetError) as err:
+        cluster.client.submit(lambda a: a[:, 0:8], q, pure=False).result()
+    text = str(err.value)
+    assert f"episode 'ep1', array Q: its folder {tmp_path / 'ts.zarr/episodes/ep1/Q'} is " \
+        'missing or empty on Dask worker tcp://' in text, text
+    assert 'chunk 0.0 and every other chunk are missing (does this worker see the same ' \
+        'storage as the client?' in text
