@@ -121,7 +121,7 @@ def _lost(err: BaseException) -> bool:
     """Whether ``err`` says the connection to the scheduler is gone (not a task's error)."""
     names = {c.__name__ for c in type(err).__mro__}
     return bool(names & {'CancelledError', 'FutureCancelledError', 'CommClosedError',
-                         'StreamClosedError', 'TimeoutError'})
+                         'StreamClosedError'})
 
 
 def _worker_call(func: Any, *args: Any) -> Any:
@@ -168,6 +168,15 @@ class DaskExecutor:
                 raise ClusterError(f'lost the connection to the Dask scheduler at '
                                    f'{self.address} during the POD; nothing was written') \
                     from err
+            if isinstance(err, TimeoutError):
+                try:
+                    workers = len(self.client.scheduler_info().get('workers') or {})
+                except Exception:  # noqa: BLE001 - no answer: say what happened
+                    workers = -1
+                why = ('it has no workers: start some (`dask worker ADDRESS`)' if workers == 0
+                       else f'{one_line(err)}')
+                raise ClusterError(f'the Dask scheduler at {self.address} timed out during '
+                                   f'the POD ({why}); nothing was written') from err
             if type(err).__name__ == 'KilledWorker':
                 raise ClusterError(f'Dask workers kept dying while running the POD '
                                    f'({one_line(err)}); nothing was written') from err
