@@ -156,31 +156,46 @@ class DaskExecutor:
         except Exception:  # noqa: BLE001 - a client that lost its scheduler
             return 'its address'
 
-    def _wait(self, get: Callable[[], Any]) -> Any:
-        """``get()`` (a pass's result); its faults as one :class:`ClusterError`."""
-        try:
-            return get()
-        except (SoftRomError, MemoryError):
-            raise
-        except Exception as err:  # noqa: BLE001 - distributed raises many kinds
-            status = str(getattr(self.client, 'status', 'running'))
-            if _lost(err) or status not in ('running', 'newly-created'):
-                raise ClusterError(f'lost the connection to the Dask scheduler at '
-                                   f'{self.address} during the POD; nothing was written') \
-                    from err
-            if isinstance(err, TimeoutError):
-                try:
-                    workers = len(self.client.scheduler_info().get('workers') or {})
-                except Exception:  # noqa: BLE001 - no answer: say what happened
-                    workers = -1
-                why = ('it has no workers: start some (`dask worker ADDRESS`)' if workers == 0
-                       else f'{one_line(err)}')
-                raise ClusterError(f'the Dask scheduler at {self.address} timed out during '
-                                   f'the POD ({why}); nothing was written') from err
-            if type(err).__name__ == 'KilledWorker':
-                raise ClusterError(f'Dask workers kept dying while running the POD '
-                                   f'({one_line(err)}); nothing was written') from err
-            raise
+    def _wait(self, get: Callable[[], Any], attempts: int = 3) -> Any:
+        """``get()`` (a pass's result); its faults as one :class:`ClusterError`.
+
+        A connection lost while the scheduler is still there was a worker's (older
+        distributed lets that reach the client): the pass is submitted again, up to
+        ``attempts`` times in all; the scheduler computes the lost parts elsewhere and the
+        result is the same, bit for bit.
+        """
+        for attempt in range(1, attempts + 1):
+            try:
+                return get()
+            except (SoftRomError, MemoryError):
+                raise
+            except Exception as err:  # noqa: BLE001 - distributed raises many kinds
+                status = str(getattr(self.client, 'status', 'running'))
+                if attempt < attempts and _lost(err) and status == 'running':
+                    LOG.debug('pass interrupted (%s); submitted again', one_line(err))
+                    continue
+                self._fault(err, status)
+        raise AssertionError('unreachable')        # pragma: no cover
+
+    def _fault(self, err: Exception, status: str) -> None:
+        """Raise ``err`` of a pass as a :class:`ClusterError` (or as it is)."""
+        if _lost(err) or status not in ('running', 'newly-created'):
+            raise ClusterError(f'lost the connection to the Dask scheduler at '
+                               f'{self.address} during the POD; nothing was written') \
+                from err
+        if isinstance(err, TimeoutError):
+            try:
+                workers = len(self.client.scheduler_info().get('workers') or {})
+            except Exception:  # noqa: BLE001 - no answer: say what happened
+                workers = -1
+            why = ('it has no workers: start some (`dask worker ADDRESS`)' if workers == 0
+                   else f'{one_line(err)}')
+            raise ClusterError(f'the Dask scheduler at {self.address} timed out during '
+                               f'the POD ({why}); nothing was written') from err
+        if type(err).__name__ == 'KilledWorker':
+            raise ClusterError(f'Dask workers kept dying while running the POD '
+                               f'({one_line(err)}); nothing was written') from err
+        raise err
 
     def _arrays(self, snaps: SnapshotSet) -> list[Any]:
         import dask.array as da
