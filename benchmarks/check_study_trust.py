@@ -30,7 +30,7 @@ def gain_ratio(model: Any) -> float:
     if not env.get('u_min') or not env.get('y_dev_max'):
         return float('nan')
     peak = peak_response(model, np.asarray(env['u_min'], dtype=float),
-                         np.asarray(env['u_max'], dtype=float))
+                         np.asarray(env['u_max'], dtype=float), env.get('samples'))
     return float(np.max(peak)) / float(env['y_dev_max'])
 
 

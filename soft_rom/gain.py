@@ -19,7 +19,11 @@ and over the training input box ``u_min <= u <= u_max`` (recorded in the model f
                     -\\sum_j \\min(G_{ij} u^{min}_j, G_{ij} u^{max}_j)\\Big)
 
 (a linear function on a box is largest at a corner, chosen per input by the sign of
-``G_ij``). :func:`gain_issue` compares ``max_i g_i`` with the largest deviation of the
+``G_ij``). An input held no longer than the training data lasted (``samples`` steps) is what
+the data can vouch for: a mode too slow to show in it (a stiffness the fit could hardly see)
+may have a large steady state that no recording will reach, so linear models are judged on
+the gains of inputs held for 1, 2, 4, ... steps up to that length (:func:`held_input_gains`),
+whose limit is ``G``. :func:`gain_issue` compares ``max_i g_i`` with the largest deviation of the
 training outputs ``S = max |Y - y_ref|``: beyond :data:`GAIN_FACTOR` ``S`` (100, the
 predictor's default divergence bound ``output_envelope_factor``) the model is not trusted.
 The steady state is the cheap and robust measure: one ``r x r`` solve, no frequency grid,
@@ -37,8 +41,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ['GAIN_FACTOR', 'box_response', 'equilibrium', 'gain_issue', 'peak_response',
-           'steady_state_gain']
+__all__ = ['GAIN_FACTOR', 'box_response', 'equilibrium', 'gain_issue', 'held_input_gains',
+           'peak_response', 'steady_state_gain']
 
 Array = NDArray[np.float64]
 
@@ -127,10 +131,33 @@ def equilibrium(model: Any, force: Array, iterations: int = 200) -> Array:
     return q
 
 
-def peak_response(model: Any, u_min: Array, u_max: Array) -> Array:
-    """Largest steady-state ``|y_i - y_ref_i|`` over the input box, per output; shape (p,).
+def held_input_gains(model: Any, horizon: int) -> list[Array]:
+    """Gains ``G_k`` (p, m) of inputs held for ``k = 1, 2, 4, ...`` steps up to ``horizon``.
 
-    Linear models: :func:`box_response` of :func:`steady_state_gain`. A model with a
+    ``G_k = C Σ_{i<k} A^i B + D``: the response from rest is ``y_k - y_ref = G_k u``.
+    Doubling (``Σ_2k = Σ_k + A^k Σ_k``): about ``log2(horizon)`` products of ``r x r``.
+    """
+    A, B, C, D, _ = model.system
+    sigma, power, k = np.array(B, dtype=np.float64), np.array(A, dtype=np.float64), 1
+    out = []
+    with np.errstate(all='ignore'):
+        while True:
+            out.append(C @ sigma + D)
+            if k >= horizon:
+                return out
+            sigma = sigma + power @ sigma
+            power = power @ power
+            k *= 2
+
+
+def peak_response(model: Any, u_min: Array, u_max: Array, horizon: int | None = None
+                  ) -> Array:
+    """Largest ``|y_i - y_ref_i|`` for inputs held within the box, per output; shape (p,).
+
+    Linear models: :func:`box_response` of the gains of inputs held for up to ``horizon``
+    steps (:func:`held_input_gains`; default: for ever, the steady state) -- a mode so slow
+    that the training data could not see it does not count beyond the training length. A
+    model with a
     potential (``force``, ``stiffness``, ``potential``: the cubic LOpInf) is solved at the
     corners that are the worst for its linearization (two per output) with
     :func:`equilibrium`: its stiffness grows with the displacement, so its linear part
@@ -139,7 +166,10 @@ def peak_response(model: Any, u_min: Array, u_max: Array) -> Array:
     linear = model.linear_part() if hasattr(model, 'linear_part') else model
     G = steady_state_gain(linear)
     if not all(hasattr(model, name) for name in ('force', 'stiffness', 'potential')):
-        return box_response(G, u_min, u_max)
+        if horizon is None:
+            return box_response(G, u_min, u_max)
+        peaks = [box_response(Gk, u_min, u_max) for Gk in held_input_gains(model, horizon)]
+        return np.max(np.array(peaks), axis=0)
     corners = {tuple(np.where(G[i] * sign > 0, u_max, u_min)) for i in range(G.shape[0])
                for sign in (1.0, -1.0)}
     peak = np.zeros(G.shape[0])
@@ -176,7 +206,10 @@ def gain_issue(model: Any, metadata: Mapping[str, Any] | None = None,
         return None
     if not np.all(u_min <= u_max):
         return None
-    peak = peak_response(model, u_min, u_max)
+    samples = env.get('samples')
+    horizon = int(samples) if isinstance(samples, int) and not isinstance(samples, bool) \
+        and samples > 0 else None
+    peak = peak_response(model, u_min, u_max, horizon)
     if not peak.size:
         return None
     i = int(np.argmax(np.where(np.isnan(peak), np.inf, peak)))
@@ -190,8 +223,10 @@ def gain_issue(model: Any, metadata: Mapping[str, Any] | None = None,
     if not math.isfinite(worst):
         return (f'absurd gain: the steady state is unbounded (I - A is singular), while the '
                 f'training outputs moved at most {dev:.3g}{unit}')
+    within = 'at steady state' if horizon is None else \
+        f'within the training length ({horizon} steps)'
     return (f'absurd gain: inputs held within the training range move output {name} by '
-            f'{worst:.3g}{unit} at steady state, {worst / dev:.3g} x the largest training '
+            f'{worst:.3g}{unit} {within}, {worst / dev:.3g} x the largest training '
             f'deviation ({dev:.3g}{unit}; limit {factor:g} x)')
 
 

@@ -15,7 +15,13 @@ import numpy as np
 import pytest
 
 from soft_rom.cli import main
-from soft_rom.gain import box_response, GAIN_FACTOR, gain_issue, steady_state_gain
+from soft_rom.gain import (
+    box_response,
+    GAIN_FACTOR,
+    gain_issue,
+    peak_response,
+    steady_state_gain,
+)
 from soft_rom.learners.dmdc import DMDc
 from soft_rom.learners.lopinf import LOpInf
 from soft_rom.models import DiscreteModel, load_model, SecondOrderModel
@@ -79,15 +85,15 @@ def test_absurd_gain_is_flagged_by_trust_info_and_strict(fitted, tmp_path, capsy
     _eps, models = fitted
     model = models[kind]
     env = model.metadata['envelope']
-    peak = float(np.max(box_response(steady_state_gain(model), np.array(env['u_min']),
-                                     np.array(env['u_max']))))
+    peak = float(np.max(peak_response(model, np.array(env['u_min']), np.array(env['u_max']),
+                                      env['samples'])))
     factor = 1e12 if target is None else target / peak      # the output moves 17 km
     bad = _absurd(model, tmp_path, kind, factor)
     issues = bad.trust_issues()
     assert len(issues) == 1 and issues[0].startswith('absurd gain: inputs held within the '
                                                      'training range move output'), issues
     expect = peak * factor
-    assert f'by {expect:.3g} at steady state' in issues[0]
+    assert f"by {expect:.3g} within the training length ({env['samples']} steps)" in issues[0]
     assert f'limit {GAIN_FACTOR:g} x' in issues[0]
     path = str(tmp_path / f'{kind}.npz')
     assert main(['info', path]) == 0
@@ -101,8 +107,8 @@ def test_just_below_the_limit_is_not_flagged(fitted):
     _eps, models = fitted
     model = models['dmdc']
     env = model.metadata['envelope']
-    peak = float(np.max(box_response(steady_state_gain(model), np.array(env['u_min']),
-                                     np.array(env['u_max']))))
+    peak = float(np.max(peak_response(model, np.array(env['u_min']), np.array(env['u_max']),
+                                      env['samples'])))
     ratio = peak / env['y_dev_max']
     assert gain_issue(model) is None
     assert gain_issue(model, factor=0.99 * ratio) is not None
@@ -116,13 +122,14 @@ def test_a_stiffening_cubic_model_is_judged_by_its_equilibria():
     I2 = np.eye(r)
     H = 6e6 * symmetrize(np.einsum('ij,kl->ijkl', I2, I2))     # V = 1e6 |q|^4 / 4 + ...
     B, E = np.array([[1.0, 0.0], [0.0, 2.0]]), np.array([[1.0, 0.5]])
-    env = {'u_min': [0.0, 0.0], 'u_max': [1e3, 1e3], 'y_dev_max': 0.2, 'samples': 10}
+    env = {'u_min': [0.0, 0.0], 'u_max': [1e3, 1e3], 'y_dev_max': 0.2, 'samples': 4000}
     model = CubicSecondOrderModel(0.01 * I2, I2, np.zeros((r, r, r)), H, B, E, dt=1e-3,
                                   metadata={'envelope': env})
     q = equilibrium_of(model, B @ np.array([1e3, 1e3]))
     np.testing.assert_allclose(model.force(q), B @ np.array([1e3, 1e3]), rtol=1e-9)
     # its linear part alone (K = 0.01) would move the output by 2.5e5 / 0.2 = 1e6 x ...
-    assert gain_issue(model.linear_part(), {'envelope': env}) is not None
+    steady = {k: v for k, v in env.items() if k != 'samples'}       # held for ever
+    assert gain_issue(model.linear_part(), {'envelope': steady}) is not None
     # ... but the quartic stiffness holds it near 0.1: trusted
     assert model.trust_issues() == []
     stiff = CubicSecondOrderModel(0.01 * I2, I2, np.zeros((r, r, r)), H * 1e-12, B, E,
@@ -133,3 +140,22 @@ def test_a_stiffening_cubic_model_is_judged_by_its_equilibria():
 def equilibrium_of(model, force):
     from soft_rom.gain import equilibrium
     return equilibrium(model, force)
+
+
+def test_held_input_gains_reach_the_steady_state():
+    rng = np.random.default_rng(2)
+    A = np.diag([0.5, 0.9, 0.99])
+    model = DiscreteModel(A, rng.normal(size=(3, 2)), rng.normal(size=(2, 3)), dt=1e-3,
+                          method='dmdc')
+    gains = held_input_gains(model, 4096)
+    u = np.array([1.0, -2.0])
+    Y = model.simulate(np.repeat(u[:, None], 4097, axis=1))
+    for j, G in enumerate(gains):                   # held 2**j steps: the simulation's
+        np.testing.assert_allclose(G @ u, Y[:, 2 ** j] - model.y_ref, rtol=1e-10,
+                                   atol=1e-12)
+    np.testing.assert_allclose(gains[-1], steady_state_gain(model), rtol=1e-12)
+
+
+def held_input_gains(model, horizon):
+    from soft_rom.gain import held_input_gains as gains
+    return gains(model, horizon)

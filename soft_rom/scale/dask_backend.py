@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 import logging
+import time
 from typing import Any
 
 import numpy as np
@@ -156,13 +157,14 @@ class DaskExecutor:
         except Exception:  # noqa: BLE001 - a client that lost its scheduler
             return 'its address'
 
-    def _wait(self, get: Callable[[], Any], attempts: int = 3) -> Any:
+    def _wait(self, get: Callable[[], Any], attempts: int = 5) -> Any:
         """``get()`` (a pass's result); its faults as one :class:`ClusterError`.
 
         A connection lost while the scheduler is still there was a worker's (older
         distributed lets that reach the client): the pass is submitted again, up to
-        ``attempts`` times in all; the scheduler computes the lost parts elsewhere and the
-        result is the same, bit for bit.
+        ``attempts`` times in all, after a growing pause (the scheduler must notice the
+        dead worker first); the scheduler computes the lost parts elsewhere and the result
+        is the same, bit for bit.
         """
         for attempt in range(1, attempts + 1):
             try:
@@ -173,6 +175,7 @@ class DaskExecutor:
                 status = str(getattr(self.client, 'status', 'running'))
                 if attempt < attempts and _lost(err) and status == 'running':
                     LOG.debug('pass interrupted (%s); submitted again', one_line(err))
+                    time.sleep(0.5 * attempt)       # for the scheduler to drop the worker
                     continue
                 self._fault(err, status)
         raise AssertionError('unreachable')        # pragma: no cover
