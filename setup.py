@@ -44,6 +44,9 @@ setup(
         'daqp>=0.8.7',
         'rosbags>=0.11',
         'zarr>=2.16',
+        # the CRC-32C of every training-set chunk, with the CPU's CRC32 instruction (zarr 3
+        # depends on it too)
+        'google-crc32c>=1.5',
         'PyYAML>=6.0',
         'matplotlib>=3.6',
         'tqdm>=4.64',

@@ -31,7 +31,13 @@ import traceback
 from typing import Any, NoReturn
 
 from soft_rom import __version__
-from soft_rom.errors import ConfigError, ResourceError, SoftRomError, SolverError
+from soft_rom.errors import (
+    ClusterError,
+    ConfigError,
+    ResourceError,
+    SoftRomError,
+    SolverError,
+)
 
 __all__ = ['main', 'VERBS', 'build_parser']
 
@@ -103,7 +109,7 @@ def _guard_outputs(args: argparse.Namespace) -> None:
 
 def _describe(err: BaseException) -> tuple[int, str]:
     """Exit code and one-line message for an exception raised by a verb."""
-    if isinstance(err, (ResourceError, SolverError)):
+    if isinstance(err, (ResourceError, SolverError, ClusterError)):
         code, text = RUNTIME, str(err)
     elif isinstance(err, (SoftRomError, argparse.ArgumentTypeError)):
         code, text = USAGE, str(err)

@@ -8,10 +8,11 @@ Reasons, worst first:
 * ``STALE`` -- an input has not sent a value yet, or is silent for longer than
   ``input_timeout_s``; measurements were seen but none is left in the window
   (``error_window_s``);
-* ``WARN`` -- within the last ``alarm_hold_s``: a dropped message, an input clipped to its
-  envelope, a measurement outside the output envelope, stamped more than ``clock_reset_s``
-  ahead of the model time or beyond the queue bound, a clock stall or jump; the model
-  is unstable or not trusted (``model.trust_issues()``); the windowed error is above
+* ``WARN`` -- within the last ``alarm_hold_s``: a dropped message, an input that arrived after
+  its step was taken (``late``: the prediction departs from the offline simulation), an input
+  clipped to its envelope, a measurement outside the output envelope, stamped more than
+  ``clock_reset_s`` ahead of the model time or beyond the queue bound, a clock stall or jump;
+  the model is unstable or not trusted (``model.trust_issues()``); the windowed error is above
   ``warn_threshold``.
 """
 
@@ -25,7 +26,8 @@ from soft_rom.predictor.config import Health
 
 __all__ = ['assess']
 
-_ALARM_LEVEL = {'dropped': 1, 'clipped': 1, 'measured': 1, 'clock': 1, 'diverged': 2}
+_ALARM_LEVEL = {'dropped': 1, 'clipped': 1, 'measured': 1, 'clock': 1, 'late': 1,
+                'diverged': 2}
 
 
 def assess(pred: Any, now_ns: int | None, Level: Any, severity: dict[Any, int]) -> Health:
