@@ -87,7 +87,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         help='replace OUT (and the --json file) if soft-rom replay wrote it')
     parser.add_argument('--strict', action='store_true',
                         help='refuse a model that cannot be trusted (unstable, indefinite, ...)')
-    add_json(parser, help='also write the summary as JSON', old='--summary-json')
+    add_json(parser, help='also write the summary as JSON')
     add_quiet(parser)
     parser.set_defaults(func=run)
     return parser
