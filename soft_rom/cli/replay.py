@@ -186,7 +186,7 @@ def run(args: argparse.Namespace) -> int:
                 measured=measured, node_name=args.node_name,
                 frame_id=str(values.get('frame_id', 'world')),
                 components=str(values.get('output_components', 'xz')), overwrite=False,
-                progress=lambda j: bar.update(1) if j % 100 == 0 and j else None)
+                progress=lambda j: bar.update(100) if j % 100 == 0 and j else None)
     summary = dict(result.summary)
     summary['output_bag'] = str(Path(args.output))
     health = predictor.health()

@@ -73,6 +73,9 @@ class Thresholds:
         The model's held-out error of the configured metric, when recorded.
     source : str
         Where the thresholds came from, in words (health values, ``model_info``).
+    warn_why, error_why : str
+        Said after a threshold in a health message: ``' (2 x the held-out error 0.16)'``
+        when it is such a multiple, else empty.
     """
 
     def __init__(self, model: Any, config: Any) -> None:
@@ -100,7 +103,6 @@ class Thresholds:
                 return ''
             return f' ({factor:g} x the held-out error {self.held_out:.3g})'
 
-        #: Said after a threshold in a health message: why it is that value.
         self.warn_why = why(self.warn, WARN_FACTOR, warn)
         self.error_why = why(self.error, ERROR_FACTOR, error)
 

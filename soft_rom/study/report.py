@@ -20,6 +20,8 @@ FIGURES = ('errors_vs_r.png', 'errors_vs_r_deviation.png', 'traces.png', 'bars.p
 
 
 def _fmt(v: Any) -> str:
+    if v is None:                  # summary.json's null: an error that could not be computed
+        return 'n/a'
     if isinstance(v, float):
         if v != v or v in (float('inf'), float('-inf')):
             return str(v)
