@@ -57,7 +57,8 @@ def _check_study_folder(out: Path, overwrite: bool) -> None:
     (``summary.json`` and ``report.md``).
     """
     from soft_rom.errors import OutputExistsError
-    from soft_rom.outputs import is_marked, mark, restore_interrupted
+    from soft_rom.outputs import is_marked, mark
+    from soft_rom.outputs_inplace import restore_interrupted
 
     restore_interrupted(out)
     if not out.exists() and not out.is_symlink():
@@ -141,11 +142,11 @@ def study_output(args: argparse.Namespace, cfg: Any) -> Iterator[Path]:
 
     The folder is built in place (its training set and models record their paths); a
     previous study there is parked until the run ends and comes back if it stops
-    (:func:`soft_rom.outputs.rebuilt_dir`): an interrupted run leaves the previous folder,
+    (:func:`soft_rom.outputs_inplace.rebuilt_dir`): an interrupted run leaves the previous folder,
     or none, never a mix. The previous folder's recorded episodes are reused when ``cfg``
     records them the same way.
     """
-    from soft_rom.outputs import rebuilt_dir
+    from soft_rom.outputs_inplace import rebuilt_dir
 
     prepare_study(args)
     reuse = None if args.bags is not None else functools.partial(_reuse_bags, cfg=cfg)

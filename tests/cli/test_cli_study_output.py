@@ -21,7 +21,8 @@ import time
 import pytest
 
 from soft_rom.cli import main
-from soft_rom.outputs import mark, MARKER, rebuilt_dir, restore_interrupted
+from soft_rom.outputs import mark, MARKER
+from soft_rom.outputs_inplace import rebuilt_dir, restore_interrupted
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -126,7 +127,7 @@ def test_not_a_study_folder_is_never_replaced(tmp_path, capsys, fake_study) -> N
 _KILLED = """
 import sys, time
 from pathlib import Path
-from soft_rom.outputs import rebuilt_dir
+from soft_rom.outputs_inplace import rebuilt_dir
 with rebuilt_dir(sys.argv[1], overwrite=True, kind='study', what='study folder') as out:
     (Path(out) / 'bars.png').write_bytes(b'half-written')
     print('ready', flush=True)
