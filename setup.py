@@ -50,10 +50,11 @@ setup(
         'PyYAML>=6.0',
         'matplotlib>=3.6',
         'tqdm>=4.64',
+        'threadpoolctl>=3.1',
     ],
     extras_require={
         'test': ['pytest>=7', 'ruff>=0.5', 'mypy>=1.8', 'colcon-common-extensions>=0.3',
-                 'hypothesis>=6.0'],
+                 'hypothesis>=6.0', 'markdown-it-py>=2.2'],
         'dask': ['dask[array]>=2023.1', 'distributed>=2023.1'],
         # The ROS 2 Jazzy runtime from PyPI, for `predictor` and the node tests without an apt
         # installation. These wheels are built for CPython 3.11 only; on Ubuntu 24.04 (Python
@@ -66,7 +67,6 @@ setup(
     description='Linear reduced-order models (LOpInf, DMDc, ERA/OKID) of soft robots from '
                 'ROS 2 bags, and a real-time ROM predictor node.',
     license='Apache-2.0',
-    tests_require=['pytest'],
     entry_points={
         'console_scripts': [
             'soft-rom = soft_rom.cli:main',

@@ -49,7 +49,8 @@ ROSDEP_OF = {
     'google_crc32c': None,
 }
 # Imported lazily for extras (dask, mesh); clarabel is the cvxpy solver cvxpy installs;
-# threadpoolctl, when installed, limits BLAS threads during ERA/OKID fits.
+# threadpoolctl (required by setup.py, optional for a rosdep install) limits BLAS threads in
+# the study, the simulation's workers and ERA/OKID fits.
 OPTIONAL = {'dask', 'distributed', 'gmsh', 'clarabel', 'threadpoolctl'}
 
 

@@ -307,6 +307,7 @@ def test_reload_missing_corrupt_valid_and_runtime_parameters(client, tmp_path) -
         assert not ro.successful
         rng = client.set_parameters(node.fqn, warn_threshold=500.0)[0]
         assert not rng.successful
+        assert client.set_parameters(node.fqn, error_threshold=0.3)[0].successful
         bad_order = client.set_parameters(node.fqn, warn_threshold=0.9)[0]   # > error 0.3
         assert not bad_order.successful and 'unchanged' in bad_order.reason
         # still running the reloaded model

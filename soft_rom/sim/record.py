@@ -113,6 +113,15 @@ def record_episode(model: EelModel, episode: int, path: str | Path, *, seed: int
     return sidecar
 
 
+def _one_blas_thread() -> None:
+    """Worker start: one BLAS thread per process (``jobs`` processes share the cores)."""
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:     # optional: the library's default then applies
+        return
+    threadpool_limits(limits=1, user_api='blas')
+
+
 def _worker(args: tuple) -> dict[str, Any]:
     config, episode, path, kwargs = args
     return record_episode(EelModel(config), episode, path, **kwargs)
@@ -133,7 +142,7 @@ def record_episodes(out_dir: str | Path, episodes: int | Sequence[int] = 6, *,
     resolution : int, optional
         Overrides ``config.resolution``.
     jobs : int
-        Worker processes (each builds its own model).
+        Worker processes (each builds its own model, and uses one BLAS thread).
     progress : bool
         tqdm bars (per step with one job, per episode otherwise).
     **kwargs
@@ -161,10 +170,14 @@ def record_episodes(out_dir: str | Path, episodes: int | Sequence[int] = 6, *,
                 for e in eps]
     tasks = [(cfg, e, out / f'ep{e}', dict(kwargs, progress=False)) for e in eps]
     results: list[dict[str, Any]] = []
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
-        it = pool.map(_worker, tasks)
-        if progress:
-            from tqdm import tqdm
-            it = tqdm(it, total=len(tasks), desc='episodes', unit='ep')
-        results.extend(it)
+    with ProcessPoolExecutor(max_workers=jobs, initializer=_one_blas_thread) as pool:
+        try:
+            it = pool.map(_worker, tasks)
+            if progress:
+                from tqdm import tqdm
+                it = tqdm(it, total=len(tasks), desc='episodes', unit='ep')
+            results.extend(it)
+        except BaseException:        # Ctrl-C, a failed episode: start no other episode
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
     return results
