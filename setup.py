@@ -55,7 +55,7 @@ setup(
     extras_require={
         'test': ['pytest>=7', 'ruff>=0.5', 'mypy>=1.8', 'colcon-common-extensions>=0.3',
                  'hypothesis>=6.0', 'markdown-it-py>=2.2'],
-        'dask': ['dask[array]>=2023.1', 'distributed>=2023.1'],
+        'dask': ['dask[array]>=2024.1', 'distributed>=2024.1'],
         # The ROS 2 Jazzy runtime from PyPI, for `predictor` and the node tests without an apt
         # installation. These wheels are built for CPython 3.11 only; on Ubuntu 24.04 (Python
         # 3.12) install ros-jazzy-* with apt and `source /opt/ros/jazzy/setup.bash` instead.

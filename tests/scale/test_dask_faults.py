@@ -147,13 +147,6 @@ def _processing(client, worker: str) -> bool:
     return bool(client.processing().get(worker))
 
 
-_OLD_DISTRIBUTED = tuple(int(v) for v in distributed.__version__.split('.')[:2]) < (2024, 1)
-
-
-@pytest.mark.xfail(_OLD_DISTRIBUTED, strict=False,
-                   reason='distributed 2023.1 (the declared minimum) lets a killed worker '
-                          "reach the client as a lost connection; soft_rom's resubmission "
-                          'did not recover it in the time available (open, see issue 26)')
 def test_a_worker_killed_mid_pod_gives_the_same_model(tmp_path):
     ts = _set(tmp_path / 'ts.zarr')
     c = Cluster(tmp_path, 2, delay=0.4)
