@@ -42,9 +42,10 @@ ROSDEP_OF = {
     'matplotlib': 'python3-matplotlib', 'tqdm': 'python3-tqdm',
     'cvxpy': 'python3-cvxpy-pip', 'rosbags': 'python3-rosbags-pip', 'zarr': None,
 }
-# Imported lazily for extras (dask, mesh); clarabel is the cvxpy solver cvxpy installs;
-# threadpoolctl, when installed, limits BLAS threads during ERA/OKID fits.
-OPTIONAL = {'dask', 'distributed', 'gmsh', 'clarabel', 'threadpoolctl'}
+# Imported lazily for extras (dask, mesh, fast: numba and sksparse, with numpy and LAPACK as
+# the fallback); clarabel is the cvxpy solver cvxpy installs; threadpoolctl, when installed,
+# limits BLAS threads during ERA/OKID fits.
+OPTIONAL = {'dask', 'distributed', 'gmsh', 'clarabel', 'threadpoolctl', 'numba', 'sksparse'}
 
 
 def _exec_depends(tags: tuple[str, ...] = ('exec_depend', 'depend')) -> set[str]:

@@ -37,16 +37,17 @@ step,
     (M + h C + h^2 K_t)\, v_{n+1} = M v_n + h \left(f(x_n) + B(x_n) u_n\right),
     \qquad x_{n+1} = x_n + h v_{n+1},
 
-with ``K_t`` the rest stiffness ``K_0`` (``jacobian='rest'``, default: one
-back-substitution per step with the banded Cholesky factor of ``M + hC + h^2 K_0``, computed
-once) or SOFA's warped corotational stiffness at ``x_n`` (``jacobian='corotated'``: conjugate
-gradients preconditioned by that same factor, matrix-free products, 2-6 iterations per
-step). Both are consistent first-order schemes for the same ODE (the nonlinearity is
-entirely in ``f(x_n)``). Measured on Ep 1 against a 4x finer time step (corotated tangent):
-relative deviation error 1.3 % with ``'rest'`` and 1.0 % with ``'corotated'``, the latter
-costing about 2.4x more per step (``benchmarks/bench_sim.py episodes``); hence ``'rest'``
-by default. Input ``u_n`` is held over ``[t_n, t_{n+1})``; sample
-``n`` records ``(t_n, u_n, x_n)``, the convention of :mod:`soft_rom.models`.
+with ``K_t`` the rest stiffness ``K_0`` (``jacobian='rest'``, default: one back-substitution
+per step with the Cholesky factor of ``M + hC + h^2 K_0``, computed once: CHOLMOD's with the
+``fast`` extra, else LAPACK's banded one) or SOFA's warped corotational stiffness at ``x_n``
+(``jacobian='corotated'``: conjugate gradients preconditioned by that same factor,
+matrix-free products, 2-6 iterations per step). Both are consistent first-order schemes for
+the same ODE (the nonlinearity is entirely in ``f(x_n)``). Measured on Ep 1 against a 4x
+finer time step (corotated tangent): relative deviation error 1.3 % with ``'rest'`` and 1.0
+% with ``'corotated'``, the latter costing about 2.4x more per step
+(``benchmarks/bench_sim.py episodes``); hence ``'rest'`` by default. Input ``u_n`` is held
+over ``[t_n, t_{n+1})``; sample ``n`` records ``(t_n, u_n, x_n)``, the convention of
+:mod:`soft_rom.models`.
 
 Outputs: 20 centerline points from ``x = 0`` to the tail tip, each the mean of the nodes of
 the nearest grid cross-sections, linearly interpolated along ``x`` (a fixed sparse map of the
@@ -302,7 +303,7 @@ class EelModel:
         self.free = np.repeat(self.mesh.nodes[:, 0] > 1e-12 * cfg.length, 3)
         self.centerline_map = self._centerline_map(xs)
         self._K0: sp.csr_matrix | None = None
-        self._factor: dict[float, tuple] = {}
+        self._factor: dict[tuple[float, str], tuple] = {}
 
     # ------------------------------------------------------------------ operators
     def _triangle_forces(self, x: Array) -> Array:
@@ -393,21 +394,23 @@ class EelModel:
         return Linearization(M=M, C=C, K=K, B=B, E=E, q_ref=self.q_ref.copy(),
                              y_ref=E @ self.q_ref, free=self.free.copy())
 
-    def _rest_factor(self, dt: float) -> tuple[_SPDFactor, sp.csr_matrix, Array]:
-        if dt not in self._factor:
+    def _rest_factor(self, dt: float,
+                     solver: str = 'auto') -> tuple[_SPDFactor, sp.csr_matrix, Array]:
+        if (dt, solver) not in self._factor:
             cfg = self.config
             K = self.stiffness()[self.free][:, self.free].tocsr()
             m = np.repeat(self.fem.mass, 3)[self.free]
             A = (sp.diags(m * (1 + dt * cfg.rayleigh_mass))
                  + (dt * cfg.rayleigh_stiffness + dt * dt) * K)
-            self._factor = {dt: (_SPDFactor(A), K, m)}
-        return self._factor[dt]
+            self._factor = {(dt, solver): (_SPDFactor(A, solver), K, m)}
+        return self._factor[dt, solver]
 
     # ------------------------------------------------------------------ simulation
     def simulate(self, pressures: ArrayLike | Callable[[float], ArrayLike], n_steps: int,
                  dt: float = 1e-3, *, jacobian: str = 'rest', linear: bool = False,
                  store_states: bool = False, callback: StepCallback | None = None,
-                 cg_rtol: float = 1e-8, cg_maxiter: int = 50) -> SimulationResult:
+                 cg_rtol: float = 1e-8, cg_maxiter: int = 50,
+                 linear_solver: str = 'auto') -> SimulationResult:
         """Integrate from rest (``q = q_ref``, ``v = 0``) for ``n_steps`` samples.
 
         Parameters
@@ -431,6 +434,10 @@ class EelModel:
             sample, to stream states (e.g. into a bag) without holding them.
         cg_rtol, cg_maxiter : float, int
             Conjugate-gradient tolerance (relative residual) and cap (corotated tangent).
+        linear_solver : {'auto', 'cholmod', 'banded'}
+            Factorization of the rest system (:class:`_SPDFactor`): CHOLMOD when installed
+            (``'auto'``), else LAPACK's banded Cholesky. Both give the same trajectories to
+            round-off; CHOLMOD is faster on large meshes.
 
         Returns
         -------
@@ -456,7 +463,7 @@ class EelModel:
 
         cfg = self.config
         t0 = time.perf_counter()
-        lu, K0f, m = self._rest_factor(dt)
+        lu, K0f, m = self._rest_factor(dt, linear_solver)
         t_factor = time.perf_counter() - t0
         free = self.free
         fem = self.fem
@@ -538,17 +545,40 @@ def simulate_episode(model: EelModel, episode: int, *, seed: int = 0, n_steps: i
     return result
 
 
+#: Linear solvers of the rest system, ``'auto'`` first (:class:`_SPDFactor`).
+LINEAR_SOLVERS = ('auto', 'cholmod', 'banded')
+
+
+def cholmod_available() -> bool:
+    """Whether CHOLMOD (scikit-sparse, the ``fast`` extra) can be imported."""
+    try:
+        import sksparse.cholmod  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
 class _SPDFactor:
     """Cholesky factorization of the SPD rest matrix ``M + h C + h^2 K_0``, reused every step.
 
-    The nodes are numbered x-major, so the matrix of the slender body is banded with a
-    half-bandwidth of about three cross-sections of DOFs; LAPACK's banded Cholesky
-    (``pbtrf``/``pbtrs``) then beats SuperLU's general sparse LU by about 4x per solve on
-    the default mesh (measured: 0.66 ms vs 2.6 ms at 5,040 free DOFs). Above ``max_bytes``
-    of band storage it falls back to SuperLU with a symmetric minimum-degree ordering.
+    ``'cholmod'``: CHOLMOD's supernodal Cholesky with its fill-reducing ordering (METIS nested
+    dissection or AMD, whichever fills less), from scikit-sparse (the ``fast`` extra). At the
+    paper's size (233,082 free DOFs) its factor has 150 M entries against the band's 316 M,
+    and a solve reads it in BLAS blocks: measured 1.8x faster for one right-hand side
+    (``benchmarks/bench_sim.py``). ``'banded'``: the nodes are numbered x-major, so the
+    matrix of the slender body is banded with a half-bandwidth of about three cross-sections
+    of DOFs, and LAPACK's banded Cholesky (``pbtrf``/``pbtrs``) beats SuperLU's general
+    sparse LU; above ``max_bytes`` of band storage it falls back to SuperLU with a symmetric
+    minimum-degree ordering. ``'auto'``: CHOLMOD when installed, else banded.
     """
 
-    def __init__(self, A: sp.spmatrix, max_bytes: float = 6e9) -> None:
+    def __init__(self, A: sp.spmatrix, kind: str = 'auto', max_bytes: float = 6e9) -> None:
+        if kind not in LINEAR_SOLVERS:
+            raise ConfigError(f'linear solver must be one of {", ".join(LINEAR_SOLVERS)}; '
+                              f'got {kind!r}.')
+        if kind == 'cholmod' or (kind == 'auto' and cholmod_available()):
+            self._init_cholmod(A)
+            return
         coo = sp.triu(A, format='coo')
         n = A.shape[0]
         bw = int(np.max(coo.col - coo.row)) if coo.nnz else 0
@@ -567,8 +597,24 @@ class _SPDFactor:
         self._lu = spla.splu(A.tocsc(), permc_spec='MMD_AT_PLUS_A', diag_pivot_thresh=0.0,
                              options={'SymmetricMode': True})
 
+    def _init_cholmod(self, A: sp.spmatrix) -> None:
+        try:
+            from sksparse.cholmod import cholesky, CholmodNotPositiveDefiniteError
+        except ImportError as err:
+            raise ConfigError('the CHOLMOD linear solver needs scikit-sparse: pip install '
+                              "'soft_rom[fast]' (with SuiteSparse, e.g. apt install "
+                              'libsuitesparse-dev), or use the banded solver') from err
+        self.kind = 'cholmod'
+        try:
+            self._chol = cholesky(sp.csc_matrix(A), mode='supernodal')
+        except CholmodNotPositiveDefiniteError as err:
+            raise SolverError(f'the rest system matrix is not positive definite: {err}') \
+                from err
+
     def solve(self, b: Array) -> Array:
-        """``A^{-1} b``."""
+        """``A^{-1} b`` for ``b`` of shape (n,) or (n, k)."""
+        if self.kind == 'cholmod':
+            return np.asarray(self._chol.solve_A(b))
         if self.kind == 'superlu':
             return self._lu.solve(b)
         return sla.cho_solve_banded((self._cb, False), b, check_finite=False)
