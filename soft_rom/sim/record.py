@@ -12,7 +12,7 @@ parameters, seed, pressure settings, mesh size, wall time.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 import json
@@ -36,7 +36,8 @@ def record_episode(model: EelModel, episode: int, path: str | Path, *, seed: int
                    amplitude: float = DEFAULT_AMPLITUDE, antagonistic: bool = True,
                    bias: float = 0.0, state: bool = True, overwrite: bool = False,
                    progress: bool = False,
-                   jacobian: str = 'rest') -> dict[str, Any]:
+                   jacobian: str = 'rest',
+                   on_step: Callable[[int], None] | None = None) -> dict[str, Any]:
     """Simulate episode ``Ep <episode>`` and write it as a bag at ``path``.
 
     Parameters
@@ -55,6 +56,8 @@ def record_episode(model: EelModel, episode: int, path: str | Path, *, seed: int
         Write the full nodal positions on the state topic.
     progress : bool
         Show a tqdm bar over the steps.
+    on_step : callable, optional
+        ``on_step(j)`` after sample ``j`` is written (progress counters of other processes).
 
     Returns
     -------
@@ -78,6 +81,8 @@ def record_episode(model: EelModel, episode: int, path: str | Path, *, seed: int
             writer.write(t, u, centerline, positions if state else None)
             if bar is not None:
                 bar.update(1)
+            if on_step is not None:
+                on_step(j)
 
         try:
             result = model.simulate(U, n_steps, dt, callback=write, jacobian=jacobian)
