@@ -36,7 +36,7 @@ import shutil
 import time
 from typing import Any
 
-from soft_rom.errors import ConfigError, ResourceError, SolverError
+from soft_rom.errors import ConfigError, ResourceError, SoftRomError, SolverError
 from soft_rom.study.run import StudyConfig
 
 __all__ = ['RunPlan', 'STAGES', 'check_plan', 'plan_run', 'run_paper_scale']
@@ -234,11 +234,16 @@ def _simulate(plan: RunPlan, cfg: StudyConfig, progress: bool,
                 bar.update(steps - bar.n)
             if finished == len(futures):
                 break
-            for f in futures:
-                if f.done() and f.exception() is not None:
+            for task, f in zip(tasks, futures):
+                err = f.exception() if f.done() else None
+                if err is not None:
                     for g in futures:
                         g.cancel()
-                    raise f.exception()  # type: ignore[misc]
+                    if isinstance(err, SoftRomError):
+                        raise err
+                    raise SolverError(f'simulating ep{task[2]} failed ({type(err).__name__}: '
+                                      f'{err}); the finished episodes are kept: run the same '
+                                      'command again to resume') from err
             time.sleep(0.5)
         sidecars = [f.result() for f in futures]
     for s in sidecars:
@@ -447,8 +452,9 @@ def run_paper_scale(out: str | Path, cfg: StudyConfig, *, bag_dir: str | Path | 
     for i, stage in enumerate(s for s in STAGES if s in stages):
         record = _stage_record(out, stage)
         if stage == 'simulate' and plan.episodes_todo:
-            if record is not None:       # bags went missing since: simulate them again
-                (_stage_dir(out) / 'simulate.json').unlink()
+            # bags to (re)record: what was made from the bags is made again after them
+            for later in STAGES:
+                (_stage_dir(out) / f'{later}.json').unlink(missing_ok=True)
             record = None
         if record is not None:
             echo(f'[{i + 1}/{len(STAGES)}] {stage}: done before ({_fmt(record["wall_s"])}), '
