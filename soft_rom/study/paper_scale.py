@@ -146,6 +146,14 @@ def check_plan(plan: RunPlan, *, free_disk: Callable[[Path], float] | None = Non
     def disk(p: Path) -> float:
         return float(shutil.disk_usage(_existing(p)).free)
 
+    avail = available_memory() if free_memory is None else free_memory
+    need_mem = max(plan.sim_memory, plan.fit_memory)
+    if need_mem > avail:
+        raise ResourceError(
+            f'the run needs about {need_mem / _GB:.1f} GB of memory (simulation '
+            f'{plan.sim_memory / _GB:.1f} GB with {plan.solver}, fits '
+            f'{plan.fit_memory / _GB:.1f} GB); {avail / _GB:.1f} GB available. Use fewer '
+            '--jobs, or stop other work')
     free_disk = free_disk or disk
     bags, out = _existing(plan.bag_dir), _existing(plan.out)
     if os.stat(bags).st_dev == os.stat(out).st_dev:
@@ -159,14 +167,6 @@ def check_plan(plan: RunPlan, *, free_disk: Callable[[Path], float] | None = Non
             f'the run needs {plan.bag_bytes / _GB:.1f} GB for the bags of '
             f'{len(plan.episodes_todo)} episode(s) and {plan.set_bytes / _GB:.1f} GB for the '
             f'training set: {where}. Free disk space, or put --bags on another disk')
-    avail = available_memory() if free_memory is None else free_memory
-    need_mem = max(plan.sim_memory, plan.fit_memory)
-    if need_mem > avail:
-        raise ResourceError(
-            f'the run needs about {need_mem / _GB:.1f} GB of memory (simulation '
-            f'{plan.sim_memory / _GB:.1f} GB with {plan.solver}, fits '
-            f'{plan.fit_memory / _GB:.1f} GB); {avail / _GB:.1f} GB available. Use fewer '
-            '--jobs, or stop other work')
 
 
 # ----------------------------------------------------------------------------- simulate
