@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+import time
 
 import pytest
 
@@ -74,12 +75,12 @@ def _calls(out: Path, name: str) -> int:
     return len(path.read_text()) if path.exists() else 0
 
 
-_SIMULATE = paper_scale._simulate_one
+_SIMULATE = paper_scale._simulate_group
 
 
-def _simulate_but_not_ep3(task):
-    """A simulation worker interrupted in ep3 (ep1 and ep2 finish first, two jobs)."""
-    if task[2] == 3:
+def _simulate_but_not_ep2(task):
+    """The worker of ep2 is interrupted (two jobs: ep1 and ep3 side by side, ep2)."""
+    if 2 in task[2]:
         raise RuntimeError('interrupted')
     return _SIMULATE(task)
 
@@ -90,25 +91,29 @@ def test_an_interrupted_run_resumes_without_redoing_episodes_or_stages(
     cfg = _cfg()
     for name in ('study1', 'study2', 'cold_read', 'report'):
         monkeypatch.setitem(paper_scale._STAGE_FUNCS, name, _fake_stage(name, []))
-    # 1) interrupted while simulating ep3: ep1 and ep2 are kept, ep3 left no bag
-    monkeypatch.setattr(paper_scale, '_simulate_one', _simulate_but_not_ep3)
-    with pytest.raises(SolverError, match='simulating ep3 failed .* run the same command'):
+    # 1) interrupted while simulating ep2: ep1 and ep3 are kept, ep2 left no bag
+    monkeypatch.setattr(paper_scale, '_simulate_group', _simulate_but_not_ep2)
+    with pytest.raises(SolverError, match='simulating ep2 failed .* run the same command'):
         run_paper_scale(out, cfg, bag_dir=bags, progress=False, echo=lambda s: None)
-    assert sorted(p.name for p in bags.iterdir()) == ['ep1', 'ep1.json', 'ep2', 'ep2.json']
-    kept = {e: (bags / f'ep{e}' / f'ep{e}.mcap').stat().st_mtime_ns for e in (1, 2)}
-    # 2) resumed: only ep3 is simulated; then a stage dies, the stages before it are kept
-    monkeypatch.setattr(paper_scale, '_simulate_one', _SIMULATE)
+    for _ in range(100):           # the other worker finishes after the failure is seen
+        if (bags / 'ep3.json').exists():
+            break
+        time.sleep(0.2)
+    assert sorted(p.name for p in bags.iterdir()) == ['ep1', 'ep1.json', 'ep3', 'ep3.json']
+    kept = {e: (bags / f'ep{e}' / f'ep{e}.mcap').stat().st_mtime_ns for e in (1, 3)}
+    # 2) resumed: only ep2 is simulated; then a stage dies, the stages before it are kept
+    monkeypatch.setattr(paper_scale, '_simulate_group', _SIMULATE)
     monkeypatch.setitem(paper_scale._STAGE_FUNCS, 'study2',
                         _fake_stage('study2', [], fail=True))
     lines: list[str] = []
     with pytest.raises(SolverError, match='stage study2 failed .* run the same command again'):
         run_paper_scale(out, cfg, bag_dir=bags, progress=False, echo=lines.append)
-    assert 'to simulate: ep3 ' in lines[0]
-    assert {e: (bags / f'ep{e}' / f'ep{e}.mcap').stat().st_mtime_ns for e in (1, 2)} == kept
+    assert 'to simulate: ep2 ' in lines[0]
+    assert {e: (bags / f'ep{e}' / f'ep{e}.mcap').stat().st_mtime_ns for e in (1, 3)} == kept
     records = {s for s in STAGES if (out / 'stages' / f'{s}.json').is_file()}
     assert records == {'simulate', 'convert', 'study1'}
     sim = json.loads((out / 'stages' / 'simulate.json').read_text())
-    assert sim['result']['episodes'] == [3] and sim['peak_rss_gb'] > 0
+    assert sim['result']['episodes'] == [2] and sim['peak_rss_gb'] > 0
     assert sim['result']['linear_solver'] in ('cholmod', 'banded-cholesky')
     assert json.loads((out / 'stages' / 'convert.json').read_text())['result'][
         'training_set_bytes'] > 0

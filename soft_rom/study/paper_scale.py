@@ -5,9 +5,11 @@ of bags and as much again as a training set: too large to hold in memory, and ho
 work. This run goes through the same public pieces as :func:`soft_rom.study.run.run_study`
 in stages, each recorded when done, so that an interrupted run resumes where it stopped:
 
-1. ``simulate``: the missing episodes only, ``jobs`` processes, steps counted into one
-   progress bar with its ETA (a bag is written under a temporary name and renamed when
-   complete, with its sidecar: a bag that exists is finished);
+1. ``simulate``: the missing episodes only, shared among ``jobs`` processes, each running its
+   episodes side by side (one solve with all of them per step,
+   :meth:`~soft_rom.sim.EelModel.simulate_lockstep`); steps counted into one progress bar
+   with its ETA. A bag is written under a temporary name and renamed when complete, with
+   its sidecar: a bag that exists is finished;
 2. ``convert``: bags to the training set (written atomically);
 3. ``study1``, ``study2``: the fits stream the snapshots from disk
    (:attr:`~soft_rom.study.run.StudyConfig.streaming`), so their memory stays bounded;
@@ -188,22 +190,26 @@ def _init_worker(progress: Any, blas_threads: int) -> None:
         os.environ.setdefault('OPENBLAS_NUM_THREADS', str(blas_threads))
 
 
-def _simulate_one(task: tuple[StudyConfig, int, int, Path, dict[str, Any]]) -> dict[str, Any]:
+def _simulate_group(task: tuple[StudyConfig, int, list[int], list[Path], dict[str, Any]]
+                    ) -> list[dict[str, Any]]:
+    """One worker: its episodes side by side (:func:`soft_rom.sim.record.record_lockstep`)."""
     from soft_rom.outputs import mark
     from soft_rom.sim.eel import EelModel
-    from soft_rom.sim.record import record_episode
+    from soft_rom.sim.record import record_lockstep
 
-    cfg, slot, episode, path, kwargs = task
+    cfg, slot, episodes, paths, kwargs = task
     model = EelModel(resolution=cfg.resolution)
 
     def tick(j: int) -> None:
         if _PROGRESS is not None:
-            _PROGRESS[slot] = j + 1
+            _PROGRESS[slot] = (j + 1) * len(episodes)
 
-    side = record_episode(model, episode, path, on_step=tick, **kwargs)
-    mark(path, 'simulated')
-    side['peak_rss_gb'] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
-    return side
+    sides = record_lockstep(model, episodes, paths, on_step=tick, **kwargs)
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+    for path, side in zip(paths, sides):
+        mark(path, 'simulated')
+        side['peak_rss_gb'] = rss
+    return sides
 
 
 def _simulate(plan: RunPlan, cfg: StudyConfig, progress: bool,
@@ -216,17 +222,21 @@ def _simulate(plan: RunPlan, cfg: StudyConfig, progress: bool,
     plan.bag_dir.mkdir(parents=True, exist_ok=True)
     kwargs = dict(seed=cfg.seed, storage=cfg.storage, n_steps=plan.n_steps, dt=cfg.dt,
                   state=cfg.record_state, overwrite=True, **cfg.sim_options)
+    kwargs.pop('jacobian', None)            # lockstep: the rest tangent
     ctx = _context()
-    shared = ctx.Array('q', len(todo), lock=False)
-    tasks = [(cfg, slot, e, plan.bag_dir / f'ep{e}', kwargs) for slot, e in enumerate(todo)]
+    jobs = max(1, min(cfg.jobs, len(todo)))
+    groups = [todo[i::jobs] for i in range(jobs)]        # each worker's episodes, in lockstep
+    shared = ctx.Array('q', jobs, lock=False)
+    tasks = [(cfg, slot, g, [plan.bag_dir / f'ep{e}' for e in g], kwargs)
+             for slot, g in enumerate(groups)]
     sidecars: list[dict[str, Any]] = []
     total = len(todo) * plan.n_steps
     with tqdm(total=total, desc=f'simulate {len(todo)} episode(s)', unit='step',
               disable=not progress, smoothing=0.05, mininterval=2.0) as bar, \
-            ProcessPoolExecutor(max_workers=max(1, min(cfg.jobs, len(todo))), mp_context=ctx,
+            ProcessPoolExecutor(max_workers=jobs, mp_context=ctx,
                                 initializer=_init_worker,
                                 initargs=(shared, 1 if cfg.jobs > 1 else 0)) as pool:
-        futures = [pool.submit(_simulate_one, task) for task in tasks]
+        futures = [pool.submit(_simulate_group, task) for task in tasks]
         while True:
             finished = sum(f.done() for f in futures)
             steps = int(sum(shared[:]))
@@ -241,11 +251,13 @@ def _simulate(plan: RunPlan, cfg: StudyConfig, progress: bool,
                         g.cancel()
                     if isinstance(err, SoftRomError):
                         raise err
-                    raise SolverError(f'simulating ep{task[2]} failed ({type(err).__name__}: '
-                                      f'{err}); the finished episodes are kept: run the same '
-                                      'command again to resume') from err
+                    eps = ', '.join(f'ep{e}' for e in task[2])
+                    raise SolverError(f'simulating {eps} failed ({type(err).__name__}: {err}); '
+                                      'the finished episodes are kept: run the same command '
+                                      'again to resume') from err
             time.sleep(0.5)
-        sidecars = [f.result() for f in futures]
+        sidecars = sorted((side for f in futures for side in f.result()),
+                          key=lambda side: side['episode'])
     for s in sidecars:
         echo(f'  {s["bag"]}: {s["wall_s"]:.0f} s, {s["linear_solver"]}, peak RSS '
              f'{s["peak_rss_gb"]:.2f} GB')
