@@ -537,8 +537,8 @@ class EelModel:
         The same scheme as :meth:`simulate` with the rest tangent (the default), so each
         episode's trajectory equals its own :meth:`simulate` to round-off; the rest system is
         solved for all episodes at once (a matrix of right-hand sides), which reads the
-        factor once per step instead of once per episode: with CHOLMOD at resolution 4,
-        three episodes cost about 1.4 solves (``benchmarks/bench_sim.py``).
+        factor once per step instead of once per episode: with CHOLMOD at resolution 4, six
+        right-hand sides cost 2.1 single solves (``docs/simulator_speed.md``).
 
         Parameters
         ----------
