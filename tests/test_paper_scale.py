@@ -132,6 +132,23 @@ def test_an_interrupted_run_resumes_without_redoing_episodes_or_stages(
     assert _calls(out, 'study1') == 1 and _calls(out, 'report') == 1
 
 
+def test_the_cli_resumes_in_its_own_folder(tmp_path: Path, monkeypatch, capsys) -> None:
+    out = tmp_path / 'study'
+    for name in ('study1', 'study2', 'cold_read', 'report'):
+        monkeypatch.setitem(paper_scale._STAGE_FUNCS, name,
+                            _fake_stage(name, [], fail=name == 'study1'))
+    argv = ['study', '--staged', '--duration', '0.06', '--episodes', '3', '--jobs', '1',
+            '-o', str(out), '--quiet']
+    assert main(argv) == 1
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'stage study1 failed' in err
+    monkeypatch.setitem(paper_scale._STAGE_FUNCS, 'study1', _fake_stage('study1', []))
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert 'simulate: done before' in printed and 'convert: done before' in printed
+    assert _calls(out, 'study1') == 2 and _calls(out, 'report') == 1
+
+
 def test_the_staged_run_end_to_end(tmp_path: Path) -> None:
     """Real stages: bags, training set, streaming fits, the cold read, the report."""
     out = tmp_path / 'study'

@@ -141,7 +141,6 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def _run_staged(args: argparse.Namespace, cfg: Any) -> int:
     """The paper-scale run: resumable stages, its own disk and memory check."""
-    from soft_rom.outputs import mark
     from soft_rom.study.paper_scale import run_paper_scale
 
     out = Path(args.output)
@@ -151,7 +150,6 @@ def _run_staged(args: argparse.Namespace, cfg: Any) -> int:
         check_writable_folder(Path(args.bags), 'bags')
     summary = run_paper_scale(out, cfg, bag_dir=args.bags, progress=not args.quiet,
                               echo=print)
-    mark(out, 'study')
     print(f'report: {out / "report.md"}')
     for line in summary.get('conclusions', []):
         print(f'  - {line}')

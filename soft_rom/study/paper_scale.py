@@ -71,7 +71,7 @@ class RunPlan:
     def describe(self) -> str:
         """One line per need, for the console."""
         eps = ', '.join(f'ep{e}' for e in self.episodes_todo) or 'none'
-        return (f'{self.n_dof:,} DOF, {self.n_steps} steps per episode; to simulate: {eps} '
+        return (f'about {self.n_dof:,} DOF, {self.n_steps} steps per episode; to simulate: {eps} '
                 f'({self.bag_bytes / _GB:.1f} GB of bags); training set '
                 f'{self.set_bytes / _GB:.1f} GB; memory: simulation '
                 f'{self.sim_memory / _GB:.1f} GB ({self.solver}), fits '
@@ -449,6 +449,8 @@ def run_paper_scale(out: str | Path, cfg: StudyConfig, *, bag_dir: str | Path | 
     ResourceError
         Before any work, when the bags, the training set or the memory would not fit.
     """
+    from soft_rom.outputs import mark
+
     unknown = set(stages) - set(STAGES)
     if unknown:
         raise ConfigError(f'unknown stage(s) {sorted(unknown)}; stages are {STAGES}.')
@@ -458,6 +460,7 @@ def run_paper_scale(out: str | Path, cfg: StudyConfig, *, bag_dir: str | Path | 
     plan = plan_run(out, cfg, bags)
     check_plan(plan)
     out.mkdir(parents=True, exist_ok=True)
+    mark(out, 'study')                  # a resumed run finds its own folder
     _write_json(out / 'stages' / 'config.json', asdict(cfg))
     echo(f'paper-scale run: {plan.describe()}')
     t_run = time.perf_counter()
