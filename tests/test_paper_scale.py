@@ -101,7 +101,9 @@ def test_an_interrupted_run_resumes_without_redoing_episodes_or_stages(
         time.sleep(0.2)
     assert sorted(p.name for p in bags.iterdir()) == ['ep1', 'ep1.json', 'ep3', 'ep3.json']
     kept = {e: (bags / f'ep{e}' / f'ep{e}.mcap').stat().st_mtime_ns for e in (1, 3)}
-    # 2) resumed: only ep2 is simulated; then a stage dies, the stages before it are kept
+    # 2) resumed: only ep2 is simulated (a killed run's half-written bag is removed); then a
+    #    stage dies, the stages before it are kept
+    (bags / '.ep2.tmp-0123abcd' / 'ep2').mkdir(parents=True)
     monkeypatch.setattr(paper_scale, '_simulate_group', _SIMULATE)
     monkeypatch.setitem(paper_scale._STAGE_FUNCS, 'study2',
                         _fake_stage('study2', [], fail=True))
@@ -109,6 +111,7 @@ def test_an_interrupted_run_resumes_without_redoing_episodes_or_stages(
     with pytest.raises(SolverError, match='stage study2 failed .* run the same command again'):
         run_paper_scale(out, cfg, bag_dir=bags, progress=False, echo=lines.append)
     assert 'to simulate: ep2 ' in lines[0]
+    assert not (bags / '.ep2.tmp-0123abcd').exists()
     assert {e: (bags / f'ep{e}' / f'ep{e}.mcap').stat().st_mtime_ns for e in (1, 3)} == kept
     records = {s for s in STAGES if (out / 'stages' / f'{s}.json').is_file()}
     assert records == {'simulate', 'convert', 'study1'}

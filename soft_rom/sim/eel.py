@@ -653,10 +653,41 @@ def memory_estimate(resolution: int, solver: str = 'auto') -> tuple[int, float]:
     return n_dof, factor + 3000.0 * n_dof + 150e6
 
 
+#: Environment variables that fix the thread count of the BLAS CHOLMOD loads.
+_BLAS_THREAD_VARS = ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS')
+
+
+def _cholmod() -> Any:
+    """``sksparse.cholmod``, its BLAS loaded with one thread (ImportError without it).
+
+    A CHOLMOD solve is a sequence of small BLAS calls, one per supernode; a threaded BLAS
+    synchronizes its threads at each, which on a loaded machine made a resolution-2 step
+    13x slower in wall time than one thread (measured 2.7 s against 0.2 s, same CPU time).
+    The thread count is read when the library loads, so it is set for that moment only
+    (the variables are restored; a value the user set is kept).
+    """
+    import sys
+    if 'sksparse.cholmod' in sys.modules:
+        return sys.modules['sksparse.cholmod']
+    import os
+    saved = {k: os.environ.get(k) for k in _BLAS_THREAD_VARS}
+    for k in _BLAS_THREAD_VARS:
+        os.environ.setdefault(k, '1')
+    try:
+        import sksparse.cholmod
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return sksparse.cholmod
+
+
 def cholmod_available() -> bool:
     """Whether CHOLMOD (scikit-sparse, the ``fast`` extra) can be imported."""
     try:
-        import sksparse.cholmod  # noqa: F401
+        _cholmod()
     except ImportError:
         return False
     return True
@@ -703,15 +734,15 @@ class _SPDFactor:
 
     def _init_cholmod(self, A: sp.spmatrix) -> None:
         try:
-            from sksparse.cholmod import cholesky, CholmodNotPositiveDefiniteError
+            cholmod = _cholmod()
         except ImportError as err:
             raise ConfigError('the CHOLMOD linear solver needs scikit-sparse: pip install '
                               "'soft_rom[fast]' (with SuiteSparse, e.g. apt install "
                               'libsuitesparse-dev), or use the banded solver') from err
         self.kind = 'cholmod'
         try:
-            self._chol = cholesky(sp.csc_matrix(A), mode='supernodal')
-        except CholmodNotPositiveDefiniteError as err:
+            self._chol = cholmod.cholesky(sp.csc_matrix(A), mode='supernodal')
+        except cholmod.CholmodNotPositiveDefiniteError as err:
             raise SolverError(f'the rest system matrix is not positive definite: {err}') \
                 from err
 

@@ -181,13 +181,9 @@ def _context() -> Any:
 _PROGRESS: Any = None
 
 
-def _init_worker(progress: Any, blas_threads: int) -> None:
+def _init_worker(progress: Any) -> None:
     global _PROGRESS
     _PROGRESS = progress
-    # CHOLMOD's BLAS is loaded later, on the first factorization: one thread per worker
-    # when the workers share the cores
-    if blas_threads:
-        os.environ.setdefault('OPENBLAS_NUM_THREADS', str(blas_threads))
 
 
 def _simulate_group(task: tuple[StudyConfig, int, list[int], list[Path], dict[str, Any]]
@@ -220,6 +216,10 @@ def _simulate(plan: RunPlan, cfg: StudyConfig, progress: bool,
     t0 = time.perf_counter()
     todo = list(plan.episodes_todo)
     plan.bag_dir.mkdir(parents=True, exist_ok=True)
+    for e in todo:          # bags a killed run left half-written (the writer's temporary names)
+        for tmp in plan.bag_dir.glob(f'.ep{e}.tmp-*'):
+            if tmp.is_dir() and not tmp.is_symlink():
+                shutil.rmtree(tmp, ignore_errors=True)
     kwargs = dict(seed=cfg.seed, storage=cfg.storage, n_steps=plan.n_steps, dt=cfg.dt,
                   state=cfg.record_state, overwrite=True, **cfg.sim_options)
     kwargs.pop('jacobian', None)            # lockstep: the rest tangent
@@ -234,8 +234,7 @@ def _simulate(plan: RunPlan, cfg: StudyConfig, progress: bool,
     with tqdm(total=total, desc=f'simulate {len(todo)} episode(s)', unit='step',
               disable=not progress, smoothing=0.05, mininterval=2.0) as bar, \
             ProcessPoolExecutor(max_workers=jobs, mp_context=ctx,
-                                initializer=_init_worker,
-                                initargs=(shared, 1 if cfg.jobs > 1 else 0)) as pool:
+                                initializer=_init_worker, initargs=(shared,)) as pool:
         futures = [pool.submit(_simulate_group, task) for task in tasks]
         while True:
             finished = sum(f.done() for f in futures)
