@@ -31,8 +31,8 @@ def test_the_plan_sizes_what_is_left(tmp_path: Path) -> None:
     cfg = StudyConfig(resolution=4, n_episodes=6)
     plan = plan_run(tmp_path / 'out', cfg, tmp_path / 'bags')
     assert plan.episodes_todo == (1, 2, 3, 4, 5, 6) and plan.stages_done == ()
-    # the paper's data volume: 6 x 2,000 snapshots of ~234k DOF ~ 22 GB, twice on disk
-    assert 21e9 < plan.bag_bytes < 25e9 and 21e9 < plan.set_bytes < 25e9
+    # the paper's data volume: 6 x 2,000 snapshots of ~234k DOF ~ 22 GB, bags and set
+    assert 21e9 < plan.bag_bytes < 25e9 and 22e9 < plan.set_bytes < 27e9     # padded chunks
     assert plan.sim_memory == 2 * memory_estimate(4)[1]              # two jobs
     assert plan.fit_memory <= 4e9
 

@@ -30,6 +30,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, replace
 import json
+import math
 import multiprocessing
 import os
 from pathlib import Path
@@ -38,6 +39,7 @@ import shutil
 import time
 from typing import Any
 
+from soft_rom.dataset._format import Q_CHUNK_COLS, Q_CHUNK_ROWS
 from soft_rom.errors import ConfigError, ResourceError, SoftRomError, SolverError
 from soft_rom.study.run import StudyConfig
 
@@ -120,7 +122,11 @@ def plan_run(out: Path, cfg: StudyConfig, bag_dir: Path) -> RunPlan:
     done = tuple(s for s in STAGES if _stage_record(out, s) is not None)
     per_sample = 8.0 * n_dof + _BAG_OVERHEAD
     bag_bytes = len(todo) * n_steps * per_sample
-    set_bytes = 0.0 if 'convert' in done else cfg.n_episodes * n_steps * (8.0 * n_dof + 1e3)
+    # the training set stores whole chunks of Q, its edge chunks padded
+    rows = math.ceil(n_dof / Q_CHUNK_ROWS) * Q_CHUNK_ROWS
+    cols = math.ceil(n_steps / Q_CHUNK_COLS) * Q_CHUNK_COLS
+    set_bytes = 0.0 if 'convert' in done else cfg.n_episodes * (8.0 * rows * cols
+                                                                 + 1e3 * n_steps)
     workers = min(cfg.jobs, max(len(todo), 1))
     sim_memory = workers * per_worker if todo else 0.0
     return RunPlan(n_dof=n_dof, n_steps=n_steps, episodes_todo=tuple(todo), stages_done=done,
