@@ -60,14 +60,42 @@ def test_the_cli_refuses_before_writing_anything(tmp_path: Path, monkeypatch, ca
     assert not out.exists()
 
 
-def _fake_stage(name: str, calls: list[str], fail: bool = False):
-    def run(out: Path, cfg: StudyConfig, bag_dir: Path, progress: bool) -> dict:
-        calls.append(name)
-        (out / f'{name}.calls').open('a').write('x')      # counted across processes
-        if fail:
-            raise RuntimeError(f'{name} interrupted')
-        return {'stage': name}
-    return run
+def _fake(name: str, out: Path, fail: bool = False) -> dict:
+    """A stage that only counts its runs (in a file: stages run in their own processes)."""
+    with (out / f'{name}.calls').open('a') as fh:
+        fh.write('x')
+    if fail:
+        raise RuntimeError(f'{name} interrupted')
+    return {'stage': name}
+
+
+# module-level, so that the stage processes (spawned) import them by name
+def _fake_study1(out, cfg, bag_dir, progress):
+    return _fake('study1', out)
+
+
+def _fail_study1(out, cfg, bag_dir, progress):
+    return _fake('study1', out, fail=True)
+
+
+def _fake_study2(out, cfg, bag_dir, progress):
+    return _fake('study2', out)
+
+
+def _fail_study2(out, cfg, bag_dir, progress):
+    return _fake('study2', out, fail=True)
+
+
+def _fake_cold_read(out, cfg, bag_dir, progress):
+    return _fake('cold_read', out)
+
+
+def _fake_report(out, cfg, bag_dir, progress):
+    return _fake('report', out)
+
+
+FAKES = {'study1': _fake_study1, 'study2': _fake_study2, 'cold_read': _fake_cold_read,
+         'report': _fake_report}
 
 
 def _calls(out: Path, name: str) -> int:
@@ -89,8 +117,8 @@ def test_an_interrupted_run_resumes_without_redoing_episodes_or_stages(
         tmp_path: Path, monkeypatch) -> None:
     out, bags = tmp_path / 'study', tmp_path / 'bags'
     cfg = _cfg()
-    for name in ('study1', 'study2', 'cold_read', 'report'):
-        monkeypatch.setitem(paper_scale._STAGE_FUNCS, name, _fake_stage(name, []))
+    for name, fake in FAKES.items():
+        monkeypatch.setitem(paper_scale._STAGE_FUNCS, name, fake)
     # 1) interrupted while simulating ep2: ep1 and ep3 are kept, ep2 left no bag
     monkeypatch.setattr(paper_scale, '_simulate_group', _simulate_but_not_ep2)
     with pytest.raises(SolverError, match='simulating ep2 failed .* run the same command'):
@@ -105,8 +133,7 @@ def test_an_interrupted_run_resumes_without_redoing_episodes_or_stages(
     #    stage dies, the stages before it are kept
     (bags / '.ep2.tmp-0123abcd' / 'ep2').mkdir(parents=True)
     monkeypatch.setattr(paper_scale, '_simulate_group', _SIMULATE)
-    monkeypatch.setitem(paper_scale._STAGE_FUNCS, 'study2',
-                        _fake_stage('study2', [], fail=True))
+    monkeypatch.setitem(paper_scale._STAGE_FUNCS, 'study2', _fail_study2)
     lines: list[str] = []
     with pytest.raises(SolverError, match='stage study2 failed .* run the same command again'):
         run_paper_scale(out, cfg, bag_dir=bags, progress=False, echo=lines.append)
@@ -121,7 +148,7 @@ def test_an_interrupted_run_resumes_without_redoing_episodes_or_stages(
     assert json.loads((out / 'stages' / 'convert.json').read_text())['result'][
         'training_set_bytes'] > 0
     # 3) resumed at study2
-    monkeypatch.setitem(paper_scale._STAGE_FUNCS, 'study2', _fake_stage('study2', []))
+    monkeypatch.setitem(paper_scale._STAGE_FUNCS, 'study2', _fake_study2)
     lines.clear()
     run_paper_scale(out, cfg, bag_dir=bags, progress=False, echo=lines.append)
     assert 'to simulate: none' in lines[0]
@@ -137,15 +164,15 @@ def test_an_interrupted_run_resumes_without_redoing_episodes_or_stages(
 
 def test_the_cli_resumes_in_its_own_folder(tmp_path: Path, monkeypatch, capsys) -> None:
     out = tmp_path / 'study'
-    for name in ('study1', 'study2', 'cold_read', 'report'):
-        monkeypatch.setitem(paper_scale._STAGE_FUNCS, name,
-                            _fake_stage(name, [], fail=name == 'study1'))
+    for name, fake in FAKES.items():
+        monkeypatch.setitem(paper_scale._STAGE_FUNCS, name, fake)
+    monkeypatch.setitem(paper_scale._STAGE_FUNCS, 'study1', _fail_study1)
     argv = ['study', '--staged', '--duration', '0.06', '--episodes', '3', '--jobs', '1',
             '-o', str(out), '--quiet']
     assert main(argv) == 1
     err = capsys.readouterr().err
     assert err.count('\n') == 1 and 'stage study1 failed' in err
-    monkeypatch.setitem(paper_scale._STAGE_FUNCS, 'study1', _fake_stage('study1', []))
+    monkeypatch.setitem(paper_scale._STAGE_FUNCS, 'study1', _fake_study1)
     assert main(argv) == 0
     printed = capsys.readouterr().out
     assert 'simulate: done before' in printed and 'convert: done before' in printed

@@ -179,9 +179,13 @@ def check_plan(plan: RunPlan, *, free_disk: Callable[[Path], float] | None = Non
 
 # ----------------------------------------------------------------------------- simulate
 def _context() -> Any:
-    """Processes by fork where there is one (a user's script needs no ``__main__`` guard)."""
-    methods = multiprocessing.get_all_start_methods()
-    return multiprocessing.get_context('fork' if 'fork' in methods else 'spawn')
+    """Fresh processes (``spawn``), never a fork of this one.
+
+    A fork of this multi-threaded process (BLAS, progress threads) can inherit a held lock
+    and hang, as a forked worker did under pytest. A script that calls
+    :func:`run_paper_scale` needs the usual ``if __name__ == '__main__':`` guard.
+    """
+    return multiprocessing.get_context('spawn')
 
 
 _PROGRESS: Any = None
@@ -276,14 +280,14 @@ def _simulate(plan: RunPlan, cfg: StudyConfig, progress: bool,
 
 
 # ----------------------------------------------------------------------------- child stages
-def _stage_child(stage: str, out: str, cfg: StudyConfig, bag_dir: str,
-                 progress: bool) -> None:
+def _stage_child(func: Callable[[Path, StudyConfig, Path, bool], dict[str, Any]], stage: str,
+                 out: str, cfg: StudyConfig, bag_dir: str, progress: bool) -> None:
     """Run one stage in this (child) process and write its record."""
     import logging
     logging.basicConfig(level=logging.WARNING, format='%(message)s')
     out_p = Path(out)
     t0 = time.perf_counter()
-    result = _STAGE_FUNCS[stage](out_p, cfg, Path(bag_dir), progress)
+    result = func(out_p, cfg, Path(bag_dir), progress)
     record = {'wall_s': time.perf_counter() - t0,
               'peak_rss_gb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
               'result': result}
@@ -412,8 +416,9 @@ _STAGE_FUNCS: dict[str, Callable[[Path, StudyConfig, Path, bool], dict[str, Any]
 
 def _run_child(stage: str, out: Path, cfg: StudyConfig, bag_dir: Path, progress: bool) -> None:
     ctx = _context()
-    proc = ctx.Process(target=_stage_child, args=(stage, str(out), cfg, str(bag_dir),
-                                                  progress), name=f'soft-rom {stage}')
+    proc = ctx.Process(target=_stage_child, args=(_STAGE_FUNCS[stage], stage, str(out), cfg,
+                                                  str(bag_dir), progress),
+                       name=f'soft-rom {stage}')
     proc.start()
     try:
         proc.join()
