@@ -632,14 +632,16 @@ LINEAR_SOLVERS = ('auto', 'cholmod', 'banded')
 
 
 def memory_estimate(resolution: int, solver: str = 'auto') -> tuple[int, float]:
-    """``(n_dof, bytes)``: the peak memory of simulating one episode, before building it.
+    """``(n_dof, bytes)``: the peak memory of simulating episodes, before building the model.
 
-    CHOLMOD: its factor of the rest system has about ``9.5e6 (n / 32886)^1.4`` entries
-    (measured 9.5 M, 48 M and 150 M at resolutions 2, 3 and 4), at about 12 bytes an entry
-    with the supernodal padding. Banded: the band, about 3.8 cross-sections of DOFs wide
-    (measured 131 at resolution 1, 395 at 2, 1,355 at 4), twice (matrix and factor). Both
-    plus about 3 kB per DOF for the mesh, the sparse operators and work vectors, and 150 MB
-    of interpreter.
+    The larger of two moments, plus 200 MB of interpreter: the assembly of the rest stiffness
+    (about 15 kB per DOF: its element blocks in coordinate form, then compressed), and the
+    factor with the operators and work vectors (3 kB per DOF). CHOLMOD's factor has about
+    ``9.5e6 (n / 32886)^1.4`` entries (measured 9.5 M, 48 M and 150 M at resolutions 2, 3
+    and 4), at about 12 bytes an entry with its supernodal padding; the banded factor is
+    about 3.8 cross-sections of DOFs wide (measured 395 at resolution 2, 1,355 at 4).
+    Measured peak RSS (``benchmarks/bench_sim.py``): 0.28, 0.61, 1.63 and 3.52 GB (CHOLMOD)
+    at resolutions 1-4, 3.70 GB (banded) at 4; estimated 0.28, 0.71, 1.81, 3.89 and 4.12 GB.
     """
     nx, ny, nz = EelConfig(resolution=resolution).grid_shape()
     section = (ny + 1) * (nz + 1)
@@ -649,8 +651,8 @@ def memory_estimate(resolution: int, solver: str = 'auto') -> tuple[int, float]:
     if solver == 'cholmod':
         factor = 12.0 * 9.5e6 * (n_dof / 32886.0) ** 1.4
     else:
-        factor = 2.0 * 3.8 * section * n_dof * 8.0
-    return n_dof, factor + 3000.0 * n_dof + 150e6
+        factor = 3.8 * section * n_dof * 8.0
+    return n_dof, max(15e3 * n_dof, factor + 3e3 * n_dof) + 200e6
 
 
 #: Environment variables that fix the thread count of the BLAS CHOLMOD loads.
