@@ -48,10 +48,11 @@ ROSDEP_OF = {
     'daqp': None, 'osqp': 'python3-cvxpy-pip',      # osqp: a dependency of cvxpy
     'google_crc32c': None,
 }
-# Imported lazily for extras (dask, mesh); clarabel is the cvxpy solver cvxpy installs;
-# threadpoolctl (required by setup.py, optional for a rosdep install) limits BLAS threads in
-# the study, the simulation's workers and ERA/OKID fits.
-OPTIONAL = {'dask', 'distributed', 'gmsh', 'clarabel', 'threadpoolctl'}
+# Imported lazily for extras (dask, mesh, fast: numba and sksparse, with numpy and LAPACK as
+# the fallback); clarabel is the cvxpy solver cvxpy installs; threadpoolctl (required by
+# setup.py, optional for a rosdep install) limits BLAS threads in the study, the
+# simulation's workers and ERA/OKID fits.
+OPTIONAL = {'dask', 'distributed', 'gmsh', 'clarabel', 'threadpoolctl', 'numba', 'sksparse'}
 
 
 def _exec_depends(tags: tuple[str, ...] = ('exec_depend', 'depend')) -> set[str]:

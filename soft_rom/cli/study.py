@@ -180,18 +180,55 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         help='r values for DMDc (default 2:22:2)')
     parser.add_argument('--r-era', type=parse_r_list, default=tuple(range(20, 43, 2)),
                         help='r values for ERA/OKID (default 20:42:2)')
-    parser.add_argument('--t-train', type=finite_float(0.0, 1.999, lo_open=True), default=1.5,
-                        help='end of training in study 1, seconds, below the 2 s episodes '
-                             '(default 1.5)')
+    parser.add_argument('--t-train', type=finite_float(0.0, 1.999, lo_open=True), default=None,
+                        help='end of training in study 1, seconds, below the episode length '
+                             '(default 1.5, or 3/4 of --duration)')
+    parser.add_argument('--duration', type=finite_float(0.005, 60.0), default=2.0,
+                        help='episode length in seconds (default: %(default)s, as the paper)')
+    parser.add_argument('--staged', action='store_true',
+                        help='run in resumable stages with streaming fits (the default from '
+                             '--resolution 3 on; see soft_rom.study.paper_scale)')
     parser.set_defaults(func=run)
 
 
+def _run_staged(args: argparse.Namespace, cfg: Any) -> int:
+    """The paper-scale run: resumable stages, its own disk and memory check."""
+    from soft_rom.outputs import is_marked
+    from soft_rom.study.paper_scale import run_paper_scale
+
+    out = Path(args.output)
+    check_writable_folder(out, 'report')
+    # A staged run resumes in its own folder (same command again); any other existing folder
+    # is refused without --overwrite, as for every study.
+    if not ((out / 'stages').is_dir() and is_marked(out, ('study',))):
+        _check_study_folder(out, args.overwrite)
+    if args.bags is not None:
+        check_writable_folder(Path(args.bags), 'bags')
+    summary = run_paper_scale(out, cfg, bag_dir=args.bags, progress=not args.quiet,
+                              echo=print)
+    print(f'report: {out / "report.md"}')
+    for line in summary.get('conclusions', []):
+        print(f'  - {line}')
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    from soft_rom.errors import ConfigError
     from soft_rom.study.run import run_study, StudyConfig
 
+    t_train = args.t_train if args.t_train is not None else min(1.5, 0.75 * args.duration)
+    if not t_train < args.duration:
+        raise ConfigError(f'--t-train {t_train:g} must be below --duration {args.duration:g}')
+    staged = args.staged or args.resolution >= 3
     cfg = StudyConfig(resolution=args.resolution, n_episodes=args.episodes, seed=args.seed,
-                      storage=args.storage, t_train=args.t_train, r_lopinf=args.r_lopinf,
-                      r_dmdc=args.r_dmdc, r_era=args.r_era, jobs=args.jobs)
+                      storage=args.storage, t_train=t_train, r_lopinf=args.r_lopinf,
+                      r_dmdc=args.r_dmdc, r_era=args.r_era, jobs=args.jobs,
+                      duration=args.duration, r_cubic=() if staged else (4,))
+    if staged:
+        if args.only:
+            raise ConfigError('--only is not available with --staged (or --resolution >= 3): '
+                             'the staged run does both studies')
+        return _run_staged(args, cfg)
     studies = (args.only,) if args.only else (1, 2)
     with study_output(args, cfg) as out:
         summary = run_study(out, cfg, progress=not args.quiet, studies=studies,

@@ -98,6 +98,10 @@ class StudyConfig:
         with one thread per core they run several times slower as soon as another process
         takes a core (the threads wait for each other); the simulation's worker processes
         take one each as well.
+    streaming : bool
+        Fit LOpInf and DMDc by streaming the snapshots from disk with bounded memory
+        (:func:`soft_rom.fitting.fit_models_streaming`) instead of loading them: the
+        paper-scale run (:mod:`soft_rom.study.paper_scale`).
     """
 
     resolution: int = 1
@@ -118,6 +122,7 @@ class StudyConfig:
     r_cubic: tuple[int, ...] = (4,)
     cubic_options: dict[str, Any] = field(default_factory=lambda: dict(CUBIC_EEL_OPTIONS))
     blas_threads: int | None = 1
+    streaming: bool = False
 
     def __post_init__(self) -> None:
         if self.n_episodes < 2:
@@ -197,7 +202,8 @@ def _same_recording(meta: dict[str, Any], wanted: dict[str, Any], resolution: in
 # ----------------------------------------------------------------------------- fitting
 def sweep(method: str, rs: Sequence[int], episodes: Sequence[Episode], ts: Any, *,
           era_options: dict[str, Any] | None = None,
-          cubic_options: dict[str, Any] | None = None) -> dict[int, LinearROM]:
+          cubic_options: dict[str, Any] | None = None,
+          streaming: bool = False) -> dict[int, LinearROM]:
     """ROMs of one method for several ``r`` (:func:`soft_rom.fitting.fit_models`).
 
     The expensive part is shared: one POD (LOpInf), one pair of SVDs (DMDc), one OKID and
@@ -213,6 +219,17 @@ def sweep(method: str, rs: Sequence[int], episodes: Sequence[Episode], ts: Any, 
                   'episodes': [ep.name for ep in episodes],
                   'time_ranges': [[float(ep.t[0]), float(ep.t[-1])] for ep in episodes]}
     cubic = method == 'lopinf_cubic'
+    if streaming and not cubic:
+        from soft_rom.fitting import fit_models_streaming
+        first = ts[episodes[0].name]        # the episodes are heads of the stored ones
+        t_max = (None if all(ep.n_samples == ts[ep.name].n_samples for ep in episodes)
+                 else float(max(ep.t[-1] for ep in episodes) - first.t[0]
+                            + 0.5 * episodes[0].dt))
+        fitted = fit_models_streaming(
+            ts, method, r_values=tuple(sorted(set(int(r) for r in rs))), energy=None,
+            episodes=[ep.name for ep in episodes], t_max=t_max, provenance=provenance,
+            era_options=opts, progress=False)
+        return {model.r: model for model, _seconds in fitted}
     fitted = fit_models(ts, 'lopinf' if cubic else method,
                         r_values=tuple(sorted(set(int(r) for r in rs))),
                         energy=None, episodes=list(episodes), provenance=provenance,
@@ -279,7 +296,8 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
         t0 = time.perf_counter()
         try:
             models = sweep(method, grids[method], [train], ts,
-                           era_options=cfg.era_options, cubic_options=cfg.cubic_options)
+                           era_options=cfg.era_options, cubic_options=cfg.cubic_options,
+                           streaming=cfg.streaming)
         except Exception as err:  # a failed fit is a result to report, not a crash
             LOG.warning('study 1: %s failed: %s', method, err)
             models = {}
@@ -343,6 +361,7 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
     grids = {'lopinf': cfg.r_lopinf, 'dmdc': cfg.r_dmdc, 'era': cfg.r_era,
              'lopinf_cubic': cfg.r_cubic}
     swept: dict[str, dict[int, LinearROM]] = {}
+    fit_seconds: dict[str, float] = {}
 
     def train_error(model: LinearROM, eps: Sequence[Episode]) -> float:
         Y = np.concatenate([e.Y for e in eps], axis=1)
@@ -350,9 +369,11 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
         return relative_error(Y, Yh)
 
     def pick(method: str, eps: Sequence[Episode]) -> tuple[float, int, LinearROM] | None:
+        t0 = time.perf_counter()
         try:
             models = sweep(method, grids[method], eps, ts, era_options=cfg.era_options,
-                           cubic_options=cfg.cubic_options)
+                           cubic_options=cfg.cubic_options, streaming=cfg.streaming)
+            fit_seconds[method] = fit_seconds.get(method, 0.0) + time.perf_counter() - t0
         except Exception as err:
             LOG.warning('study 2: %s on %s failed: %s', method, [e.name for e in eps], err)
             return None
@@ -430,7 +451,7 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
         model.save(out / 'models' / f'eel_{method}_r{chosen[method]["r"]}.npz')
     result = {'chosen': chosen, 'era_episode': era_episode, 'test': test, 'test_dev': test_dev,
               'shape_episode': shape_ep.name, 'shape_times': list(cfg.shape_times),
-              'shapes_png': shapes_png}
+              'shapes_png': shapes_png, 'fit_seconds': fit_seconds}
     if 'lopinf_cubic' in models:
         result['cubic_vs_linear'] = _cubic_vs_linear(models['lopinf_cubic'], swept, tests,
                                                      train_eps, ts, y_ref)
