@@ -12,8 +12,8 @@ import pytest
 from soft_rom.data import Episode
 from soft_rom.errors import ConfigError
 from soft_rom.study.curve import CurveConfig, CurveData, learning_curve
-from soft_rom.study.curve.core import folds_of, held_out
 from soft_rom.study.curve.report import curve_figure, curve_report
+from soft_rom.study.curve.select import folds_of, held_out
 from soft_rom.study.run import _jsonable
 
 CFG = CurveConfig(sizes=(2, 3), n_test=2, amplitudes=(1.0,),
@@ -98,17 +98,17 @@ def test_held_out_errors_pool_the_left_out_episodes() -> None:
         seen.append(idx)
         return {'a': 1, 'b': 2}
 
-    import soft_rom.study.curve.core as core
+    import soft_rom.study.curve.select as select
 
     def squares(model: int, ep: Episode, y: np.ndarray) -> tuple[float, float]:
         return float(model), 1.0
 
-    orig = core._squares
-    core._squares = squares
+    orig = select._squares
+    select._squares = squares
     try:
         table = held_out(fit, eps, folds_of(4, 3), y_ref)
     finally:
-        core._squares = orig
+        select._squares = orig
     assert seen == [[1, 2], [0, 2, 3], [0, 1, 3]]      # folds {0, 3}, {1}, {2} held out
     assert table == {'a': 1.0, 'b': pytest.approx(math.sqrt(2.0))}
 

@@ -6,8 +6,10 @@ test scores), :mod:`~soft_rom.study.curve.run` (data and the run), and
 :mod:`~soft_rom.study.curve.report` (figure and Markdown).
 """
 
-from soft_rom.study.curve.core import CUBIC_GRID, CurveConfig, CurveData, learning_curve, score
+from soft_rom.study.curve.core import CurveConfig, CurveData, learning_curve, score
 from soft_rom.study.curve.run import run_learning_curve
+from soft_rom.study.curve.select import choose_forces, CUBIC_GRID, ForcesVerdict
 
-__all__ = ['CUBIC_GRID', 'CurveConfig', 'CurveData', 'learning_curve', 'run_learning_curve',
+__all__ = ['CUBIC_GRID', 'CurveConfig', 'CurveData', 'ForcesVerdict', 'choose_forces',
+           'learning_curve', 'run_learning_curve',
            'score']

@@ -38,6 +38,16 @@ from soft_rom.data import Episode
 from soft_rom.errors import ConfigError, SoftRomError
 from soft_rom.metrics import relative_deviation_error
 from soft_rom.models import LinearROM
+from soft_rom.study.curve.select import (
+    _tied_pick,
+    AUTO_MARGIN,
+    CUBIC_GRID,
+    FOLDS,
+    folds_of,
+    forces_verdict,
+    held_out,
+    Reduction,
+)
 
 __all__ = ['CUBIC_GRID', 'CurveConfig', 'CurveData', 'METHODS', 'folds_of', 'held_out',
            'learning_curve', 'score']
@@ -46,11 +56,6 @@ LOG = logging.getLogger(__name__)
 
 #: Methods of the curve, in plotting order.
 METHODS = ('lopinf', 'lopinf_cubic', 'dmdc', 'dmdc_stable', 'era')
-
-#: Candidate ``(reg, eps4)`` of the cubic LOpInf (held-out choice).
-CUBIC_GRID: tuple[tuple[float, float], ...] = ((1e-3, 1e-6), (1e-2, 1e-6), (1e-1, 1e-6),
-                                                (1e-2, 1e-2))
-
 
 @dataclass(frozen=True)
 class CurveConfig:
@@ -109,11 +114,11 @@ class CurveConfig:
     methods: tuple[str, ...] = METHODS
     r_lopinf: tuple[int, ...] = (4, 6, 8, 10)
     r_dmdc: tuple[int, ...] = (2, 4, 6, 8, 10, 12)
-    folds: int = 4
+    folds: int = FOLDS
     cubic_grid: tuple[tuple[float, float], ...] = CUBIC_GRID
     dmdc_coordinates: int = 40
     long_factor: int = 10
-    auto_margin: float = 0.1
+    auto_margin: float = AUTO_MARGIN
 
     def __post_init__(self) -> None:
         if not self.sizes or min(self.sizes) < 1 or list(self.sizes) != sorted(set(self.sizes)):
@@ -155,7 +160,6 @@ class CurveData:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-# ------------------------------------------------------------------------- scoring
 def score(model: LinearROM, episodes: Sequence[Episode], y_ref: np.ndarray) -> list[float]:
     """Relative deviation error of ``model`` on each episode (``inf`` when it fails)."""
     from soft_rom.evaluation import predict
@@ -170,122 +174,6 @@ def score(model: LinearROM, episodes: Sequence[Episode], y_ref: np.ndarray) -> l
         e = relative_deviation_error(ep.Y, Yh, y_ref) if np.all(np.isfinite(Yh)) else math.inf
         out.append(float(e) if math.isfinite(e) else math.inf)
     return out
-
-
-def _pooled(errors: Sequence[tuple[float, float]]) -> float:
-    """``sqrt(Σ err² / Σ dev²)`` over ``(err², dev²)`` pairs (``inf`` if any is not finite)."""
-    e = sum(a for a, _ in errors)
-    d = sum(b for _, b in errors)
-    return math.sqrt(e / d) if d > 0 and math.isfinite(e) else math.inf
-
-
-def _squares(model: LinearROM, ep: Episode, y_ref: np.ndarray) -> tuple[float, float]:
-    """``(|Y - Ŷ|², |Y - y_ref|²)`` of one held-out episode (``inf`` when it fails)."""
-    from soft_rom.evaluation import predict
-    dev = float(np.sum((ep.Y - y_ref[:, None]) ** 2))
-    try:
-        with np.errstate(all='ignore'):
-            Yh = predict(model, ep)
-    except (SoftRomError, np.linalg.LinAlgError, FloatingPointError, ValueError):
-        return math.inf, dev
-    err = float(np.sum((ep.Y - Yh) ** 2))
-    return (err if math.isfinite(err) else math.inf), dev
-
-
-def folds_of(n: int, k: int) -> list[list[int]]:
-    """``min(n, k)`` interleaved groups of episode indices (each held out once)."""
-    k = max(1, min(int(n), int(k)))
-    return [list(range(i, n, k)) for i in range(k)]
-
-
-def held_out(fit: Callable[[list[int]], dict[Any, LinearROM]], episodes: Sequence[Episode],
-             folds: Sequence[Sequence[int]], y_ref: np.ndarray) -> dict[Any, float]:
-    """Pooled held-out deviation error of every candidate ``fit`` returns.
-
-    ``fit(train_indices)`` returns ``{key: model}`` fitted on those episodes (a candidate
-    whose fit failed is left out); each model is scored on the episodes of the fold left
-    out, and the squares are pooled over the folds. A candidate missing from some fold, or
-    that blows up there, scores ``inf``.
-    """
-    parts: dict[Any, list[tuple[float, float]]] = {}
-    seen: dict[Any, int] = {}
-    n = len(episodes)
-    for hold in folds:
-        keep = [i for i in range(n) if i not in hold]
-        for key, model in fit(keep).items():
-            seen[key] = seen.get(key, 0) + 1
-            parts.setdefault(key, []).extend(_squares(model, episodes[i], y_ref) for i in hold)
-    return {key: _pooled(v) if seen[key] == len(folds) else math.inf
-            for key, v in parts.items()}
-
-
-def _tied_pick(table: dict[Any, float], prefer: Callable[[Any], Any],
-               tie_tol: float = 0.03) -> Any:
-    """The key of the lowest error (``None`` when nothing is finite).
-
-    Errors within ``tie_tol`` of the lowest are tied; ``prefer`` (largest wins) breaks the tie.
-    """
-    finite = {k: v for k, v in table.items() if math.isfinite(v)}
-    if not finite:
-        return None
-    best = min(finite.values())
-    tied = [k for k, v in finite.items() if v <= best * (1.0 + tie_tol)]
-    return max(tied, key=prefer)
-
-
-# ------------------------------------------------------------------------- fitters
-class _Reduced:
-    """The POD of the training episodes of one size, and the fits on its coordinates.
-
-    The basis comes from the training episodes only; every fitter takes the indices of the
-    episodes it may use (a fold, or all of them).
-    """
-
-    def __init__(self, train: Sequence[Episode], q_ref: np.ndarray, y_ref: np.ndarray,
-                 r_pod: int) -> None:
-        from soft_rom.basis import POD, project
-        pod = POD(r=min(r_pod, sum(ep.n_samples for ep in train))).fit(
-            [ep.Q for ep in train], q_ref)
-        self.energy = np.asarray(pod.energy_)
-        self.Qhat = [project(ep.Q, pod.basis_, q_ref) for ep in train]
-        self.train = list(train)
-        self.y_ref = np.asarray(y_ref, dtype=np.float64)
-        self.dt = float(train[0].dt)
-
-    def _args(self, idx: Sequence[int], r: int) -> tuple[list[Any], list[Any], list[Any]]:
-        return ([self.Qhat[i][:r] for i in idx], [self.train[i].U for i in idx],
-                [self.train[i].Y for i in idx])
-
-    def lopinf(self, idx: Sequence[int], r_values: Sequence[int]) -> dict[int, LinearROM]:
-        """Linear LOpInf for every ``r`` (one fit at the largest, the others from it)."""
-        from soft_rom.learners.lopinf import LOpInf
-        r_max = max(r_values)
-        learner = LOpInf(r=r_max).fit_reduced(*self._args(idx, r_max), self.dt, self.y_ref)
-        return {r: learner.model_for(r) for r in r_values}
-
-    def cubic(self, idx: Sequence[int], r: int, grid: Sequence[tuple[float, float]]
-              ) -> dict[tuple[float, float], LinearROM]:
-        """Cubic LOpInf for every ``(reg, eps4)`` of ``grid``; failed fits are left out."""
-        from soft_rom.learners.lopinf import LOpInf
-        out = {}
-        for reg, eps4 in grid:
-            try:
-                out[(reg, eps4)] = LOpInf(r=r, forces='cubic', cubic_options={
-                    'reg': reg, 'eps4': eps4}).fit_reduced(*self._args(idx, r), self.dt,
-                                                           self.y_ref).model_
-            except (SoftRomError, np.linalg.LinAlgError) as err:
-                LOG.info('cubic reg=%g eps4=%g failed: %s', reg, eps4, err)
-        return out
-
-    def dmdc(self, idx: Sequence[int], r_values: Sequence[int], variant: str,
-             n_coordinates: int) -> dict[int, LinearROM]:
-        """DMDc of ``variant`` for every ``r``, on the leading POD coordinates."""
-        from soft_rom.learners.dmdc import DMDc
-        l_ = min(n_coordinates, self.Qhat[0].shape[0])
-        eps = [Episode(t=self.train[i].t, U=self.train[i].U, Y=self.train[i].Y,
-                       Q=self.Qhat[i][:l_], name=self.train[i].name) for i in idx]
-        learner = DMDc(r=r_values[0], variant=variant).fit(eps, np.zeros(l_), self.y_ref)
-        return {r: learner.model_for(r) for r in r_values}
 
 
 def _long_inputs(model: LinearROM, tests: Sequence[Episode], k_train: int, factor: int,
@@ -313,7 +201,7 @@ def _point(data: CurveData, n: int, cfg: CurveConfig) -> dict[str, Any]:
     folds = folds_of(n, cfg.folds)
     t0 = time.perf_counter()
     need_pod = {'lopinf', 'lopinf_cubic', 'dmdc', 'dmdc_stable'} & set(cfg.methods)
-    red = (_Reduced(train, data.q_ref, y_ref, max(max(cfg.r_lopinf), cfg.dmdc_coordinates))
+    red = (Reduction(train, data.q_ref, y_ref, max(max(cfg.r_lopinf), cfg.dmdc_coordinates))
            if need_pod else None)
     out: dict[str, Any] = {'n': n, 'seconds': {'reduce': time.perf_counter() - t0},
                            'folds': folds}
@@ -359,33 +247,35 @@ def _point(data: CurveData, n: int, cfg: CurveConfig) -> dict[str, Any]:
     return out
 
 
-def _cubic_point(red: _Reduced, data: CurveData, n: int, r: int, linear_error: float,
+def _cubic_point(red: Reduction, data: CurveData, n: int, r: int, linear_error: float,
                  linear: LinearROM, folds: list[list[int]], cfg: CurveConfig
                  ) -> dict[str, Any]:
-    """The cubic LOpInf at the linear model's ``r``: held-out choice, test, fallback."""
+    """The cubic LOpInf at the linear model's ``r``: the CLI's verdict, test, fallback."""
     y_ref = data.y_ref
     train = data.train[:n]
-    table = held_out(lambda idx: red.cubic(idx, r, cfg.cubic_grid), train, folds, y_ref)
-    pick = _tied_pick(table, prefer=lambda key: key)
+    verdict = forces_verdict(red, r, folds, linear_error, grid=cfg.cubic_grid,
+                             margin=cfg.auto_margin)
+    pick = verdict.choice
     res: dict[str, Any] = {
-        'r': r, 'held_out': [{'reg': k[0], 'eps4': k[1], 'error': v} for k, v in table.items()],
-        'held_out_linear': linear_error, 'choice': None, 'forces_auto': 'linear'}
+        'r': r, 'held_out': verdict.cubic, 'held_out_linear': linear_error, 'choice': None,
+        'forces_auto': 'linear', 'reason': verdict.reason()}
     lin_test = score(linear, data.test, y_ref)
     if pick is None:
         res.update(test=[math.inf] * len(data.test), test_auto=lin_test,
                    ratio=[math.inf] * len(lin_test), ratio_auto=[1.0] * len(lin_test),
                    long_inputs=None, note='every cubic candidate failed or blew up')
         return res
-    model = red.cubic(range(n), r, [pick]).get(pick)
-    res['choice'] = {'reg': pick[0], 'eps4': pick[1], 'error': table[pick]}
+    key = (pick['reg'], pick['eps4'])
+    model = red.cubic(range(n), r, [key]).get(key)
+    res['choice'] = pick
     if model is None:
         res.update(test=[math.inf] * len(data.test), test_auto=lin_test,
                    ratio=[math.inf] * len(lin_test), ratio_auto=[1.0] * len(lin_test),
                    long_inputs=None, note='the chosen cubic fit failed on all episodes')
         return res
     test = score(model, data.test, y_ref)
-    keep = table[pick] <= (1.0 - cfg.auto_margin) * linear_error
-    res['forces_auto'] = 'cubic' if keep else 'linear'
+    keep = verdict.forces == 'cubic'
+    res['forces_auto'] = verdict.forces
     res['test'] = test
     res['test_auto'] = test if keep else lin_test
     res['ratio'] = [c / lo if lo > 0 else math.inf for c, lo in zip(test, lin_test)]
