@@ -356,11 +356,11 @@ def _run(args: argparse.Namespace, clients: list[Any]) -> int:
 
 def format_table(rows: list[dict[str, Any]]) -> str:
     """Summary table of :func:`run`."""
-    head = f'{"method":<7} {"r":>4} {"dt [s]":>8} {"err":>10} {"dev err":>10} ' \
+    head = f'{"method":<12} {"r":>4} {"dt [s]":>8} {"err":>10} {"dev err":>10} ' \
            f'{"margin":>10} {"time [s]":>9}  file'
     lines = [head, '-' * len(head)]
     for r in rows:
-        lines.append(f'{r["method"]:<7} {r["r"]:>4d} {r["dt"]:>8.4g} '
+        lines.append(f'{r["method"]:<12} {r["r"]:>4d} {r["dt"]:>8.4g} '
                      f'{r["train_relative_error"]:>10.3e} '
                      f'{r["train_relative_deviation_error"]:>10.3e} '
                      f'{r["stability_margin"]:>10.3e} {r["seconds"]:>9.2f}  '
