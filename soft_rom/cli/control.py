@@ -98,7 +98,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     study.add_argument('--seed', type=int, default=100,
                        help="seed of the references' random pressures (default 100; not a "
                             'training seed)')
-    study.add_argument('--wave', default='wave:f=2,wavelength=0.8,reach=0.25',
+    study.add_argument('--wave', default='wave:f=2,wavelength=0.8,reach=0.1',
                        help='the travelling wave (default %(default)s)')
     study.add_argument('--jobs', type=int, choices=range(1, 65), default=1, metavar='N',
                        help='closed loops run at once (default 1)')

@@ -13,9 +13,14 @@ in-process loop (``soft-rom control``) runs. The node:
   disturbance with the measured centerline (``measured_topic``); with ``state_topic: ''``
   it estimates the state itself from the measured centerline, as ``soft-rom control`` does;
 * every ``step_s`` (sim time with ``use_sim_time``) publishes the pressure commands on the
-  predictor's input topics (one ``sensor_msgs/FluidPressure`` per chamber, stamped with the
-  control time), the reference shape on ``~/reference`` (``PoseArray``) and
-  ``/diagnostics`` (status, solve and step time, tracking error, saturation, counters).
+  predictor's inputs, configured with the predictor's own parameters (``input_mode``,
+  ``input_topics``, ``array_topic``, ``input_scale``, ``input_offset``): one
+  ``sensor_msgs/FluidPressure`` per chamber stamped with the control time
+  (``per_chamber``), or all chambers in one ``std_msgs/Float64MultiArray`` on
+  ``array_topic`` (``array``; no header: the receiver stamps it on arrival), as
+  ``(u - input_offset) / input_scale`` so that the predictor reads back ``u``; and the
+  reference shape on ``~/reference`` (``PoseArray``) and ``/diagnostics`` (status, solve and
+  step time, tracking error, saturation, counters).
 
 Bad input never stops it: a measurement, state or reference of the wrong size, with NaN, or
 stamped in the past is dropped and counted; without a fresh state or measurement, or when
@@ -25,6 +30,7 @@ the QP is infeasible or fails, the last command is held, clipped into the bounds
 
 from __future__ import annotations
 
+import math
 import signal
 import sys
 import threading
@@ -41,15 +47,22 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import FluidPressure, JointState
-from std_msgs.msg import Header
+from std_msgs.msg import Float64MultiArray, Header
 
 from soft_rom.control import Controller, EstimatorConfig, MPCConfig, parse_reference, Reference
 from soft_rom.control.reference import _model_outputs
-from soft_rom.predictor.conversions import ns_to_stamp, poses_to_points, set_points, stamp_to_ns
+from soft_rom.predictor.conversions import (
+    array_to_data,
+    ns_to_stamp,
+    poses_to_points,
+    set_points,
+    stamp_to_ns,
+)
 
 __all__ = ['ControllerNode', 'main']
 
 DEFAULT_TOPICS = [f'/soft_robot/pressure/chamber_{i}' for i in range(1, 7)]
+INPUT_MODES = ('per_chamber', 'array')
 
 
 class StartupError(Exception):
@@ -74,7 +87,14 @@ class ControllerNode(Node):
                                           'measured centerline (PoseArray)'))
         self.state_topic = str(declare('state_topic', '/soft_rom_predictor/state',
                                        "the predictor's ~/state ('' : estimate it here)"))
+        self.input_mode = str(declare('input_mode', 'per_chamber',
+                                      "the predictor's input_mode: per_chamber or array"))
         self.topics = list(declare('input_topics', DEFAULT_TOPICS, 'pressure command topics'))
+        self.array_topic = str(declare('array_topic', '/soft_robot/pressures',
+                                       'Float64MultiArray command topic (input_mode array)'))
+        self.input_scale = float(declare('input_scale', 1.0, 'published value = (u - '
+                                          'input_offset) / input_scale, as the predictor reads'))
+        self.input_offset = float(declare('input_offset', 0.0, 'see input_scale'))
         step = float(declare('step_s', 0.01, 'control step, s'))
         horizon = float(declare('horizon_s', 0.2, 'prediction horizon, s'))
         rate_weight = float(declare('rate_weight', 1e-3, 'weight of input increments'))
@@ -87,7 +107,17 @@ class ControllerNode(Node):
                                     't = 0 (< 0: the first control tick)'))
         from soft_rom.models import load_model
         try:
+            if self.input_mode not in INPUT_MODES:
+                raise ValueError(f'input_mode {self.input_mode!r} is not one of '
+                                 f'{", ".join(INPUT_MODES)}')
+            if not (math.isfinite(self.input_scale) and self.input_scale != 0
+                    and math.isfinite(self.input_offset)):
+                raise ValueError(f'input_scale ({self.input_scale!r}) must be finite and not 0 '
+                                 f'and input_offset ({self.input_offset!r}) finite')
             self.model = load_model(model_path)
+            if self.input_mode == 'per_chamber' and len(self.topics) != self.model.n_inputs:
+                raise ValueError(f'the model has {self.model.n_inputs} inputs but input_topics '
+                                 f'lists {len(self.topics)} topics')
             external = bool(self.state_topic)
             est = EstimatorConfig(measurement_noise=max(noise, 1e-5), sensor_rate=sensor_rate,
                                   **({'process_noise': 0.0} if external else {}))
@@ -102,7 +132,12 @@ class ControllerNode(Node):
         self.t0: float | None = None
         self.samples: list[tuple[float, np.ndarray]] = []
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        self.pubs = [self.create_publisher(FluidPressure, t, qos) for t in self.topics]
+        if self.input_mode == 'array':
+            self.pubs = []
+            self.pub_array = self.create_publisher(Float64MultiArray, self.array_topic, qos)
+            self.array_msg = Float64MultiArray()
+        else:
+            self.pubs = [self.create_publisher(FluidPressure, t, qos) for t in self.topics]
         self.pub_ref = self.create_publisher(PoseArray, '~/reference', 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_subscription(PoseArray, self.measured_topic, self._on_measured, qos)
@@ -185,7 +220,11 @@ class ControllerNode(Node):
             cmd = self.core.step(now)
             sec, nsec = ns_to_stamp(int(round(now * 1e9)))
             stamp = TimeMsg(sec=sec, nanosec=nsec)
-            for pub, value in zip(self.pubs, cmd.u.tolist()):
+            wire = (cmd.u - self.input_offset) / self.input_scale
+            if self.input_mode == 'array':
+                self.array_msg.data = array_to_data(wire)
+                self.pub_array.publish(self.array_msg)
+            for pub, value in zip(self.pubs, wire.tolist()):
                 pub.publish(FluidPressure(header=_header(stamp), fluid_pressure=value))
             ref = self.core.reference
             if ref is not None:
