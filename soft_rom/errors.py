@@ -9,6 +9,7 @@ from __future__ import annotations
 
 __all__ = [
     'BagError',
+    'ClusterError',
     'ConfigError',
     'DatasetError',
     'DimensionError',
@@ -60,6 +61,10 @@ class OutputExistsError(SoftRomError, FileExistsError):
 
 class ResourceError(SoftRomError, MemoryError):
     """A run was refused before it started: it would not fit in memory or on disk."""
+
+
+class ClusterError(SoftRomError, ConnectionError):
+    """A Dask cluster could not be reached, was lost, or one of its workers failed."""
 
 
 def show_value(value: object) -> str:

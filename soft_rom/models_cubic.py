@@ -48,6 +48,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.data import as_signal
 from soft_rom.errors import DimensionError, SolverError
+from soft_rom.gain import gain_issue
 from soft_rom.models import (
     _arr,
     _leading,
@@ -541,6 +542,10 @@ class CubicSecondOrderModel(LinearROM):
 
     def _check_trust(self) -> list[str]:
         issues = self._linear._check_trust()
+        if not any(i.startswith('unstable') for i in issues):
+            gain = gain_issue(self)          # its equilibria, not its linear part's
+            if gain is not None:
+                issues.append(gain)
         if self.r <= 16:      # certificate cost grows like r^6
             from soft_rom.learners.lopinf_cubic import quartic_lower_bound
             t, _how = quartic_lower_bound(self.H, target=0.0)

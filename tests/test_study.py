@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -66,6 +67,72 @@ def test_rerun_reuses_bags_and_reconverts_when_they_change(study, tmp_path) -> N
         run_study(tmp_path / 'other', StudyConfig(n_episodes=2, duration=0.4, t_train=0.3,
                                                   seed=7, jobs=1),
                   progress=False, studies=(1,), bag_dir=out / 'bags')
+
+
+def test_report_renders_and_shows_every_figure(study) -> None:
+    """Every table row has its header's cells (markdown-it-py); every figure is captioned."""
+    from _markdown import table_problems
+
+    from soft_rom.study.report import study_report
+
+    out, summary = study
+    # The folder's report is the report of its summary.json (the module's other tests run
+    # the study again into the folder, so the full run's report is made from its summary).
+    on_disk = json.loads((out / 'summary.json').read_text())
+    assert (out / 'report.md').read_text() == study_report(on_disk)
+    report = study_report(json.loads(json.dumps(summary, default=str)))
+    assert table_problems(report) == []
+    assert '\\|output deviation\\|' in report          # the | of the name is escaped
+    shown = re.findall(r'!\[[^\]]*\]\(([^)]+)\)', report)
+    assert sorted(shown) == sorted(p.name for p in out.glob('*.png'))
+    assert len(re.findall(r'\*\*Figure \d+\.\*\* \S', report)) == len(shown)
+    rep = summary['replay']
+    assert rep['kalman']['kalman'] == pytest.approx(
+        json.loads((out / 'replay_ep3.json').read_text())['kalman']['kalman'])
+    assert f'{rep["kalman"]["kalman"]:.4f}' in report       # one Kalman figure, in both
+    from soft_rom.cli.demo import replay_lines
+    k = rep['kalman']
+    assert f'{k["open_loop"]:.3f} -> {k["kalman"]:.3f}' in replay_lines(rep)
+    assert rep['final_status'] in report and 'thresholds from' in report
+    assert summary['machine']['cpus'] >= 1 and 'Measured on' in report
+
+
+def test_replay_is_ok_for_the_study_model_and_warns_for_a_mismatched_one(study, tmp_path):
+    """Thresholds from the held-out error: the study's model ends OK, one of 10 kPa does not."""
+    from soft_rom.convert import convert, read_episode
+    from soft_rom.predictor import Level, Predictor, replay_episode
+    from soft_rom.study.run import _in_memory, _record_held_out, simulate_bags, sweep
+
+    out, summary = study
+    rep = summary['replay']
+    assert rep['final_status'] == 'OK', rep
+    r = summary['study2']['chosen']['lopinf']['r']
+    good = load_model(out / 'models' / f'eel_lopinf_r{r}.npz')
+    held = good.metadata['held_out']
+    assert held['deviation_error'] > 0 and 'left out in turn' in held['data']
+    assert rep['warn_threshold'] == pytest.approx(2 * held['deviation_error'])
+    # The same fit on episodes of a tenth of the pressure: the same eel, another regime.
+    cfg = StudyConfig(n_episodes=2, duration=0.4, t_train=0.3, jobs=1,
+                      sim_options={'amplitude': 5e3})
+    bags = simulate_bags(tmp_path / 'small', cfg, progress=False)
+    ts, _ = convert(bags, tmp_path / 'small.zarr', progress=False)
+    train = [_in_memory(ts['ep1']), _in_memory(ts['ep2'])]
+    small = sweep('lopinf', [r], train, ts)[r]
+    _record_held_out('lopinf', small, {'r': r}, train, ts, cfg)
+    episode, _ = read_episode(out / 'bags' / 'ep3')
+    pred = Predictor(small)
+    replay_episode(pred, episode)
+    health = pred.health()
+    assert health.level in (Level.WARN, Level.ERROR), health.message
+    assert 'x the held-out error' in health.message
+
+
+def test_markdown_table_escapes_pipes() -> None:
+    from _markdown import table_problems
+
+    table = markdown_table(['quantity', 'value'], [['max |y - y_ref| [mm]', 1.0], ['a\\|b', 2]])
+    assert table_problems(table) == []
+    assert '| max \\|y - y_ref\\| [mm] | 1.0000 |' in table
 
 
 def test_markdown_table_formats_numbers() -> None:

@@ -143,6 +143,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument('--dask', metavar='ADDRESS', default=None,
                         help='fit on a dask.distributed cluster (scheduler address, e.g. '
                              'tcp://host:8786); implies --streaming')
+    parser.add_argument('--dask-timeout', type=float, default=30.0, metavar='S',
+                        help='seconds to wait for the Dask scheduler (to connect, and after '
+                             'losing it; default 30)')
     parser.add_argument('-o', '--output', type=Path, required=True, metavar='OUTDIR',
                         help='directory for the model files (created if missing)')
     parser.add_argument('--overwrite', action='store_true',
@@ -207,7 +210,16 @@ def _label(method: str, args: argparse.Namespace) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Execute ``soft-rom fit``."""
+    """Execute ``soft-rom fit`` (a Dask client it connects is closed at the end)."""
+    clients: list[Any] = []
+    try:
+        return _run(args, clients)
+    finally:
+        for client in clients:
+            client.close()
+
+
+def _run(args: argparse.Namespace, clients: list[Any]) -> int:
     from soft_rom.evaluation import evaluate
     from soft_rom.outputs import atomic_files
 
@@ -253,13 +265,21 @@ def run(args: argparse.Namespace) -> int:
     dmdc_options = {} if args.dmdc_variant is None else {'variant': args.dmdc_variant}
     rows: list[dict[str, Any]] = []
     models: dict[Path, Any] = {}
+    client = None
+    if args.dask is not None:
+        if not (math.isfinite(args.dask_timeout) and args.dask_timeout > 0):
+            raise ConfigError(f'--dask-timeout must be a number of seconds > 0; got '
+                              f'{args.dask_timeout!r}')
+        from soft_rom.scale.dask_backend import connect
+        client = connect(args.dask, args.dask_timeout)
+        clients.append(client)
     for method in args.method:
         if streaming:
             fitted = fit_models_streaming(
                 ts, method, r_values=args.r, energy=args.energy,
                 episodes=[ep.name for ep in episodes], t_max=args.t_max,
                 provenance=provenance, dmdc_p=args.dmdc_p, era_options=era_options,
-                client=args.dask, progress=not args.quiet, mass=args.mass,
+                client=client, progress=not args.quiet, mass=args.mass,
                 refine=args.refine)
         else:
             fitted = fit_models(ts, method, r_values=args.r, energy=args.energy,

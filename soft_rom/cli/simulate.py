@@ -78,19 +78,14 @@ def estimate_resources(resolution: int, *, jobs: int, episodes: int, steps: int,
                        state: bool) -> tuple[int, float, float]:
     """``(n_dof, memory_bytes, disk_bytes)`` of a simulation, before building anything.
 
-    Memory: per worker, the band storage of the rest system (about 3.8 cross-sections of
-    DOFs wide, measured 131 at resolution 1 and 395 at 2) twice (matrix and factor) plus
-    about 3 kB per DOF for the sparse matrices and work vectors, plus 150 MB of
-    interpreter; disk: per sample the inputs and centerline, and with the state the nodal
-    positions (8 bytes per DOF).
+    Memory: per worker, :func:`soft_rom.sim.eel.memory_estimate` (the rest-system factor
+    of the linear solver installed, CHOLMOD or banded, and the operators); disk: per sample
+    the inputs and centerline, and with the state the nodal positions (8 bytes per DOF).
     """
-    nx, ny, nz = 48 * resolution, 4 * resolution, 6 * resolution
-    section = (ny + 1) * (nz + 1)
-    n_nodes = (nx + 1) * section
-    n_dof = 3 * n_nodes
-    band = 3.8 * section * n_dof * 8.0
-    workers = min(jobs, episodes)
-    memory = workers * (2.0 * band + 3000.0 * n_dof + 150e6)
+    from soft_rom.sim.eel import memory_estimate
+
+    n_dof, per_worker = memory_estimate(resolution)
+    memory = min(jobs, episodes) * per_worker
     per_sample = 2048.0 + (8.0 * n_dof if state else 0.0)
     disk = episodes * steps * per_sample
     return n_dof, memory, disk

@@ -264,6 +264,10 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
             f'{model.n_outputs} outputs, dt={model.dt:g} s) from {pred.info["path"]}; '
             f'step {pred.h:g} s, {how}'
             + (', Kalman correction on' if pred.config.kalman else ''))
+        trust = pred.info.get('trust') or []
+        if trust:
+            self.get_logger().warning('model not trusted (its predictions may be absurd; '
+                                      'strict_model:=true refuses it): ' + '; '.join(trust))
         self._start_timer()
         self._publish_info()
 

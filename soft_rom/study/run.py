@@ -19,11 +19,14 @@ shapes.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+import contextlib
 from dataclasses import asdict, dataclass, field
 import json
 import logging
 import math
+import os
 from pathlib import Path
+import platform
 import time
 from typing import Any
 
@@ -89,6 +92,16 @@ class StudyConfig:
         better: 0.37 / 0.89 test deviation error at r = 4 / 6 in study 1).
     cubic_options : dict
         ``reg``, ``eps4`` of the cubic fit.
+    blas_threads : int or None
+        BLAS threads of the whole run (threadpoolctl; ``None``: the library's default, one
+        per core). Default 1: the SVDs and factorizations of the fits are medium-sized, and
+        with one thread per core they run several times slower as soon as another process
+        takes a core (the threads wait for each other); the simulation's worker processes
+        take one each as well.
+    streaming : bool
+        Fit LOpInf and DMDc by streaming the snapshots from disk with bounded memory
+        (:func:`soft_rom.fitting.fit_models_streaming`) instead of loading them: the
+        paper-scale run (:mod:`soft_rom.study.paper_scale`).
     """
 
     resolution: int = 1
@@ -108,6 +121,8 @@ class StudyConfig:
     era_options: dict[str, Any] = field(default_factory=lambda: dict(ERA_EEL_OPTIONS))
     r_cubic: tuple[int, ...] = (4,)
     cubic_options: dict[str, Any] = field(default_factory=lambda: dict(CUBIC_EEL_OPTIONS))
+    blas_threads: int | None = 1
+    streaming: bool = False
 
     def __post_init__(self) -> None:
         if self.n_episodes < 2:
@@ -187,7 +202,8 @@ def _same_recording(meta: dict[str, Any], wanted: dict[str, Any], resolution: in
 # ----------------------------------------------------------------------------- fitting
 def sweep(method: str, rs: Sequence[int], episodes: Sequence[Episode], ts: Any, *,
           era_options: dict[str, Any] | None = None,
-          cubic_options: dict[str, Any] | None = None) -> dict[int, LinearROM]:
+          cubic_options: dict[str, Any] | None = None,
+          streaming: bool = False) -> dict[int, LinearROM]:
     """ROMs of one method for several ``r`` (:func:`soft_rom.fitting.fit_models`).
 
     The expensive part is shared: one POD (LOpInf), one pair of SVDs (DMDc), one OKID and
@@ -203,6 +219,17 @@ def sweep(method: str, rs: Sequence[int], episodes: Sequence[Episode], ts: Any, 
                   'episodes': [ep.name for ep in episodes],
                   'time_ranges': [[float(ep.t[0]), float(ep.t[-1])] for ep in episodes]}
     cubic = method == 'lopinf_cubic'
+    if streaming and not cubic:
+        from soft_rom.fitting import fit_models_streaming
+        first = ts[episodes[0].name]        # the episodes are heads of the stored ones
+        t_max = (None if all(ep.n_samples == ts[ep.name].n_samples for ep in episodes)
+                 else float(max(ep.t[-1] for ep in episodes) - first.t[0]
+                            + 0.5 * episodes[0].dt))
+        fitted = fit_models_streaming(
+            ts, method, r_values=tuple(sorted(set(int(r) for r in rs))), energy=None,
+            episodes=[ep.name for ep in episodes], t_max=t_max, provenance=provenance,
+            era_options=opts, progress=False)
+        return {model.r: model for model, _seconds in fitted}
     fitted = fit_models(ts, 'lopinf' if cubic else method,
                         r_values=tuple(sorted(set(int(r) for r in rs))),
                         energy=None, episodes=list(episodes), provenance=provenance,
@@ -257,6 +284,7 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
     y_ref = ts.y_ref
     curves: dict[str, dict[str, list[float]]] = {}
     predictions: dict[str, dict[int, np.ndarray]] = {}
+    models_of: dict[str, dict[int, LinearROM]] = {}
     grids = {'lopinf': cfg.r_lopinf, 'dmdc': cfg.r_dmdc, 'era': cfg.r_era,
              'lopinf_cubic': cfg.r_cubic}
     for method in METHODS:
@@ -268,7 +296,8 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
         t0 = time.perf_counter()
         try:
             models = sweep(method, grids[method], [train], ts,
-                           era_options=cfg.era_options, cubic_options=cfg.cubic_options)
+                           era_options=cfg.era_options, cubic_options=cfg.cubic_options,
+                           streaming=cfg.streaming)
         except Exception as err:  # a failed fit is a result to report, not a crash
             LOG.warning('study 1: %s failed: %s', method, err)
             models = {}
@@ -285,17 +314,25 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
             if tick:
                 tick(f'{method} r={r}')
         curves[method] = c
-    best = {}
+        models_of[method] = models
+    best: dict[str, dict[str, Any]] = {}
     for method, c in curves.items():
         if not c['r']:
             continue
         i = int(np.nanargmin(c['train']))
         best[method] = {k: c[k][i] for k in ('r', 'train', 'test', 'train_dev', 'test_dev')}
-    figures.errors_vs_r(out / 'errors_vs_r.png', curves, paper=paper.TIME_EXTRAPOLATION)
+        best[method]['label'] = figures.model_label(models_of[method][int(c['r'][i])])
+    split = (f'Ep 1, trained on t < {cfg.t_train:g} s, tested on {cfg.t_train:g}–'
+             f'{float(ep1.t[-1] + ep1.dt):g} s')
+    figures.errors_vs_r(out / 'errors_vs_r.png', curves, paper=paper.TIME_EXTRAPOLATION,
+                        title=f'Study 1, time extrapolation: {split}; relative output error '
+                              '(ours in colour, the paper in grey)', y_max=1.0)
     figures.errors_vs_r(out / 'errors_vs_r_deviation.png',
                         {m: {'r': c['r'], 'train': c['train_dev'], 'test': c['test_dev']}
                          for m, c in curves.items()},
-                        metric_label='Relative error on deviations')
+                        metric_label='Relative error on deviations', y_max=10.0,
+                        title=f'Study 1, time extrapolation: {split}; relative error on '
+                              'deviations from y_ref')
     # The paper's y10 and y20 "at different scales": z of the mid-body point and of the tail.
     names = ts.output_names
     index = _layout_index(ts)
@@ -305,8 +342,10 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
     figures.output_traces(out / 'traces.png', ep1.t, ep1.Y,
                           {m: predictions[m][int(b['r'])] for m, b in best.items()}, rows,
                           [names[i] for i in rows], t_split=cfg.t_train,
-                          rom_labels={m: f'{figures.LABELS[m]} r={b["r"]}'
-                                      for m, b in best.items()})
+                          rom_labels={m: str(b['label']) for m, b in best.items()},
+                          title=f'Study 1, time extrapolation: {split}; mid-body and tail '
+                                'height of the FOM and of the ROM of each method with the '
+                                'lowest training error')
     return {'t_train': cfg.t_train, 't_end': float(ep1.t[-1] + ep1.dt), 'curves': curves,
             'best': best, 'trace_names': [names[i] for i in rows]}
 
@@ -322,6 +361,7 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
     grids = {'lopinf': cfg.r_lopinf, 'dmdc': cfg.r_dmdc, 'era': cfg.r_era,
              'lopinf_cubic': cfg.r_cubic}
     swept: dict[str, dict[int, LinearROM]] = {}
+    fit_seconds: dict[str, float] = {}
 
     def train_error(model: LinearROM, eps: Sequence[Episode]) -> float:
         Y = np.concatenate([e.Y for e in eps], axis=1)
@@ -329,9 +369,11 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
         return relative_error(Y, Yh)
 
     def pick(method: str, eps: Sequence[Episode]) -> tuple[float, int, LinearROM] | None:
+        t0 = time.perf_counter()
         try:
             models = sweep(method, grids[method], eps, ts, era_options=cfg.era_options,
-                           cubic_options=cfg.cubic_options)
+                           cubic_options=cfg.cubic_options, streaming=cfg.streaming)
+            fit_seconds[method] = fit_seconds.get(method, 0.0) + time.perf_counter() - t0
         except Exception as err:
             LOG.warning('study 2: %s on %s failed: %s', method, [e.name for e in eps], err)
             return None
@@ -367,6 +409,8 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
         _e, (e_train, r, model) = era_candidates[era_episode]
         chosen['era'] = {'r': r, 'train': e_train, 'episode': era_episode}
         models['era'] = model
+    for method, model in models.items():
+        chosen[method]['label'] = figures.model_label(model)
     test: dict[str, dict[str, float]] = {}
     test_dev: dict[str, dict[str, float]] = {}
     preds: dict[str, dict[str, np.ndarray]] = {}
@@ -376,10 +420,17 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
             Yh = _predict(model, ep)
             preds[method][ep.name] = Yh
             test[method][ep.name], test_dev[method][ep.name] = _errors(ep.Y, Yh, y_ref)
-    labels = {m: f'{figures.LABELS[m]} r={c["r"]}' for m, c in chosen.items()}
-    figures.error_bars(out / 'bars.png', test, paper=paper.UNSEEN_INPUTS, rom_labels=labels)
+    labels = {m: c['label'] + (f' (fit on {_ep(c["episode"])})' if 'episode' in c else '')
+              for m, c in chosen.items()}
+    split = (f'trained on Ep 1 + Ep 2, tested on {_ep(tests[0].name)}–{_ep(tests[-1].name)}'
+             if len(tests) > 1 else f'trained on Ep 1 + Ep 2, tested on {_ep(tests[0].name)}')
+    figures.error_bars(out / 'bars.png', test, paper=paper.UNSEEN_INPUTS, rom_labels=labels,
+                       title=f'Study 2, unseen inputs: {split}; relative output error (black '
+                             'ticks: the paper)')
     figures.error_bars(out / 'bars_deviation.png', test_dev, rom_labels=labels,
-                       metric_label='Relative error on deviations')
+                       metric_label='Relative error on deviations',
+                       title=f'Study 2, unseen inputs: {split}; relative error on deviations '
+                             'from y_ref')
     shape_ep = tests[0]
     index = _layout_index(ts)
     shapes: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {'fom': []}
@@ -389,18 +440,54 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
         shapes[method] = [_shape(index, preds[method][shape_ep.name][:, j]) for j in cols]
     shapes_png = f'centerline_{shape_ep.name}.png'
     if index:
-        figures.centerline_shapes(out / shapes_png, cfg.shape_times, shapes, rom_labels=labels)
+        figures.centerline_shapes(
+            out / shapes_png, cfg.shape_times, shapes, rom_labels=labels,
+            title=f'Study 2, unseen inputs: centerline of test episode {_ep(shape_ep.name)} '
+                  f'(trained on Ep 1 + Ep 2), FOM and ROMs at t = '
+                  f'{", ".join(f"{t:g}" for t in cfg.shape_times)} s')
     for method, model in models.items():
+        if method in HELD_OUT_METHODS:
+            _record_held_out(method, model, chosen[method], train_eps, ts, cfg)
         model.save(out / 'models' / f'eel_{method}_r{chosen[method]["r"]}.npz')
     result = {'chosen': chosen, 'era_episode': era_episode, 'test': test, 'test_dev': test_dev,
               'shape_episode': shape_ep.name, 'shape_times': list(cfg.shape_times),
-              'shapes_png': shapes_png}
+              'shapes_png': shapes_png, 'fit_seconds': fit_seconds}
     if 'lopinf_cubic' in models:
         result['cubic_vs_linear'] = _cubic_vs_linear(models['lopinf_cubic'], swept, tests,
                                                      train_eps, ts, y_ref)
     result['long_inputs'] = {m: _long_inputs(models[m], tests, train_eps, y_ref)
                              for m in ('lopinf', 'lopinf_cubic') if m in models}
     return result
+
+
+#: Methods whose saved study models record their held-out error (the predictor's monitor
+#: thresholds; :func:`soft_rom.evaluation.held_out_errors`). The cubic fit is left out: its
+#: conic refits would double its cost.
+HELD_OUT_METHODS = ('lopinf', 'dmdc', 'era')
+
+
+def _record_held_out(method: str, model: LinearROM, chosen: dict[str, Any],
+                     train_eps: Sequence[Episode], ts: Any, cfg: StudyConfig) -> None:
+    """``model.metadata['held_out']``: the same fit, on held-out training data."""
+    from soft_rom.evaluation import held_out_errors
+
+    r = int(chosen['r'])
+    eps = [e for e in train_eps if e.name == chosen['episode']] if 'episode' in chosen \
+        else list(train_eps)
+
+    def refit(episodes: Sequence[Episode]) -> LinearROM:
+        return sweep(method, [r], episodes, ts, era_options=cfg.era_options,
+                     cubic_options=cfg.cubic_options)[r]
+
+    try:
+        model.metadata['held_out'] = held_out_errors(refit, eps, ts.y_ref)
+    except Exception as err:  # noqa: BLE001 -- no held-out error: the monitor's defaults
+        LOG.warning('study 2: held-out error of %s r=%d not recorded: %s', method, r, err)
+
+
+def _ep(name: str) -> str:
+    """``'ep3'`` -> ``'Ep 3'`` (the paper's spelling); other names as they are."""
+    return f'Ep {name[2:]}' if name.startswith('ep') and name[2:].isdigit() else name
 
 
 def _cubic_vs_linear(cubic: LinearROM, swept: dict[str, dict[int, LinearROM]],
@@ -507,18 +594,36 @@ def run_study(out_dir: str | Path, cfg: StudyConfig | None = None, *, progress: 
     bag_dir : path, optional
         Reuse bags from here (simulated there if missing).
     """
+    cfg = cfg or StudyConfig()
+    with _blas_threads(cfg.blas_threads):
+        return _run_study(Path(out_dir), cfg, progress=progress, studies=studies,
+                          replay=replay, bag_dir=bag_dir)
+
+
+def _blas_threads(n: int | None) -> Any:
+    """At most ``n`` BLAS threads in this process while the context lasts (threadpoolctl)."""
+    if n is None:
+        return contextlib.nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:      # a ROS install without it: the library's default applies
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=int(n), user_api='blas')
+
+
+def _run_study(out: Path, cfg: StudyConfig, *, progress: bool, studies: Sequence[int],
+               replay: bool, bag_dir: str | Path | None) -> dict[str, Any]:
     from tqdm import tqdm
 
     from soft_rom.convert import convert
     from soft_rom.dataset import TrainingSet
 
-    cfg = cfg or StudyConfig()
-    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    load_start = _load()
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     bags = simulate_bags(Path(bag_dir) if bag_dir else out / 'bags', cfg, progress=progress)
-    timings['simulate (bags)'] = time.perf_counter() - t0
+    timings['simulate'] = time.perf_counter() - t0
     t0 = time.perf_counter()
     data_path = out / 'data.zarr'
     ts = TrainingSet.open(data_path) if data_path.exists() else None
@@ -549,11 +654,11 @@ def run_study(out_dir: str | Path, cfg: StudyConfig | None = None, *, progress: 
     if 1 in studies:
         t0 = time.perf_counter()
         summary['study1'] = study_time_extrapolation(ts, cfg, out, tick)
-        timings['study 1 (fit + evaluate)'] = time.perf_counter() - t0
+        timings['study 1'] = time.perf_counter() - t0
     if 2 in studies and len(ts.episode_names) >= 3:
         t0 = time.perf_counter()
         summary['study2'] = study_unseen_inputs(ts, cfg, out, tick)
-        timings['study 2 (fit + evaluate)'] = time.perf_counter() - t0
+        timings['study 2'] = time.perf_counter() - t0
     bar.close()
     if replay and 'study2' in summary:
         t0 = time.perf_counter()
@@ -561,63 +666,88 @@ def run_study(out_dir: str | Path, cfg: StudyConfig | None = None, *, progress: 
         timings['replay'] = time.perf_counter() - t0
     summary['conclusions'] = _conclusions(summary.get('study1'), summary.get('study2'))
     summary['timings'] = timings
-    (out / 'summary.json').write_text(json.dumps(_jsonable(summary), indent=2,
-                                                    allow_nan=False))
-    (out / 'report.md').write_text(study_report(summary))
+    summary['machine'] = _machine(load_start)
+    strict = _jsonable(summary)
+    (out / 'summary.json').write_text(json.dumps(strict, indent=2, allow_nan=False))
+    (out / 'report.md').write_text(study_report(strict))   # the report of summary.json
     return summary
 
 
-def _replay(out: Path, bags: Sequence[Path], s2: dict[str, Any]) -> dict[str, Any]:
+def _load() -> float | None:
+    """The 1-minute load average (``None`` where the system has none)."""
+    try:
+        return float(os.getloadavg()[0])
+    except (AttributeError, OSError):
+        return None
+
+
+def _machine(load_start: float | None) -> dict[str, Any]:
+    """What the timings were measured on: CPUs, their model, the load, BLAS threads."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path('/proc/cpuinfo').read_text().splitlines():
+            if line.startswith('model name'):
+                cpu = ' '.join(line.split(':', 1)[1].split())
+                break
+    except OSError:
+        pass
+    load_end = _load()
+    n = os.cpu_count()
+    loads = ('' if load_start is None or load_end is None else
+             f', load average {load_start:.1f} at the start and {load_end:.1f} at the end')
+    return {'cpus': n, 'cpu': cpu, 'load_start': load_start, 'load_end': load_end,
+            'description': f'{n} CPUs ({cpu}){loads}'}
+
+
+def _replay(out: Path, bags: Sequence[Path], s2: dict[str, Any], *,
+            noise: float = 1e-3, seed: int = 0) -> dict[str, Any]:
     """Replay the study-2 LOpInf ROM over a test bag through the predictor core.
 
-    Runs ``soft-rom replay --compare`` (the node's core, offline): the prediction bag has the
-    node's topics; the summary has the errors open loop and with the Kalman filter.
+    What ``soft-rom replay MODEL BAG -o OUT`` does, through the same API: the prediction
+    bag ``replay_<bag>`` has the node's topics, and the predictor's final health uses the
+    monitor thresholds the model file implies (:mod:`soft_rom.predictor.thresholds`).
+
+    Then the Kalman correction of the same model on the same episode, once: the measured
+    centerline is the bag's plus white noise of ``noise`` metres, the filter is designed
+    for that noise (measurement variance ``noise²``, predictor defaults otherwise), and both
+    the open-loop and the corrected predictions are scored against the noise-free outputs
+    (:func:`soft_rom.predictor.kalman_vs_open_loop`).
     """
-    from soft_rom.cli import main as cli_main
+    from soft_rom.bags.replay_io import replay_to_bag
+    from soft_rom.convert import read_episode
+    from soft_rom.layout import layout_of, replay_components
+    from soft_rom.outputs import atomic_new_dir
+    from soft_rom.predictor import kalman_vs_open_loop, Predictor, PredictorConfig
+
     chosen = s2['chosen']['lopinf']
     model_path = out / 'models' / f'eel_lopinf_r{chosen["r"]}.npz'
     bag = next(b for b in bags if b.name == s2['shape_episode'])
     out_bag = out / f'replay_{bag.name}'
-    summary_path = out / f'replay_{bag.name}.json'
-    code = cli_main(['replay', str(model_path), str(bag), '-o', str(out_bag), '--compare',
-                     '--overwrite', '--summary-json', str(summary_path)])
-    if code != 0:
-        return {'error': f'soft-rom replay exited with {code}'}
-    summary = json.loads(summary_path.read_text())
-    keep = {'model': model_path.name, 'bag': bag.name, 'output bag': out_bag.name}
-    for key in ('samples', 'relative_error', 'relative_deviation_error', 'final_status',
-                'wall_seconds'):
-        if key in summary:
-            keep[key] = summary[key]
-    keep.update(kalman_check(model_path, out / 'data.zarr',
-                             s2['shape_episode']))
-    return keep
-
-
-def kalman_check(model_path: Path, data_path: Path, episode: str, *, noise: float = 1e-3,
-                 r_values: Sequence[int] = (4, 8), seed: int = 0) -> dict[str, Any]:
-    """State correction on the FOM: deliberately mismatched ROMs and noisy measurements.
-
-    The ROMs are LOpInf ROMs fitted on Ep 1 + Ep 2 with small ``r`` (worse models than the
-    study's), the measured centerline is the FOM's plus white noise of ``noise`` metres; the
-    Kalman-corrected (predictor defaults, measurement variance ``noise²``) and open-loop
-    predictions are scored against the clean FOM outputs
-    (:func:`soft_rom.predictor.kalman_vs_open_loop`).
-    """
-    from soft_rom.dataset import TrainingSet
-    from soft_rom.predictor import kalman_vs_open_loop, PredictorConfig
-    ts = TrainingSet.open(data_path)
-    train = [_in_memory(ts['ep1']), _in_memory(ts['ep2'])]
-    models = sweep('lopinf', r_values, train, ts)
-    ep = ts[episode]
+    predictor = Predictor(model_path, PredictorConfig())
+    model = predictor.model
+    episode, _report = read_episode(bag)
+    components = replay_components(layout_of(model.metadata), layout_of(episode.metadata))
+    with atomic_new_dir(out_bag, overwrite=True, kind='replay', what='replay bag') as stage:
+        result = replay_to_bag(predictor, episode, stage, components=components or 'xz',
+                               overwrite=False)
+    health = predictor.health()
+    summary = dict(result.summary, output_bag=str(out_bag), final_status=health.level.name,
+                   final_message=health.message, thresholds=predictor.thresholds.summary())
     rng = np.random.default_rng(seed)
-    noisy = Episode(t=ep.t, U=ep.U, Y=ep.Y + noise * rng.standard_normal(ep.Y.shape),
-                    name=ep.name)
-    cfg = PredictorConfig(measurement_noise=noise ** 2)
-    out: dict[str, Any] = {'Kalman check: measurement noise [m]': noise}
-    for r, model in models.items():
-        res = kalman_vs_open_loop(model, noisy, config=cfg, Y_true=ep.Y)
-        out[f'Kalman check LOpInf r={r}: open-loop / Kalman deviation error'] = (
-            f'{res["open_loop"]:.4f} / {res["kalman"]:.4f}')
-        out[f'Kalman check LOpInf r={r}: ratio (target <= 0.5)'] = res['ratio']
-    return out
+    noisy = Episode(t=episode.t, U=episode.U,
+                    Y=episode.Y + noise * rng.standard_normal(episode.Y.shape), name=episode.name)
+    kalman = kalman_vs_open_loop(model, noisy, Y_true=episode.Y,
+                                 config=PredictorConfig(measurement_noise=noise ** 2))
+    summary['kalman'] = kalman
+    (out / f'replay_{bag.name}.json').write_text(
+        json.dumps(_jsonable(summary), indent=2, default=str, allow_nan=False))
+    return {'model': model_path.name, 'label': figures.model_label(model), 'bag': bag.name,
+            'output bag': out_bag.name, 'samples': summary['samples'],
+            'relative_error': summary['relative_error'],
+            'relative_deviation_error': summary['relative_deviation_error'],
+            'final_status': health.level.name, 'final_message': health.message,
+            'warn_threshold': predictor.thresholds.warn,
+            'error_threshold': predictor.thresholds.error,
+            'threshold_source': predictor.thresholds.source,
+            'kalman': {'noise_mm': noise * 1e3, 'open_loop': kalman['open_loop'],
+                       'kalman': kalman['kalman'], 'ratio': kalman['ratio']}}
