@@ -18,7 +18,7 @@ from soft_rom.study import paper_scale
 from soft_rom.study.paper_scale import check_plan, plan_run, run_paper_scale, STAGES
 from soft_rom.study.run import StudyConfig
 
-ERA = {'decimation': 1, 'output_rank': 4, 'observer_order': 8, 'n_markov': 60}
+ERA = {'decimation': 1, 'output_rank': 4, 'observer_order': 6, 'n_markov': 60}
 
 
 def _cfg(**kw) -> StudyConfig:

@@ -103,6 +103,11 @@ def test_every_readme_command_uses_existing_options() -> None:
                 continue
             value = tok.split('=', 1)[1] if '=' in tok else (
                 tokens[i + 1] if i + 1 < len(tokens) else None)
+            if action.choices is not None and value is not None and callable(action.type):
+                try:
+                    value = action.type(value)      # e.g. type=int with choices=range(...)
+                except (TypeError, ValueError):
+                    pass
             if action.choices is not None and value is not None and value not in action.choices:
                 bad.append(f'{command}: {flag} {value!r} is not one of {list(action.choices)}')
     assert not bad, '\n'.join(bad)

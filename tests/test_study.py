@@ -170,3 +170,16 @@ def test_corrupt_bag_sidecar_is_refused_naming_it(tmp_path, capsys, data, words)
         assert lines[0].startswith(f'soft-rom {verb}: error: bag sidecar {sidecar}'), err
         assert words in lines[0]
     assert sidecar.read_bytes() == data and not (bags / 'ep2').exists()
+
+
+def test_a_method_with_no_fitted_r_draws_no_curve(tmp_path) -> None:
+    """A method that failed at every r (an empty curve) leaves the panel empty, not a crash."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    from soft_rom.study.figures import _plot_in_range
+    fig, ax = plt.subplots()
+    assert _plot_in_range(ax, [], [], 1e-3, 1.0, log=True) is False
+    assert not ax.lines
+    assert _plot_in_range(ax, [2, 4], [0.5, 5.0], 1e-3, 1.0, log=True) is True
+    plt.close(fig)

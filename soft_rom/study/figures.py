@@ -122,10 +122,12 @@ def _plot_in_range(ax: Any, x: Any, y: Any, lo: float,
         w = (level - fy[i - 1]) / (fy[i] - fy[i - 1])
         return float(x[i - 1] + w * (x[i] - x[i - 1]))
 
+    if not len(x):
+        return False
     if side[0] == 0:
         xs.append(x[0])
         ys.append(fy[0])
-    elif len(x):
+    else:
         exits.append((float(x[0]), int(side[0])))
     for i in range(1, len(x)):
         a, b = int(side[i - 1]), int(side[i])
