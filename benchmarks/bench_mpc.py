@@ -19,7 +19,8 @@ solutions from DAQP's (objective-scaled), the ratio of its p99 to DAQP's, and th
 load. A whole control step (estimate, solve) is timed by the closed loop itself.
 
 Run: ``python benchmarks/bench_mpc.py`` (``--model FILE`` for a fitted LOpInf file, default
-the eel's modal ROM with r = 16; ``--repeat N`` to repeat the replay).
+the eel's modal ROM with r = 16; ``--repeat N`` to repeat the replay; ``--skip
+osqp-sparse,clarabel`` to leave the slowest candidates out).
 """
 
 from __future__ import annotations
@@ -237,7 +238,16 @@ def main() -> int:
     parser.add_argument('--model', default=None, help='LOpInf model file (default: modal r=16)')
     parser.add_argument('--duration', type=float, default=1.0)
     parser.add_argument('--repeat', type=int, default=3)
+    optional = ('osqp', 'osqp-sparse', 'proxsuite', 'clarabel')
+    parser.add_argument('--skip', default='',
+                        help=f'comma-separated solvers to leave out, of {", ".join(optional)} '
+                             '(DAQP and cvxpy always run: they give the printed ratio); '
+                             'osqp-sparse alone takes minutes')
     args = parser.parse_args()
+    skip = {s for s in args.skip.split(',') if s}
+    if skip - set(optional):
+        parser.error(f'--skip: unknown solver(s) {", ".join(sorted(skip - set(optional)))}; '
+                     f'choose from {", ".join(optional)}')
     from soft_rom.models import load_model
     if args.model:
         model = load_model(args.model)
@@ -260,15 +270,22 @@ def main() -> int:
               f'CPU p50/p99 {s["control_step_cpu"]["p50_ms"]:.3f}/'
               f'{s["control_step_cpu"]["p99_ms"]:.3f} ms = p99 '
               f'{10 * s["control_step_cpu"]["p99_ms"]:.1f} % of the period')
-    runners = [('daqp (condensed, warm)', run_daqp), ('osqp (condensed, warm)', run_osqp_dense),
-               ('osqp (sparse, warm)', lambda mpc, problems: run_osqp_sparse(mpc, problems,
-                                                                             calls)),
-               ('clarabel (condensed, cold)', run_clarabel)]
-    try:
-        import proxsuite  # noqa: F401
-        runners.insert(2, ('proxsuite dense (warm)', run_proxsuite))
-    except ImportError:
-        print('  (proxsuite not installed: pip install proxsuite to include it)')
+    runners = [('daqp (condensed, warm)', run_daqp)]
+    if 'osqp' not in skip:
+        runners.append(('osqp (condensed, warm)', run_osqp_dense))
+    if 'proxsuite' not in skip:
+        try:
+            import proxsuite  # noqa: F401
+            runners.append(('proxsuite dense (warm)', run_proxsuite))
+        except ImportError:
+            print('  (proxsuite not installed: pip install proxsuite to include it)')
+    if 'osqp-sparse' not in skip:
+        runners.append(('osqp (sparse, warm)',
+                        lambda mpc, problems: run_osqp_sparse(mpc, problems, calls)))
+    if 'clarabel' not in skip:
+        runners.append(('clarabel (condensed, cold)', run_clarabel))
+    if skip:
+        print(f'  (left out: {", ".join(sorted(skip))})')
     runners.append(('cvxpy (same QP, default solver)', run_cvxpy))
     results = {}
     ref_x = None
