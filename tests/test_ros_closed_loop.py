@@ -11,6 +11,7 @@ estimator settings, same sensor rate and noise level), and every node exits 0 on
 from __future__ import annotations
 
 from pathlib import Path
+import re
 import signal
 import time
 
@@ -81,6 +82,10 @@ def test_ros_loop_tracks_like_the_in_process_loop(setup, input_mode) -> None:
         assert codes == [0, 0, 0], [n.log()[-2000:] for n in nodes]
         for n in nodes:
             assert not no_noise(n.log()), n.log()
+        # the controller's whole-tick timing, logged on shutdown (figures, not asserted)
+        tick = re.search(r'(\d+) control ticks \(estimate, solve, publish\).*', nodes[2].log())
+        assert tick and int(tick.group(1)) >= 150, nodes[2].log()[-2000:]
+        print(tick.group(0))
     finally:
         for n in nodes:
             n.kill()

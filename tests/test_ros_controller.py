@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import signal
 
 from _eel_rom import modal_rom
@@ -89,6 +90,8 @@ def test_bad_messages_are_dropped_and_commands_stay_safe(tmp_path, model_path, c
                 pub_ref.publish(_poses(target, t + 0.5))
             client.spin_for(0.02)
         assert any(d['status'] == 'ok' for d in diags[-20:]), diags[-3:]
+        ticks = [float(d['tick_ms']) for d in diags[-20:]]     # the previous whole tick
+        assert all(math.isfinite(v) and v > 0 for v in ticks), diags[-3:]
         # silence: the state goes stale and the command is held
         assert client.spin_until(lambda: diags and diags[-1]['status'] == 'stale', 10)
         assert node.proc.poll() is None

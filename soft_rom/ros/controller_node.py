@@ -20,7 +20,9 @@ in-process loop (``soft-rom control``) runs. The node:
   ``array_topic`` (``array``; no header: the receiver stamps it on arrival), as
   ``(u - input_offset) / input_scale`` so that the predictor reads back ``u``; and the
   reference shape on ``~/reference`` (``PoseArray``) and ``/diagnostics`` (status, solve and
-  step time, tracking error, saturation, counters).
+  step time, the whole previous tick's time, tracking error, saturation, counters);
+* on shutdown logs the whole control tick's time (estimate, solve, publish), p50 / p99 /
+  max in wall and thread CPU time, and p99 as a fraction of the control step.
 
 Bad input never stops it: a measurement, state or reference of the wrong size, with NaN, or
 stamped in the past is dropped and counted; without a fresh state or measurement, or when
@@ -30,10 +32,12 @@ the QP is infeasible or fails, the last command is held, clipped into the bounds
 
 from __future__ import annotations
 
+from collections import deque
 import math
 import signal
 import sys
 import threading
+import time
 from typing import Any
 
 from builtin_interfaces.msg import Time as TimeMsg
@@ -148,6 +152,8 @@ class ControllerNode(Node):
         self.create_timer(self.core.h, self._on_tick)
         self.last: Any = None
         self.callback_errors = 0
+        # the whole tick (estimate, solve, publish), wall and thread CPU seconds
+        self.ticks: deque[tuple[float, float]] = deque(maxlen=100_000)
         n = len([nm for nm in self.model.output_names if nm.startswith('x')])
         self.ref_msg = PoseArray()
         self.ref_msg.header.frame_id = self.frame_id
@@ -210,6 +216,7 @@ class ControllerNode(Node):
             self._guard('reference', err)
 
     def _on_tick(self) -> None:
+        w0, c0 = time.perf_counter(), time.thread_time()
         try:
             now = self._now()
             if self.t0 is None:
@@ -240,15 +247,31 @@ class ControllerNode(Node):
             self._diagnostics(stamp, cmd)
         except Exception as err:  # noqa: BLE001
             self._guard('control step', err)
+        self.ticks.append((time.perf_counter() - w0, time.thread_time() - c0))
+
+    def tick_summary(self) -> str:
+        """One line: the whole control tick's time, p50 / p99 / max, wall and CPU."""
+        if not self.ticks:
+            return 'no control tick ran'
+        wall, cpu = (np.array(v) * 1e3 for v in zip(*self.ticks))
+        w50, w99, c50, c99 = (float(np.percentile(a, q)) for a in (wall, cpu)
+                              for q in (50, 99))
+        period = self.core.h * 1e3
+        return (f'{len(wall)} control ticks (estimate, solve, publish): p50/p99/max '
+                f'{w50:.3f}/{w99:.3f}/{wall.max():.3f} ms wall, CPU p50/p99 {c50:.3f}/'
+                f'{c99:.3f} ms; p99 = {100 * w99 / period:.1f} % (wall), '
+                f'{100 * c99 / period:.1f} % (CPU) of the {period:g} ms step')
 
     def _diagnostics(self, stamp: TimeMsg, cmd: Any) -> None:
         c = self.core.counters
         level = DiagnosticStatus.OK if cmd.status == 'ok' else DiagnosticStatus.WARN
         if cmd.status in ('failed', 'infeasible'):
             level = DiagnosticStatus.ERROR
+        last_tick = self.ticks[-1][0] * 1e3 if self.ticks else float('nan')
         values = {
             'status': cmd.status, 'solve_ms': f'{cmd.solve_s * 1e3:.3f}',
-            'step_ms': f'{cmd.step_s * 1e3:.3f}', 'tracking_error_m': f'{cmd.tracking_error:.6g}',
+            'step_ms': f'{cmd.step_s * 1e3:.3f}', 'tick_ms': f'{last_tick:.3f}',
+            'tracking_error_m': f'{cmd.tracking_error:.6g}',
             'saturated_inputs': str(cmd.saturated), 'qp_infeasible': str(c.qp_infeasible),
             'qp_failed': str(c.qp_failed), 'held': str(c.held),
             'measurements': str(c.measurements),
@@ -289,6 +312,7 @@ def main(args: list[str] | None = None) -> int:
     finally:
         executor.shutdown(timeout_sec=1.0)
         if node is not None:
+            node.get_logger().info(node.tick_summary())
             node.destroy_node()
         rclpy.try_shutdown()
         for s, h in previous.items():
