@@ -142,6 +142,7 @@ class ControllerNode(Node):
             self.array_msg = Float64MultiArray()
         else:
             self.pubs = [self.create_publisher(FluidPressure, t, qos) for t in self.topics]
+        self.cmd_msgs = [FluidPressure() for _ in self.pubs]    # reused: a tick builds none
         self.pub_ref = self.create_publisher(PoseArray, '~/reference', 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_subscription(PoseArray, self.measured_topic, self._on_measured, qos)
@@ -158,6 +159,15 @@ class ControllerNode(Node):
         self.ref_msg = PoseArray()
         self.ref_msg.header.frame_id = self.frame_id
         self.ref_msg.poses = [Pose() for _ in range(n)]
+        self.ref_positions = [p.position for p in self.ref_msg.poses]
+        # the model outputs named x<i> / z<i> (i <= n): their rows and (point, coordinate)
+        rows, where = [], []
+        for row, nm in enumerate(self.model.output_names):
+            if nm[:1] in 'xz' and nm[1:].isdigit() and 1 <= int(nm[1:]) <= n:
+                rows.append(row)
+                where.append((int(nm[1:]) - 1, 'xyz'.index(nm[0])))
+        self.ref_rows = np.array(rows, dtype=int)
+        self.ref_where = tuple(np.array(where, dtype=int).reshape(-1, 2).T)
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
@@ -231,18 +241,17 @@ class ControllerNode(Node):
             if self.input_mode == 'array':
                 self.array_msg.data = array_to_data(wire)
                 self.pub_array.publish(self.array_msg)
-            for pub, value in zip(self.pubs, wire.tolist()):
-                pub.publish(FluidPressure(header=_header(stamp), fluid_pressure=value))
+            for pub, msg, value in zip(self.pubs, self.cmd_msgs, wire.tolist()):
+                msg.header.stamp = stamp
+                msg.fluid_pressure = value
+                pub.publish(msg)
             ref = self.core.reference
             if ref is not None:
                 y = ref.at([now])[:, 0]
-                names = self.model.output_names
-                pts = np.zeros((len(self.ref_msg.poses), 3))
-                for row, nm in enumerate(names):
-                    if nm[:1] in 'xz' and nm[1:].isdigit() and int(nm[1:]) <= len(pts):
-                        pts[int(nm[1:]) - 1, 'xyz'.index(nm[0])] = y[row]
+                pts = np.zeros((len(self.ref_positions), 3))
+                pts[self.ref_where] = y[self.ref_rows]
                 self.ref_msg.header.stamp = stamp
-                set_points([p.position for p in self.ref_msg.poses], pts)
+                set_points(self.ref_positions, pts)
                 self.pub_ref.publish(self.ref_msg)
             self._diagnostics(stamp, cmd)
         except Exception as err:  # noqa: BLE001
