@@ -131,9 +131,11 @@ def run_control_study(out: str | Path, models: dict[str, Any],
     """Run the study for ``models`` (``{label: model file}``); writes OUT, returns the summary.
 
     Every model must have the eel's output layout (``x1..x20``, ``z1..z20``). ``jobs``
-    closed loops run at once (worker processes; each loads the model file and its FOM).
+    closed loops run at once (spawned worker processes; each loads the model file and its
+    FOM).
     """
     from concurrent.futures import ProcessPoolExecutor
+    import multiprocessing
 
     from soft_rom.control.figures import closed_loop_figure
     from soft_rom.models import load_model
@@ -152,7 +154,10 @@ def run_control_study(out: str | Path, models: dict[str, Any],
         'step_s': cfg.mpc.step, 'horizon_s': cfg.mpc.horizon, 'jobs': jobs},
         'models': {k: {'method': m.method, 'r': int(m.r), 'file': str(models[k])}
                    for k, m in loaded.items()}}
-    pool = ProcessPoolExecutor(max_workers=jobs) if jobs > 1 else None
+    # spawned, not forked: the parent has threads by now (the FOM's solver, the pool's own),
+    # and a forked worker can inherit a lock held by one of them and wait on it forever
+    pool = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context(
+        'spawn')) if jobs > 1 else None
 
     def run_all(tasks: list[tuple]) -> list[Any]:
         if pool is None:
