@@ -177,6 +177,7 @@ def test_a_method_with_no_fitted_r_draws_no_curve(tmp_path) -> None:
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+
     from soft_rom.study.figures import _plot_in_range
     fig, ax = plt.subplots()
     assert _plot_in_range(ax, [], [], 1e-3, 1.0, log=True) is False

@@ -182,8 +182,12 @@ def test_ctrl_c_at_10_and_60_s_leaves_no_mixed_folder(tmp_path) -> None:
     runs = []
     for out, extra, at in ((old, ['--overwrite'], 10.0), (new, [], 60.0)):
         proc = subprocess.Popen(
-            [sys.executable, '-c', 'import sys; from soft_rom.cli import main; '
-             'sys.exit(main())', 'demo', '-o', str(out), '--quiet', *extra],
+            # Ctrl-C reaches it even where pytest runs in the background (a shell starts
+            # background jobs with SIGINT ignored, and children inherit that).
+            [sys.executable, '-c', 'import signal, sys; '
+             'signal.signal(signal.SIGINT, signal.default_int_handler); '
+             'from soft_rom.cli import main; sys.exit(main())',
+             'demo', '-o', str(out), '--quiet', *extra],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
             start_new_session=True, cwd=tmp_path)
         runs.append((proc, at))
