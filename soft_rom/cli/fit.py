@@ -72,9 +72,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                            'given; ERA then uses its Hankel singular value rule)')
     parser.add_argument('--solver', choices=('fast', 'cvxpy'), default='fast',
                         help='LOpInf operator solver (default fast)')
-    parser.add_argument('--forces', choices=('linear', 'cubic'), default='linear',
-                        help='LOpInf restoring force: linear (K q) or cubic (gradient of a '
-                             'quartic potential, energy-consistent integrator; default linear)')
+    parser.add_argument('--forces', choices=('linear', 'cubic', 'auto'), default='linear',
+                        help='LOpInf restoring force: linear (K q), cubic (gradient of a '
+                             'quartic potential, energy-consistent integrator), or auto; cubic '
+                             'and auto compare both on held-out training episodes, and auto '
+                             'keeps the cubic model only when it is at least 10 %% better '
+                             '(default linear)')
     parser.add_argument('--mass', choices=('identity', 'learned'), default=None,
                         help='LOpInf mass matrix: identity, or learned (SPD, exact in any '
                              'coordinates); default learned on outputs, identity on states')
@@ -188,10 +191,13 @@ def _check_outputs_early(args: argparse.Namespace, outdir: Path, prefix: str) ->
                      is_ours=_FIT_JSON)
     if args.r is not None:
         for method in args.method:
+            labels = (('lopinf', 'lopinf_cubic') if method == 'lopinf' and args.forces == 'auto'
+                      else (_label(method, args),))
             for r in args.r:
-                check_output(outdir / f'{prefix}_{_label(method, args)}_r{r}.npz',
-                             overwrite=args.overwrite,
-                             what='model file', is_ours=_MODEL_FILE)
+                for label in labels:
+                    check_output(outdir / f'{prefix}_{label}_r{r}.npz',
+                                 overwrite=args.overwrite,
+                                 what='model file', is_ours=_MODEL_FILE)
 
 
 def _basis_r(model: Any) -> int:
@@ -204,9 +210,12 @@ def _basis_r(model: Any) -> int:
     return int(r) if isinstance(r, int) and not isinstance(r, bool) else int(model.r)
 
 
-def _label(method: str, args: argparse.Namespace) -> str:
-    """File-name label: ``lopinf_cubic`` for the cubic LOpInf models."""
-    return 'lopinf_cubic' if method == 'lopinf' and args.forces == 'cubic' else method
+def _label(method: str, args: argparse.Namespace, model: Any = None) -> str:
+    """File-name label: ``lopinf_cubic`` for the cubic LOpInf models (``auto``: as kept)."""
+    forces = args.forces
+    if model is not None and forces == 'auto':
+        forces = model.metadata.get('forces_selection', {}).get('kept', 'linear')
+    return 'lopinf_cubic' if method == 'lopinf' and forces == 'cubic' else method
 
 
 def run(args: argparse.Namespace) -> int:
@@ -231,8 +240,8 @@ def _run(args: argparse.Namespace, clients: list[Any]) -> int:
     ts = TrainingSet.open(args.training_set)
     episodes = select_episodes(ts, args.episodes, args.t_max)
     streaming = args.streaming or args.dask is not None
-    if streaming and args.forces == 'cubic':
-        raise ConfigError('--forces cubic is fitted in memory; drop --streaming/--dask')
+    if streaming and args.forces != 'linear':
+        raise ConfigError(f'--forces {args.forces} is fitted in memory; drop --streaming/--dask')
     provenance = {'training_set': str(Path(args.training_set).resolve()),
                   'episodes': [ep.name for ep in episodes], 't_max': args.t_max,
                   'source': ts.provenance if hasattr(ts, 'provenance') else {}}
@@ -264,6 +273,7 @@ def _run(args: argparse.Namespace, clients: list[Any]) -> int:
         lopinf_options['min_damping_ratio'] = args.min_damping_ratio
     dmdc_options = {} if args.dmdc_variant is None else {'variant': args.dmdc_variant}
     rows: list[dict[str, Any]] = []
+    verdict_lines: list[str] = []
     models: dict[Path, Any] = {}
     client = None
     if args.dask is not None:
@@ -282,28 +292,44 @@ def _run(args: argparse.Namespace, clients: list[Any]) -> int:
                 client=client, progress=not args.quiet, mass=args.mass,
                 refine=args.refine)
         else:
-            fitted = fit_models(ts, method, r_values=args.r, energy=args.energy,
-                                episodes=episodes, provenance=provenance, solver=args.solver,
-                                ddt_order=args.ddt_order, dmdc_p=args.dmdc_p,
-                                forces=args.forces,
-                                era_options=era_options, progress=not args.quiet,
-                                coordinates=args.coordinates, ddt=args.ddt, mass=args.mass,
-                                refine=args.refine,
-                                lopinf_options=lopinf_options, dmdc_options=dmdc_options)
+            def fit(r_values: Any, forces: str, cubic_options: Any = None,
+                    method: str = method) -> list[tuple[Any, float]]:
+                return fit_models(ts, method, r_values=r_values, energy=args.energy,
+                                  episodes=episodes, provenance=provenance, solver=args.solver,
+                                  ddt_order=args.ddt_order, dmdc_p=args.dmdc_p,
+                                  forces=forces, cubic_options=cubic_options,
+                                  era_options=era_options, progress=not args.quiet,
+                                  coordinates=args.coordinates, ddt=args.ddt, mass=args.mass,
+                                  refine=args.refine,
+                                  lopinf_options=lopinf_options, dmdc_options=dmdc_options)
+            if method == 'lopinf' and args.forces != 'linear':
+                # The held-out verdict of the learning-curve study (soft_rom.study.curve).
+                from soft_rom.fitting import choose_coordinates
+                from soft_rom.study.curve.select import fit_with_verdict
+                fitted, lines = fit_with_verdict(
+                    fit, episodes, getattr(ts, 'q_ref', None), ts.y_ref, args.r,
+                    asked=args.forces, energy=args.energy,
+                    coordinates=choose_coordinates(episodes, args.coordinates))
+                verdict_lines += lines
+            else:
+                fitted = fit(args.r, 'linear' if args.forces == 'auto' else args.forces)
         for model, seconds in fitted:
-            path = outdir / f'{prefix}_{_label(method, args)}_r{_basis_r(model)}.npz'
+            path = outdir / f'{prefix}_{_label(method, args, model)}_r{_basis_r(model)}.npz'
             models[path] = model
             train_eps = episodes
             if method == 'era':
                 train_eps = [e for e in episodes
                              if e.name in model.metadata['training']['episodes']]
             ev = evaluate(model, train_eps).get()
-            rows.append({'method': _label(method, args), 'r': _basis_r(model), 'dt': model.dt,
+            rows.append({'method': _label(method, args, model), 'r': _basis_r(model),
+                         'dt': model.dt,
                          'train_relative_error': ev['relative_error'],
                          'train_relative_deviation_error': ev['relative_deviation_error'],
                          'stability_margin': model.stability_margin(),
                          'trust': model.trust_issues(),
-                         'seconds': seconds, 'path': str(path)})
+                         'seconds': seconds, 'path': str(path),
+                         **({'forces_selection': model.metadata['forces_selection']}
+                            if 'forces_selection' in model.metadata else {})})
     outputs: list[Path] = list(models)
     if args.json is not None:
         outputs.append(args.json)
@@ -320,6 +346,8 @@ def _run(args: argparse.Namespace, clients: list[Any]) -> int:
             staged[args.json].write_text(dumps_strict(rows, indent=2) + '\n',
                                          encoding='utf-8')
     print(format_table(rows))
+    for line in verdict_lines:
+        print(line)
     untrusted = [r for r in rows if r['trust']]
     for r in untrusted:
         print(f'  {Path(r["path"]).name}: NOT TRUSTED: {"; ".join(r["trust"])}')
@@ -328,11 +356,11 @@ def _run(args: argparse.Namespace, clients: list[Any]) -> int:
 
 def format_table(rows: list[dict[str, Any]]) -> str:
     """Summary table of :func:`run`."""
-    head = f'{"method":<7} {"r":>4} {"dt [s]":>8} {"err":>10} {"dev err":>10} ' \
+    head = f'{"method":<12} {"r":>4} {"dt [s]":>8} {"err":>10} {"dev err":>10} ' \
            f'{"margin":>10} {"time [s]":>9}  file'
     lines = [head, '-' * len(head)]
     for r in rows:
-        lines.append(f'{r["method"]:<7} {r["r"]:>4d} {r["dt"]:>8.4g} '
+        lines.append(f'{r["method"]:<12} {r["r"]:>4d} {r["dt"]:>8.4g} '
                      f'{r["train_relative_error"]:>10.3e} '
                      f'{r["train_relative_deviation_error"]:>10.3e} '
                      f'{r["stability_margin"]:>10.3e} {r["seconds"]:>9.2f}  '

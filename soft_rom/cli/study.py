@@ -144,12 +144,14 @@ def study_output(args: argparse.Namespace, cfg: Any) -> Iterator[Path]:
     previous study there is parked until the run ends and comes back if it stops
     (:func:`soft_rom.outputs_inplace.rebuilt_dir`): an interrupted run leaves the previous folder,
     or none, never a mix. The previous folder's recorded episodes are reused when ``cfg``
-    records them the same way.
+    records them the same way (none are when ``cfg`` is None: the learning curve keeps its
+    recordings in its own layout).
     """
     from soft_rom.outputs_inplace import rebuilt_dir
 
     prepare_study(args)
-    reuse = None if args.bags is not None else functools.partial(_reuse_bags, cfg=cfg)
+    reuse = (None if args.bags is not None or cfg is None
+             else functools.partial(_reuse_bags, cfg=cfg))
     with rebuilt_dir(args.output, overwrite=args.overwrite, kind='study', what='study folder',
                      carry_over=reuse) as out:
         yield out
@@ -188,7 +190,68 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     parser.add_argument('--staged', action='store_true',
                         help='run in resumable stages with streaming fits (the default from '
                              '--resolution 3 on; see soft_rom.study.paper_scale)')
+    curve = parser.add_argument_group(
+        'learning curve', 'soft-rom study --learning-curve: test error against the number of '
+        'training episodes, per method, at each pressure amplitude (the cubic LOpInf against '
+        'the linear one; every setting chosen on held-out training episodes)')
+    curve.add_argument('--learning-curve', action='store_true',
+                       help='run the learning-curve study instead of studies 1 and 2')
+    curve.add_argument('--sizes', type=parse_r_list, default=(2, 4, 8, 16),
+                       help='training sizes in episodes, e.g. 2,4,8,16 (default) or 2:8:2')
+    curve.add_argument('--test-episodes', type=int_range(1, 100), default=4,
+                       help='test episodes, seed SEED+1 (default: %(default)s)')
+    curve.add_argument('--amplitudes', type=_amplitudes, default=(50e3, 5e3),
+                       help='pressure amplitudes in Pa, one curve each (default 50000,5000: '
+                            'strongly nonlinear and nearly linear)')
+    curve.add_argument('--curve-methods', type=_curve_methods, default=None,
+                       metavar='METHODS',
+                       help='subset of lopinf,lopinf_cubic,dmdc,dmdc_stable,era (default all)')
     parser.set_defaults(func=run)
+
+
+def _amplitudes(text: str) -> tuple[float, ...]:
+    """``'50000,5000'`` -> amplitudes in Pa (positive, at most 1e7 as simulate allows)."""
+    parse = finite_float(0.0, 1e7, lo_open=True)
+    values = tuple(parse(v) for v in text.split(',') if v.strip())
+    if not values:
+        raise argparse.ArgumentTypeError(f'expected amplitudes in Pa, e.g. 50000,5000; got '
+                                         f'{text!r}')
+    return values
+
+
+def _curve_methods(text: str) -> tuple[str, ...]:
+    from soft_rom.study.curve.core import METHODS
+    values = tuple(v.strip() for v in text.split(',') if v.strip())
+    bad = [v for v in values if v not in METHODS]
+    if not values or bad:
+        raise argparse.ArgumentTypeError(f'--curve-methods must be among {",".join(METHODS)}; '
+                                         f'got {text!r}')
+    return values
+
+
+def _run_curve(args: argparse.Namespace) -> int:
+    """``--learning-curve``: simulate, fit and score per size and amplitude; the report."""
+    from soft_rom.errors import ConfigError
+    from soft_rom.study.curve import CurveConfig, run_learning_curve
+
+    if args.only is not None:
+        raise ConfigError('--only picks study 1 or 2; drop it with --learning-curve')
+    if min(args.sizes) < 2:
+        raise ConfigError('--sizes must be at least 2 episodes each (the settings are chosen '
+                          'on held-out training episodes)')
+    kw = {} if args.curve_methods is None else {'methods': args.curve_methods}
+    cfg = CurveConfig(sizes=tuple(sorted(set(args.sizes))), n_test=args.test_episodes,
+                      amplitudes=args.amplitudes, seed=args.seed, resolution=args.resolution,
+                      storage=args.storage, jobs=args.jobs, duration=args.duration, **kw)
+    # The resource check counts every recording: training, test and ERA's long episode.
+    args.episodes = len(cfg.amplitudes) * (2 * max(cfg.sizes) + cfg.n_test)
+    with study_output(args, None) as out:
+        summary = run_learning_curve(out, cfg, progress=not args.quiet,
+                                     bag_root=args.bags)
+    print(f'report: {out / "report.md"}')
+    for line in summary.get('verdict', []):
+        print(f'  - {line}')
+    return 0
 
 
 def _run_staged(args: argparse.Namespace, cfg: Any) -> int:
@@ -216,6 +279,8 @@ def run(args: argparse.Namespace) -> int:
     from soft_rom.errors import ConfigError
     from soft_rom.study.run import run_study, StudyConfig
 
+    if args.learning_curve:
+        return _run_curve(args)
     t_train = args.t_train if args.t_train is not None else min(1.5, 0.75 * args.duration)
     if not t_train < args.duration:
         raise ConfigError(f'--t-train {t_train:g} must be below --duration {args.duration:g}')
