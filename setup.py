@@ -47,7 +47,8 @@ setup(
         'tqdm>=4.64',
     ],
     extras_require={
-        'test': ['pytest>=7', 'ruff>=0.5', 'mypy>=1.8', 'colcon-common-extensions>=0.3'],
+        'test': ['pytest>=7', 'ruff>=0.5', 'mypy>=1.8', 'colcon-common-extensions>=0.3',
+                 'import-linter>=2.7'],
         'dask': ['dask[array]>=2023.1', 'distributed>=2023.1'],
         # The ROS 2 Jazzy runtime from PyPI, for `predictor` and the node tests without an apt
         # installation. These wheels are built for CPython 3.11 only; on Ubuntu 24.04 (Python

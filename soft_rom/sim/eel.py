@@ -410,6 +410,9 @@ class EelModel:
                  cg_rtol: float = 1e-8, cg_maxiter: int = 50) -> SimulationResult:
         """Integrate from rest (``q = q_ref``, ``v = 0``) for ``n_steps`` samples.
 
+        One method of about 115 lines: the implicit time loop (corotated forces, Newton
+        iterations with the CG solve, recording) keeps its work arrays across steps.
+
         Parameters
         ----------
         pressures : ndarray, shape (6, n_steps), or callable ``t -> (6,)``

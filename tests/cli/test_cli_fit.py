@@ -134,13 +134,13 @@ def test_fit_streaming_and_dask_equal_in_memory(training_set, tmp_path, backend)
 
 
 @pytest.mark.parametrize('argv, words', [
-    (['--n-markov', '100000'], 'n_markov=100000 exceeds'),
-    (['--n-markov', '5000'], 'n_markov=5000 exceeds'),
+    (['--n-markov', '100000'], '--n-markov 100000 exceeds'),
+    (['--n-markov', '5000'], '--n-markov 5000 exceeds'),
     (['--n-markov', '500'], 'at most 499'),          # 500 samples per episode
     (['--n-markov', '100', '--decimation', '5'], 'at most 99'),
-    (['--observer-order', '100000'], 'observer_order 100000 is too large'),
+    (['--observer-order', '100000'], '--observer-order 100000 is too large'),
     (['--observer-order', '100000', '--era-preset', 'eel', '--n-markov', '100'],
-     'observer_order=100000'),
+     '--observer-order 100000'),
 ])
 def test_era_options_beyond_the_episode_exit_2_before_any_work(training_set, tmp_path,
                                                                 capsys, argv, words):
