@@ -35,7 +35,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from soft_rom.ddt import FiniteDifference
-from soft_rom.learners import lopinf_cubic as lc
+from soft_rom.learners.lopinf import cubic as lc
 from soft_rom.models.tensors import symmetric_entries
 
 

@@ -30,10 +30,16 @@ Measured (2 cores, shared machine, load average ~4-6 from other jobs, cold cache
             CPU-bound); Dask LocalCluster (2 workers) 29.7 s, coordinates equal to the
             local ones to 6.5e-16 relative
 
+Checksums (``--checksum-ab``): the POD is run on the set as written (format version 3, a
+CRC-32C verified at every chunk read) and on a copy of it without checksums (the chunk files
+less their last 4 bytes, the filter removed: what version 2 stored), alternately and twice
+each, cold or warm alike; the ratio of the medians is the cost of verifying the checksums.
+
 Usage::
 
     python benchmarks/bench_scale.py --preset small
     python benchmarks/bench_scale.py --preset medium --pod both
+    python benchmarks/bench_scale.py --preset medium --checksum-ab
     python benchmarks/bench_scale.py --preset paper --dir /tmp/soft_rom_scale
 """
 
@@ -257,6 +263,93 @@ def compare_memory(ts, red, r, r_cubic):
     return out
 
 
+def strip_checksums(src: Path, dst: Path) -> None:
+    """Copy the training set ``src`` to ``dst`` as format version 2 stored it: no checksums.
+
+    Every chunk file loses its last 4 bytes (the CRC-32C) and every ``.zarray`` its filter;
+    the compressed arrays (``t``, ``U``, ``Y``) are decoded and written again.
+    """
+    import zarr
+
+    from soft_rom.dataset.checksum import register
+    register()
+    shutil.rmtree(dst, ignore_errors=True)
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns('[0-9]*'))
+    kw: dict = {'zarr_format': 2, 'config': {'write_empty_chunks': True}} \
+        if int(zarr.__version__.split('.')[0]) >= 3 else {'write_empty_chunks': True}
+    for meta_path in sorted(src.rglob('.zarray')):
+        rel = meta_path.parent.relative_to(src)
+        meta = json.loads(meta_path.read_text())
+        if meta.get('compressor') is None:
+            meta['filters'] = None
+            (dst / rel / '.zarray').write_text(json.dumps(meta, indent=2))
+            for f in meta_path.parent.iterdir():
+                if not f.name.startswith('.'):
+                    data = f.read_bytes()
+                    (dst / rel / f.name).write_bytes(data[:-4])
+        else:
+            arr = np.asarray(zarr.open_array(str(meta_path.parent), mode='r')[...])
+            shutil.rmtree(dst / rel)
+            new = zarr.open_array(str(dst / rel), mode='w', shape=arr.shape,
+                                  chunks=tuple(meta['chunks']), dtype='f8',
+                                  order=meta['order'], fill_value=0.0, **kw)
+            new[...] = arr
+            attrs = meta_path.parent / '.zattrs'
+            if attrs.exists():
+                shutil.copy(attrs, dst / rel / '.zattrs')
+    attrs = json.loads((dst / '.zattrs').read_text())
+    attrs['format_version'] = 2
+    (dst / '.zattrs').write_text(json.dumps(attrs))
+
+
+def checksum_ab(path: Path, args: argparse.Namespace) -> dict:
+    """POD with and without checksums, alternately (A B A B); returns the figures."""
+    from soft_rom.dataset import TrainingSet
+    from soft_rom.pipeline import open_training_data
+    from soft_rom.scale.blocks import LocalExecutor, SnapshotSet
+    from soft_rom.scale.pod import StreamingPOD
+
+    plain = path.with_name(path.stem + '_nocrc.zarr')
+    t0 = time.perf_counter()
+    strip_checksums(path, plain)
+    print(f'copy without checksums written in {time.perf_counter() - t0:.1f} s')
+    times: dict[str, list[float]] = {'crc32c': [], 'none': []}
+    ref = None
+    for rep in range(2):
+        for label, p in (('crc32c', path), ('none', plain)):
+            ts = TrainingSet.open(p)
+            assert ts.checksummed == (label == 'crc32c')
+            td = open_training_data(ts)
+            files = chunk_files(p)
+            if not args.warm:
+                drop_cache(files, sync=rep == 0)
+                for ep in td.episodes:
+                    object.__setattr__(ep, 'Q', ColdArray(ep.Q, str(p / 'episodes' / ep.name
+                                                                    / 'Q')))
+            snaps = SnapshotSet([ep.Q for ep in td.episodes], td.q_ref)
+            pod = StreamingPOD(r=args.r, method='randomized',
+                               n_coords=max(2 * args.r, args.r + 20),
+                               power_iters=args.power_iters, executor=LocalExecutor(),
+                               seed=args.seed)
+            t0 = time.perf_counter()
+            pod.fit(snaps)
+            dt = time.perf_counter() - t0
+            times[label].append(dt)
+            sv = pod.singular_values_[:args.r]
+            ref = sv if ref is None else ref
+            print(f'  POD {label:6s} (run {rep + 1}): {dt:.2f} s, {pod.n_passes_} passes; '
+                  f'singular values equal: {bool(np.array_equal(sv, ref))}; load '
+                  f'{os.getloadavg()[0]:.1f}')
+    shutil.rmtree(plain, ignore_errors=True)
+    med = {k: float(np.median(v)) for k, v in times.items()}
+    ratio = med['crc32c'] / med['none']
+    print(f'checksum A/B ({"warm" if args.warm else "cold"} cache): POD with CRC-32C '
+          f'{med["crc32c"]:.2f} s, without {med["none"]:.2f} s (medians of 2): ratio '
+          f'{ratio:.3f} (target <= 1.05); load average {os.getloadavg()} on '
+          f'{os.cpu_count()} cpus')
+    return {'seconds': times, 'ratio': ratio, 'load_average': os.getloadavg()}
+
+
 # -- main -------------------------------------------------------------------------------
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split('\n\n')[0])
@@ -278,6 +371,8 @@ def main(argv: list[str] | None = None) -> int:
                          'how far each streamed model is from it (use --pod gram: exact)')
     ap.add_argument('--cubic-r', type=int, default=8,
                     help='reduced dimension of the cubic LOpInf of --compare-memory')
+    ap.add_argument('--checksum-ab', action='store_true',
+                    help='only time the POD with and without chunk checksums (A/B)')
     args = ap.parse_args(argv)
 
     cfg = PRESETS[args.preset]
@@ -300,6 +395,13 @@ def main(argv: list[str] | None = None) -> int:
         subprocess.run([sys.executable, '-c', code], check=True)
         print(f'generated in {time.perf_counter() - t0:.1f} s '
               f'({nbytes / 1e6 / (time.perf_counter() - t0):.0f} MB/s)')
+
+    if args.checksum_ab:
+        result = checksum_ab(path, args)
+        print('JSON ' + json.dumps({'preset': args.preset, 'checksum_ab': result}))
+        if not args.keep:
+            shutil.rmtree(path, ignore_errors=True)
+        return 0
 
     from soft_rom.dataset import TrainingSet
     from soft_rom.pipeline import open_training_data

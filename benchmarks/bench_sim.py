@@ -2,6 +2,8 @@
 
 Usage::
 
+    .venv/bin/python benchmarks/bench_sim.py --resolution 2,3,4  # fast extra vs today, A/B
+    .venv/bin/python benchmarks/bench_sim.py --resolution 4 --steps 200 --lockstep 3
     .venv/bin/python benchmarks/bench_sim.py cantilever          # mesh-convergence table
     .venv/bin/python benchmarks/bench_sim.py episodes            # s/episode, default mesh
     .venv/bin/python benchmarks/bench_sim.py nonlinearity        # FOM vs its linearization
@@ -16,9 +18,13 @@ in the same run.
 from __future__ import annotations
 
 import argparse
+import json
+import os
 from pathlib import Path
 import resource
+import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -162,9 +168,140 @@ def plot(args: argparse.Namespace) -> None:
     print(f'wrote {path}')
 
 
+#: The two configurations of ``solvers``: today's (numpy forces, banded Cholesky) and the
+#: ``fast`` extra's (compiled element loop, CHOLMOD).
+CONFIGS = {'banded+numpy': ('banded', False), 'cholmod+numba': ('cholmod', True)}
+
+
+def _one_config(args: argparse.Namespace) -> None:
+    """Child process of ``solvers``: one resolution, one configuration; JSON on stdout."""
+    from soft_rom.sim.inputs import random_pressures
+    solver, compiled = CONFIGS[args.config]
+    c0, t0 = time.process_time(), time.perf_counter()
+    model = EelModel(resolution=args.resolution)
+    model.fem.compiled = compiled
+    model._rest_factor(1e-3, solver)
+    setup, setup_cpu = time.perf_counter() - t0, time.process_time() - c0
+    if compiled:                 # the JIT compile (cached on disk after the first run)
+        model.fem.elastic_force(model.mesh.nodes)
+    U = random_pressures(args.steps, 1e-3, seed=0, episode=1, amplitude=50e3)
+    keep = set(range(0, args.steps, max(args.steps // 4, 1))) | {args.steps - 1}
+    saved: dict[str, np.ndarray] = {}
+
+    def cb(j: int, t: float, u: np.ndarray, cl: np.ndarray, x: np.ndarray) -> None:
+        if j in keep:
+            saved[f'x{j}'] = x.copy()
+
+    c0 = time.process_time()
+    r = model.simulate(U, args.steps, linear_solver=solver, callback=cb)
+    step_cpu = (time.process_time() - c0) / args.steps
+    step = (r.info['wall_s'] - r.info['factor_s']) / args.steps
+    cg = None
+    if args.corotated_steps:
+        rc = model.simulate(U, args.corotated_steps, jacobian='corotated',
+                            linear_solver=solver)
+        cg = rc.info['cg_iterations'] / args.corotated_steps
+    lock = lock_cpu = None
+    if args.lockstep > 1:            # episodes side by side: one multi-RHS solve per step
+        n = min(args.steps, args.lockstep_steps)
+        Us = [random_pressures(n, 1e-3, seed=0, episode=e, amplitude=50e3)
+              for e in range(1, args.lockstep + 1)]
+        c0 = time.process_time()
+        rl = model.simulate_lockstep(Us, n, linear_solver=solver)
+        lock_cpu = (time.process_time() - c0) / (n * args.lockstep)
+        lock = (rl[0].info['wall_s'] - rl[0].info['factor_s']) / (n * args.lockstep)
+    np.savez(args.save, centerline=r.centerline, rest=model.mesh.nodes, **saved)
+    print(json.dumps({'n_dof': model.n_dof, 'solver': r.info['solver'], 'setup_s': setup,
+                      'setup_cpu_s': setup_cpu, 'step_s': step, 'step_cpu_s': step_cpu,
+                      'cg_per_step': cg, 'lockstep_s': lock, 'lockstep_cpu_s': lock_cpu,
+                      'peak_rss_gb': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}))
+
+
+def solvers(args: argparse.Namespace) -> None:
+    """Setup, s/step, CG iterations, peak RSS: the fast extra against today's path, A/B.
+
+    Each (resolution, configuration) runs in its own process (its own peak RSS), the two
+    configurations back to back on the same pressures; trajectories are compared at five
+    checkpoints (relative to the motion) and over every centerline sample.
+    """
+    print(f'load average before: {os.getloadavg()[0]:.2f} (1 min), {os.cpu_count()} CPUs; '
+          f'{args.steps} steps of Ep 1 at 50 kPa, rest tangent; CG: '
+          f'{args.corotated_steps} steps with the corotated tangent; lockstep: '
+          f'{args.lockstep} episodes side by side for {min(args.steps, args.lockstep_steps)} '
+          'steps, seconds per episode-step')
+    head = (f'{"res":>3} {"DOF":>8} {"configuration":>14} {"setup s":>8} {"s/step":>7} '
+            f'{"cpu/step":>8} {"CG it":>6} {"RSS GB":>7} {"lockstep":>8} {"cpu":>6}')
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for res in args.resolution:
+            out: dict[str, dict] = {}
+            for name in CONFIGS:
+                save = Path(tmp) / f'r{res}_{name}.npz'
+                cmd = [sys.executable, __file__, '_one', '--config', name, '--resolution',
+                       str(res), '--steps', str(args.steps), '--corotated-steps',
+                       str(args.corotated_steps), '--lockstep', str(args.lockstep),
+                       '--lockstep-steps', str(args.lockstep_steps), '--save', str(save)]
+                done = subprocess.run(cmd, capture_output=True, text=True, check=False)
+                if done.returncode:
+                    print(done.stderr[-2000:])
+                    raise SystemExit(f'resolution {res} {name} failed')
+                out[name] = json.loads(done.stdout.strip().splitlines()[-1])
+                out[name]['save'] = save
+            a, b = (np.load(out[n]['save']) for n in CONFIGS)
+            states = [k for k in a.files if k.startswith('x')]
+            rest = a['rest']
+            diff = max(np.linalg.norm(a[k] - b[k]) / max(np.linalg.norm(a[k] - rest), 1e-300)
+                       for k in states if np.linalg.norm(a[k] - rest) > 0)
+            dcl = np.abs(a['centerline'] - b['centerline']).max()
+            rows.append((res, out, diff, dcl))
+            print(head if len(rows) == 1 else '', end='\n' if len(rows) == 1 else '')
+            for name, o in out.items():
+                cg = '-' if o['cg_per_step'] is None else f'{o["cg_per_step"]:.1f}'
+                lock = ('       -      -' if o['lockstep_s'] is None else
+                        f'{o["lockstep_s"]:8.3f} {o["lockstep_cpu_s"]:6.3f}')
+                print(f'{res:3d} {o["n_dof"]:8,d} {name:>14} {o["setup_s"]:8.1f} '
+                      f'{o["step_s"]:7.3f} {o["step_cpu_s"]:8.3f} {cg:>6} '
+                      f'{o["peak_rss_gb"]:7.2f} {lock}')
+            old, new = out['banded+numpy'], out['cholmod+numba']
+            print(f'    ratio today/new: step {old["step_s"] / new["step_s"]:.2f}x '
+                  f'(cpu {old["step_cpu_s"] / new["step_cpu_s"]:.2f}x), setup '
+                  f'{old["setup_s"] / new["setup_s"]:.2f}x, RSS '
+                  f'{old["peak_rss_gb"] / new["peak_rss_gb"]:.2f}x'
+                  + ('' if new['lockstep_s'] is None else
+                     f', today one by one / new in lockstep '
+                     f'{old["step_s"] / new["lockstep_s"]:.2f}x (cpu '
+                     f'{old["step_cpu_s"] / new["lockstep_cpu_s"]:.2f}x)')
+                  + '; trajectories: state '
+                  f'difference / motion <= {diff:.1e}, centerline max |diff| {dcl:.1e} m')
+    print(f'load average after: {os.getloadavg()[0]:.2f} (1 min)')
+
+
+def _resolutions(text: str) -> list[int]:
+    return [int(v) for v in text.split(',') if v.strip()]
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if not argv or argv[0].startswith('-') and argv[0] not in ('-h', '--help'):
+        argv = ['solvers', *argv]
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest='what', required=True)
+    p = sub.add_parser('solvers', help='default: the fast extra vs today, A/B')
+    p.add_argument('--resolution', type=_resolutions, default=[2, 3, 4])
+    p.add_argument('--steps', type=int, default=200)
+    p.add_argument('--corotated-steps', type=int, default=5)
+    p.add_argument('--lockstep', type=int, default=3)
+    p.add_argument('--lockstep-steps', type=int, default=20)
+    p.set_defaults(func=solvers)
+    p = sub.add_parser('_one')
+    p.add_argument('--config', choices=list(CONFIGS), required=True)
+    p.add_argument('--resolution', type=int, required=True)
+    p.add_argument('--steps', type=int, required=True)
+    p.add_argument('--corotated-steps', type=int, default=0)
+    p.add_argument('--lockstep', type=int, default=0)
+    p.add_argument('--lockstep-steps', type=int, default=20)
+    p.add_argument('--save', type=Path, required=True)
+    p.set_defaults(func=_one_config)
     p = sub.add_parser('cantilever')
     p.add_argument('--n', type=int, nargs='+', default=[2, 4, 6, 8, 10])
     p.add_argument('--length', type=float, default=1.0)

@@ -34,7 +34,7 @@ from soft_rom.errors import ConfigError, DimensionError
 from soft_rom.metrics import relative_error_from_squares
 from soft_rom.models import DiscreteModel, LinearROM, run_states, SecondOrderModel
 
-__all__ = ['Evaluation', 'evaluate', 'predict']
+__all__ = ['Evaluation', 'evaluate', 'held_out_errors', 'predict']
 
 Array = NDArray[np.float64]
 
@@ -207,3 +207,57 @@ def evaluate(model: LinearROM, episodes: Episode | Sequence[Episode], *,
     if isinstance(model, DiscreteModel):
         info['n_states'] = model.n_states
     return Evaluation(rows=rows, predictions=preds, model=info)
+
+
+def held_out_errors(fit: Any, episodes: Sequence[Episode], y_ref: Array, *,
+                    tail: float = 0.2) -> dict[str, Any]:
+    """How well a fit predicts data it was not fitted on: the monitor's reference error.
+
+    With two or more training episodes each is left out in turn: ``fit`` is called on the
+    others and the model it returns predicts the left-out episode whole, from the reference
+    state (as a model runs on new inputs). With one, ``fit`` is called on its first
+    ``1 - tail`` and the prediction of the whole episode is scored on the last ``tail``.
+    The squared errors are pooled over every held-out sample.
+
+    Parameters
+    ----------
+    fit : callable
+        ``fit(episodes) -> model``: the same method, settings and ``r`` as the model being
+        described.
+    episodes : sequence of Episode
+        The training episodes.
+    y_ref : ndarray, shape (p,)
+
+    Returns
+    -------
+    dict
+        ``deviation_error`` and ``absolute_error`` (relative, as :mod:`soft_rom.metrics`),
+        ``data`` (what was held out, in words) and ``samples``: what
+        ``model.metadata['held_out']`` holds (:mod:`soft_rom.predictor.thresholds`).
+    """
+    eps = list(episodes)
+    if not eps:
+        raise ConfigError('held_out_errors needs at least one training episode.')
+    pairs: list[tuple[Array, Array]] = []
+    if len(eps) >= 2:
+        for i, ep in enumerate(eps):
+            model = fit(eps[:i] + eps[i + 1:])
+            pairs.append((np.asarray(ep.Y), predict(model, ep)))
+        data = (f'each of {", ".join(e.name for e in eps)} left out in turn, predicted by the '
+                'model fitted on the others')
+    else:
+        ep = eps[0]
+        k = int(round(ep.n_samples * (1.0 - tail)))
+        head = Episode(t=ep.t[:k], U=ep.U[:, :k], Y=ep.Y[:, :k],
+                       Q=None if ep.Q is None else ep.Q[:, :k], name=ep.name,
+                       metadata=ep.metadata)
+        Yh = predict(fit([head]), ep)
+        pairs.append((np.asarray(ep.Y)[:, k:], Yh[:, k:]))
+        data = (f'the last {tail:.0%} of {ep.name}, predicted by the model fitted on the rest')
+    ref = np.asarray(y_ref, dtype=np.float64).reshape(-1, 1)
+    se = sum(float(np.sum((Y - Yh) ** 2)) for Y, Yh in pairs)
+    sy = sum(float(np.sum(Y ** 2)) for Y, _ in pairs)
+    sd = sum(float(np.sum((Y - ref) ** 2)) for Y, _ in pairs)
+    return {'deviation_error': relative_error_from_squares(se, sd),
+            'absolute_error': relative_error_from_squares(se, sy),
+            'data': data, 'samples': int(sum(Y.shape[1] for Y, _ in pairs))}

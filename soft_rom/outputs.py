@@ -24,6 +24,9 @@ where supported), with it only if soft_rom wrote it.
 
 Staging folders left by a killed run are removed by the next run in the same folder
 (:func:`clean_stale`); they are hidden and never read as outputs.
+
+An output that records its own path while it is built (a study folder) is built in place
+instead, the previous one parked aside: :mod:`soft_rom.outputs_inplace`.
 """
 
 from __future__ import annotations
@@ -424,3 +427,4 @@ def check_free_space(folder: str | os.PathLike[str], nbytes: float, what: str) -
     if nbytes > free:
         raise ResourceError(f'{what} needs about {nbytes / 1e9:.3g} GB on disk, only '
                             f'{free / 1e9:.3g} GB free in {folder}')
+

@@ -42,11 +42,11 @@ def require_rclpy() -> Any:
     return rclpy
 
 
-def predictor_exe() -> str:
-    """The installed ``predictor`` entry point (the venv's, else PATH's)."""
-    local = Path(sys.executable).parent / 'predictor'
-    found = str(local) if local.exists() else shutil.which('predictor')
-    assert found, 'the predictor entry point is not installed (pip install -e .)'
+def predictor_exe(name: str = 'predictor') -> str:
+    """The installed ``predictor`` (or ``name``) entry point (the venv's, else PATH's)."""
+    local = Path(sys.executable).parent / name
+    found = str(local) if local.exists() else shutil.which(name)
+    assert found, f'the {name} entry point is not installed (pip install -e .)'
     return found
 
 
@@ -64,7 +64,7 @@ class NodeProcess:
     """
 
     def __init__(self, tmp_path: Path, params: dict[str, Any], name: str = 'predictor',
-                 extra_args: tuple[str, ...] = ()) -> None:
+                 extra_args: tuple[str, ...] = (), exe: str = 'predictor') -> None:
         self.name = name
         self.params_file = tmp_path / f'{name}.yaml'
         self.params_file.write_text(yaml.safe_dump({'/**': {'ros__parameters': params}}),
@@ -74,7 +74,7 @@ class NodeProcess:
         env = dict(os.environ, PYTHONUNBUFFERED='1', RCUTILS_COLORIZED_OUTPUT='0',
                    OPENBLAS_NUM_THREADS='1', OMP_NUM_THREADS='1')
         self.proc = subprocess.Popen(
-            [predictor_exe(), '--ros-args', '-r', f'__node:={name}', '--params-file',
+            [predictor_exe(exe), '--ros-args', '-r', f'__node:={name}', '--params-file',
              str(self.params_file), *extra_args],
             stdout=self._log, stderr=subprocess.STDOUT, env=env)
 

@@ -123,3 +123,56 @@ def test_errors():
         predict(model, ep, initial='zero')
     with pytest.raises(DimensionError):
         evaluate(model, [])
+
+
+def _episodes(model, n, k=300, seed=5):
+    rng = np.random.default_rng(seed)
+    eps = []
+    for i in range(n):
+        U = np.repeat(rng.standard_normal((model.n_inputs, k // 30 + 1)), 30, axis=1)[:, :k]
+        eps.append(Episode(t=np.arange(k) * model.dt, U=U, Y=model.simulate(U),
+                           name=f'ep{i + 1}'))
+    return eps
+
+
+def test_held_out_errors_leave_each_episode_out_in_turn():
+    from soft_rom.evaluation import held_out_errors
+
+    truth = _second_order()
+    eps = _episodes(truth, 3)
+    seen = []
+
+    def fit(episodes):
+        seen.append([e.name for e in episodes])
+        return truth
+    exact = held_out_errors(fit, eps, truth.y_ref)
+    assert seen == [['ep2', 'ep3'], ['ep1', 'ep3'], ['ep1', 'ep2']]
+    assert exact['deviation_error'] == 0.0 and exact['samples'] == 900
+    assert 'each of ep1, ep2, ep3 left out' in exact['data']
+    # a model off by 10 % in its output map: that error, pooled over the left-out episodes
+    wrong = SecondOrderModel(truth.K, truth.C, truth.B, 1.1 * truth.E, dt=truth.dt,
+                             y_ref=truth.y_ref)
+    res = held_out_errors(lambda _eps: wrong, eps, truth.y_ref)
+    assert res['deviation_error'] == pytest.approx(0.1, rel=1e-9)
+    Y = np.concatenate([e.Y for e in eps], axis=1)
+    Yh = np.concatenate([wrong.simulate(e.U) for e in eps], axis=1)
+    assert res['absolute_error'] == pytest.approx(np.linalg.norm(Y - Yh) / np.linalg.norm(Y))
+
+
+def test_held_out_errors_of_one_episode_score_its_tail():
+    from soft_rom.evaluation import held_out_errors
+
+    truth = _second_order()
+    (ep,) = _episodes(truth, 1, k=1000)
+    lengths = []
+
+    def fit(episodes):
+        lengths.append(episodes[0].n_samples)
+        return SecondOrderModel(truth.K, truth.C, truth.B, 1.1 * truth.E, dt=truth.dt,
+                                y_ref=truth.y_ref)
+    res = held_out_errors(fit, [ep], truth.y_ref, tail=0.25)
+    assert lengths == [750] and res['samples'] == 250
+    assert res['deviation_error'] == pytest.approx(0.1, rel=1e-9)
+    assert 'the last 25% of ep1' in res['data']
+    with pytest.raises(ConfigError, match='at least one'):
+        held_out_errors(fit, [], truth.y_ref)

@@ -307,6 +307,7 @@ def test_reload_missing_corrupt_valid_and_runtime_parameters(client, tmp_path) -
         assert not ro.successful
         rng = client.set_parameters(node.fqn, warn_threshold=500.0)[0]
         assert not rng.successful
+        assert client.set_parameters(node.fqn, error_threshold=0.3)[0].successful
         bad_order = client.set_parameters(node.fqn, warn_threshold=0.9)[0]   # > error 0.3
         assert not bad_order.successful and 'unchanged' in bad_order.reason
         # still running the reloaded model
@@ -391,4 +392,132 @@ def test_signal_under_load_exits_0_quietly(client, tmp_path, sig, stepping, exec
         assert not no_noise(log), log
     finally:
         stop.set()
+        node.kill()
+
+
+# -- a node that pauses: SIGSTOP for 60 ms and 150 ms during a 1 kHz stream ---------------
+PAUSES = {300: 0.060, 800: 0.150}          # at the array / sample index: seconds stopped
+
+
+def _stream(node: NodeProcess, k: int, send) -> None:
+    """Send ``send(j)`` for j < k at 1 kHz of wall time; stop the node as :data:`PAUSES` says.
+
+    A sender that falls behind (a loaded machine) catches up at once, as a real one's queue
+    would.
+    """
+    start = time.monotonic()
+    resume = None
+    for j in range(k):
+        due = start + j * 1e-3
+        while (now := time.monotonic()) < due:
+            time.sleep(min(due - now, 2e-4))
+        if resume is not None and now >= resume:
+            node.proc.send_signal(signal.SIGCONT)
+            resume = None
+        if j in PAUSES:
+            node.proc.send_signal(signal.SIGSTOP)
+            resume = now + PAUSES[j]
+        send(j)
+    if resume is not None:
+        time.sleep(max(0.0, resume - time.monotonic()))
+        node.proc.send_signal(signal.SIGCONT)
+
+
+def _counters(client: Client, out: Outputs, k: int) -> dict:
+    """The node's prediction diagnostics once it has taken all ``k`` inputs of the stream."""
+    assert client.spin_until(lambda: int(out.status(': prediction').get('inputs', 0)) >= k,
+                             timeout=30.0), out.status(': prediction')
+    client.spin_for(0.5)                         # the next report: every figure settled
+    return out.status(': prediction')
+
+
+def test_pauses_keep_one_step_per_array_equal_to_simulate(client, tmp_path) -> None:
+    m = model()
+    k = 1200
+    ep = episode(m, k=k)
+    # ~/output at 50 Hz of model time: the figures the test needs, without asking the test
+    # process (the sender) to take 1 kHz of outputs as well
+    node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz'), input_mode='array',
+                                        publish_rate_hz=50.0))
+    try:
+        out = Outputs(client, node.fqn)
+        pub = client.node.create_publisher(Float64MultiArray, '/t/pressures', RELIABLE)
+        _connected(client, [pub], out)
+        _stream(node, k, lambda j: pub.publish(Float64MultiArray(data=ep.U[:, j].tolist())))
+        pred = _counters(client, out, k)
+        assert pred['inputs'] == str(k) and pred['steps'] == str(k - 1), pred   # one each
+        assert pred['stamp_resync'] == '0' and pred['late'] == '0', pred
+        t0 = min(out.stamped)
+        assert client.spin_until(lambda: t0 + (k - 1) * MS in out.stamped or max(
+            out.stamped) >= t0 + (k - 21) * MS, timeout=10.0)
+        assert len(out.stamped) >= 20
+        for t, y in out.stamped.items():     # each output is the simulation's at its step
+            j = (t - t0) // MS
+            assert (t - t0) % MS == 0 and j < k
+            np.testing.assert_allclose(y, ep.Y[:, j], rtol=0, atol=1e-9)
+        assert node.stop(signal.SIGINT) == 0
+    finally:
+        node.proc.send_signal(signal.SIGCONT)
+        node.kill()
+
+
+def test_pauses_with_fixed_stepping_publish_every_step(client, tmp_path) -> None:
+    m = model()
+    k = 1200
+    ep = episode(m, k=k)
+    node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz'), input_mode='array',
+                                        stepping='fixed'))
+    try:
+        out = Outputs(client, node.fqn)
+        pub = client.node.create_publisher(Float64MultiArray, '/t/pressures', RELIABLE)
+        _connected(client, [pub], out)
+        _stream(node, k, lambda j: pub.publish(Float64MultiArray(data=ep.U[:, j].tolist())))
+        pred = _counters(client, out, k)
+        # the timer integrates the stalled steps when it runs again: each one is published
+        # (and the first output, at the first input, before any step)
+        assert int(pred['steps']) >= k - 1, pred
+        assert pred['outputs_published'] == str(int(pred['steps']) + 1), pred
+        stamps = sorted(out.stamped)
+        assert len(stamps) == len(out.times), 'an output published twice'
+        assert np.all(np.diff(stamps) % MS == 0)
+        assert node.stop(signal.SIGINT) == 0
+    finally:
+        node.proc.send_signal(signal.SIGCONT)
+        node.kill()
+
+
+@pytest.mark.parametrize('executor', ['events', 'single_threaded'])
+def test_a_pause_makes_late_inputs_counted_and_warned(client, tmp_path, executor) -> None:
+    m = model()
+    k = 1200
+    ep = episode(m, k=k)
+    node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz'),     # max_lag_s 0.1 s
+                                        publish_rate_hz=50.0, executor=executor))
+    try:
+        out = Outputs(client, node.fqn)
+        pubs = _publishers(client)
+        _connected(client, pubs, out)
+
+        def send(j: int) -> None:
+            for i, p in enumerate(pubs):
+                p.publish(pressure(ep.U[i, j], T0_NS + j * MS))
+
+        _stream(node, k, send)
+        pred = _counters(client, out, 3 * k)
+        late = int(pred['late'])
+        assert late == sum(int(out.status(f': input {tp}')['late']) for tp in TOPICS)
+        worst = max(np.max(np.abs(y - ep.Y[:, (t - T0_NS) // MS]))
+                    for t, y in out.stamped.items())
+        warned = [st for arr in out.diagnostics for st in arr.status
+                  if 'arrived after their step was taken' in st.message]
+        if late == 0:                   # nothing was late: the outputs are the simulation
+            assert worst <= 1e-9, worst
+        else:                           # the output is off the simulation: never silently
+            assert warned, [st.message for arr in out.diagnostics for st in arr.status]
+            level = warned[0].level
+            assert (level[0] if isinstance(level, bytes) else level) == 1
+            assert 'ms behind the model' in warned[0].message
+        assert node.stop(signal.SIGINT) == 0
+    finally:
+        node.proc.send_signal(signal.SIGCONT)
         node.kill()

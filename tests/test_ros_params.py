@@ -31,7 +31,7 @@ BAD_START = {
     'choice': (['-p', 'executor:=fast'], 'executor'),
     'rclpy_own': (['-p', 'use_sim_time:=abc'], 'use_sim_time'),
     'no_value': (['-p', 'model_path:='], 'model_path'),
-    'order': (['-p', 'warn_threshold:=0.9'], 'warn_threshold'),
+    'order': (['-p', 'warn_threshold:=0.9', '-p', 'error_threshold:=0.3'], 'warn_threshold'),
 }
 
 
@@ -99,9 +99,14 @@ def test_bounds_one_at_a_time_take_effect_and_model_info_follows(client, tmp_pat
         assert client.spin_until(lambda: out.infos[-1]['envelope']['output_bound'] != bound,
                                  timeout=5.0)
         assert len(out.infos) == n_infos + 1
+        # the thresholds in force are part of the info: a change is sent, the same value not
+        assert _set(client, node.fqn, warn_threshold=0.2) == [(True, '')]
+        assert client.spin_until(lambda: out.infos[-1]['monitor']['warn_threshold'] == 0.2,
+                                 timeout=5.0)
+        n_infos = len(out.infos)
         assert _set(client, node.fqn, warn_threshold=0.2) == [(True, '')]
         client.spin_for(0.3)
-        assert len(out.infos) == n_infos + 1
+        assert len(out.infos) == n_infos
         # back to the defaults, one at a time: the model file's (none here)
         assert _set(client, node.fqn, input_min=[0.0]) == [(True, '')]
         assert _set(client, node.fqn, input_max=[0.0]) == [(True, '')]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -68,6 +69,72 @@ def test_rerun_reuses_bags_and_reconverts_when_they_change(study, tmp_path) -> N
                   progress=False, studies=(1,), bag_dir=out / 'bags')
 
 
+def test_report_renders_and_shows_every_figure(study) -> None:
+    """Every table row has its header's cells (markdown-it-py); every figure is captioned."""
+    from _markdown import table_problems
+
+    from soft_rom.study.report import study_report
+
+    out, summary = study
+    # The folder's report is the report of its summary.json (the module's other tests run
+    # the study again into the folder, so the full run's report is made from its summary).
+    on_disk = json.loads((out / 'summary.json').read_text())
+    assert (out / 'report.md').read_text() == study_report(on_disk)
+    report = study_report(json.loads(json.dumps(summary, default=str)))
+    assert table_problems(report) == []
+    assert '\\|output deviation\\|' in report          # the | of the name is escaped
+    shown = re.findall(r'!\[[^\]]*\]\(([^)]+)\)', report)
+    assert sorted(shown) == sorted(p.name for p in out.glob('*.png'))
+    assert len(re.findall(r'\*\*Figure \d+\.\*\* \S', report)) == len(shown)
+    rep = summary['replay']
+    assert rep['kalman']['kalman'] == pytest.approx(
+        json.loads((out / 'replay_ep3.json').read_text())['kalman']['kalman'])
+    assert f'{rep["kalman"]["kalman"]:.4f}' in report       # one Kalman figure, in both
+    from soft_rom.cli.demo import replay_lines
+    k = rep['kalman']
+    assert f'{k["open_loop"]:.3f} -> {k["kalman"]:.3f}' in replay_lines(rep)
+    assert rep['final_status'] in report and 'thresholds from' in report
+    assert summary['machine']['cpus'] >= 1 and 'Measured on' in report
+
+
+def test_replay_is_ok_for_the_study_model_and_warns_for_a_mismatched_one(study, tmp_path):
+    """Thresholds from the held-out error: the study's model ends OK, one of 10 kPa does not."""
+    from soft_rom.convert import convert, read_episode
+    from soft_rom.predictor import Level, Predictor, replay_episode
+    from soft_rom.study.run import _in_memory, _record_held_out, simulate_bags, sweep
+
+    out, summary = study
+    rep = summary['replay']
+    assert rep['final_status'] == 'OK', rep
+    r = summary['study2']['chosen']['lopinf']['r']
+    good = load_model(out / 'models' / f'eel_lopinf_r{r}.npz')
+    held = good.metadata['held_out']
+    assert held['deviation_error'] > 0 and 'left out in turn' in held['data']
+    assert rep['warn_threshold'] == pytest.approx(2 * held['deviation_error'])
+    # The same fit on episodes of a tenth of the pressure: the same eel, another regime.
+    cfg = StudyConfig(n_episodes=2, duration=0.4, t_train=0.3, jobs=1,
+                      sim_options={'amplitude': 5e3})
+    bags = simulate_bags(tmp_path / 'small', cfg, progress=False)
+    ts, _ = convert(bags, tmp_path / 'small.zarr', progress=False)
+    train = [_in_memory(ts['ep1']), _in_memory(ts['ep2'])]
+    small = sweep('lopinf', [r], train, ts)[r]
+    _record_held_out('lopinf', small, {'r': r}, train, ts, cfg)
+    episode, _ = read_episode(out / 'bags' / 'ep3')
+    pred = Predictor(small)
+    replay_episode(pred, episode)
+    health = pred.health()
+    assert health.level in (Level.WARN, Level.ERROR), health.message
+    assert 'x the held-out error' in health.message
+
+
+def test_markdown_table_escapes_pipes() -> None:
+    from _markdown import table_problems
+
+    table = markdown_table(['quantity', 'value'], [['max |y - y_ref| [mm]', 1.0], ['a\\|b', 2]])
+    assert table_problems(table) == []
+    assert '| max \\|y - y_ref\\| [mm] | 1.0000 |' in table
+
+
 def test_markdown_table_formats_numbers() -> None:
     table = markdown_table(['a', 'b'], [[1, 0.12345], [2, 1.5e12], [3, 2e-5]])
     assert '| 1 | 0.1235 |' in table and '1.50e+12' in table and '2.00e-05' in table
@@ -103,3 +170,17 @@ def test_corrupt_bag_sidecar_is_refused_naming_it(tmp_path, capsys, data, words)
         assert lines[0].startswith(f'soft-rom {verb}: error: bag sidecar {sidecar}'), err
         assert words in lines[0]
     assert sidecar.read_bytes() == data and not (bags / 'ep2').exists()
+
+
+def test_a_method_with_no_fitted_r_draws_no_curve(tmp_path) -> None:
+    """A method that failed at every r (an empty curve) leaves the panel empty, not a crash."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    from soft_rom.study.figures import _plot_in_range
+    fig, ax = plt.subplots()
+    assert _plot_in_range(ax, [], [], 1e-3, 1.0, log=True) is False
+    assert not ax.lines
+    assert _plot_in_range(ax, [2, 4], [0.5, 5.0], 1e-3, 1.0, log=True) is True
+    plt.close(fig)

@@ -52,6 +52,9 @@ SUPPORTED_TYPES = (
 
 #: The first bytes of a zstd frame.
 _ZSTD_MAGIC = b'\x28\xb5\x2f\xfd'
+#: Largest log time of a ROS 2 message (``rcutils_time_point_value_t`` is int64 ns); an MCAP
+#: stores log times as uint64, so a damaged or hand-made one can hold more.
+INT64_MAX = 2 ** 63 - 1
 _PF_DTYPES = {1: 'i1', 2: 'u1', 3: 'i2', 4: 'u2', 5: 'i4', 6: 'u4', 7: 'f4', 8: 'f8'}
 
 
@@ -427,7 +430,12 @@ class BagReader:
             except Exception as err:  # noqa: BLE001 - storage backends raise many kinds
                 raise BagError(f'bag {self.path} is truncated or corrupt while reading '
                                f'{sorted(topics)}: {type(err).__name__}: {err}') from err
-            yield conn.topic, conn.msgtype, int(log_ns), data
+            log_ns = int(log_ns)
+            if log_ns > INT64_MAX:
+                raise BagError(f'{conn.topic} in bag {self.path}: log time {log_ns} ns is beyond '
+                               f'the int64 nanoseconds of ROS 2 time (at most {INT64_MAX}); '
+                               'the bag is damaged: repair its log times or record it again.')
+            yield conn.topic, conn.msgtype, log_ns, data
 
     def _check_definition(self, topic: str, msgtype: str, digest: str | None) -> None:
         """Refuse a topic recorded with another definition of its type than the standard one.

@@ -31,11 +31,17 @@ import traceback
 from typing import Any, NoReturn
 
 from soft_rom import __version__
-from soft_rom.errors import ConfigError, ResourceError, SoftRomError, SolverError
+from soft_rom.errors import (
+    ClusterError,
+    ConfigError,
+    ResourceError,
+    SoftRomError,
+    SolverError,
+)
 
 __all__ = ['main', 'VERBS', 'build_parser']
 
-VERBS = ('simulate', 'convert', 'fit', 'evaluate', 'replay', 'study', 'demo', 'info')
+VERBS = ('simulate', 'convert', 'fit', 'evaluate', 'replay', 'control', 'study', 'demo', 'info')
 
 USAGE, RUNTIME = 2, 1
 
@@ -63,6 +69,8 @@ def build_parser() -> argparse.ArgumentParser:
     for verb in VERBS:
         importlib.import_module(f'soft_rom.cli.{verb}').add_parser(sub)
     for verb_parser in sub.choices.values():
+        verb_parser.add_argument('-v', '--verbose', action='count', default=argparse.SUPPRESS,
+                                 help='more detail (-vv for debug logging)')
         verb_parser.add_argument('--debug', action='store_true', default=argparse.SUPPRESS,
                                  help='show the traceback of an error')
     return parser
@@ -103,7 +111,7 @@ def _guard_outputs(args: argparse.Namespace) -> None:
 
 def _describe(err: BaseException) -> tuple[int, str]:
     """Exit code and one-line message for an exception raised by a verb."""
-    if isinstance(err, (ResourceError, SolverError)):
+    if isinstance(err, (ResourceError, SolverError, ClusterError)):
         code, text = RUNTIME, str(err)
     elif isinstance(err, (SoftRomError, argparse.ArgumentTypeError)):
         code, text = USAGE, str(err)
@@ -143,6 +151,13 @@ def _robust_streams() -> None:
                 pass
 
 
+def _logging(verbose: int) -> None:
+    """soft_rom's own messages from INFO; other libraries' only from WARNING (``-vv``: all)."""
+    logging.basicConfig(level=logging.DEBUG if verbose >= 2 else logging.WARNING,
+                        format='%(levelname)s %(name)s: %(message)s')
+    logging.getLogger('soft_rom').setLevel(logging.DEBUG if verbose >= 2 else logging.INFO)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``soft-rom``; returns the process exit code."""
     _robust_streams()
@@ -153,13 +168,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(exc.code or 0) if not isinstance(exc.code, str) else USAGE
     debug = bool(getattr(args, 'debug', False)) or \
         os.environ.get('SOFT_ROM_DEBUG', '').strip() not in ('', '0')
-    logging.basicConfig(
-        level=logging.WARNING - 10 * min(args.verbose + 1, 2),
-        format='%(levelname)s %(name)s: %(message)s')
+    _logging(int(getattr(args, 'verbose', 0) or 0))
     try:
         _check_numbers(args)
         _guard_outputs(args)
-        return int(args.func(args) or 0)
+        from tqdm.contrib.logging import logging_redirect_tqdm
+        with logging_redirect_tqdm():          # log lines above progress bars, not inside
+            return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print(f'soft-rom {args.verb}: interrupted', file=sys.stderr)
         return 130

@@ -3,11 +3,14 @@
 Every verb spells the same thing the same way:
 
 * ``-o/--output PATH`` for what it writes (``--out`` is kept as a hidden alias for one
-  release), ``--overwrite`` to replace an output soft_rom wrote before;
-* ``--quiet`` to hide progress bars (``--no-progress`` is a hidden alias);
+  release where it existed: ``simulate``, ``study``, ``demo``), ``--overwrite`` to replace
+  an output soft_rom wrote before;
+* ``--quiet`` to hide progress bars (``--no-progress`` is a hidden alias on every verb
+  that has ``--quiet``);
 * ``--json FILE`` to also write a machine-readable summary (``--summary-json`` is a
-  hidden alias where it existed);
-* ``--debug`` to show the traceback of an error (or ``SOFT_ROM_DEBUG=1``).
+  hidden alias on every verb that has it: ``fit``, ``evaluate``, ``replay``);
+* ``-v/--verbose`` for more detail, ``--debug`` to show the traceback of an error (or
+  ``SOFT_ROM_DEBUG=1``), before or after the verb.
 
 Numbers are checked by the ``type=`` of their option (:func:`finite_float`,
 :func:`int_range`), so that a bad value is a usage error before any work starts.
@@ -140,16 +143,18 @@ def add_output(parser: argparse.ArgumentParser, *, help: str, default: Path | No
         parser.add_argument('--out', type=Path, dest='output', help=argparse.SUPPRESS)
 
 
-def add_quiet(parser: argparse.ArgumentParser, *, old: bool = False) -> None:
-    """``--quiet`` (and, with ``old``, the hidden alias ``--no-progress``)."""
-    parser.add_argument('--quiet', action='store_true', help='no progress bars')
+def add_quiet(parser: argparse.ArgumentParser, *, help: str = 'no progress bars',
+              old: bool = True) -> None:
+    """``--quiet`` and its hidden alias ``--no-progress`` (kept for one release)."""
+    parser.add_argument('--quiet', action='store_true', help=help)
     if old:
         parser.add_argument('--no-progress', action='store_true', dest='quiet',
                             help=argparse.SUPPRESS)
 
 
-def add_json(parser: argparse.ArgumentParser, *, help: str, old: str | None = None) -> None:
-    """``--json FILE`` (and the hidden alias ``old``, e.g. ``--summary-json``)."""
+def add_json(parser: argparse.ArgumentParser, *, help: str,
+             old: str | None = '--summary-json') -> None:
+    """``--json FILE`` and its hidden alias ``--summary-json`` (kept for one release)."""
     parser.add_argument('--json', type=Path, default=None, metavar='FILE', help=help)
     if old:
         parser.add_argument(old, type=Path, dest='json', help=argparse.SUPPRESS)

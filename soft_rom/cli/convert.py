@@ -6,6 +6,8 @@ import argparse
 import sys
 from typing import Any
 
+from soft_rom.cli._common import add_quiet
+
 __all__ = ['add_parser', 'run']
 
 
@@ -36,7 +38,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument('--no-state', action='store_true', help='do not store full states Q')
     parser.add_argument('--overwrite', action='store_true',
                         help='replace OUT if it is a training set soft_rom wrote')
-    parser.add_argument('--quiet', action='store_true', help='no progress bar, no report')
+    add_quiet(parser, help='no progress bar, no report')
     parser.set_defaults(func=run)
     return parser
 
@@ -44,6 +46,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def run(args: argparse.Namespace) -> int:
     """Run ``convert``; returns the exit code."""
     from soft_rom.convert import convert, load_mapping
+    from soft_rom.convert.report import ConversionReport
 
     mapping = load_mapping(args.mapping)
     changes: dict[str, Any] = {}
@@ -52,12 +55,19 @@ def run(args: argparse.Namespace) -> int:
             changes[key] = getattr(args, key)
     if changes:
         mapping = mapping.replace(**changes)      # validated like the mapping file
-    echo = None if args.quiet else (lambda text: print(text, file=sys.stderr))
+    verbose = getattr(args, 'verbose', 0) > 0
+    echo = None
+    if not args.quiet:
+        def echo(report: ConversionReport) -> None:
+            print(report.format() if verbose else report.summary_line(), file=sys.stderr)
     ts, reports = convert(args.bags, args.output, mapping, storage=args.storage,
                           include_state=False if args.no_state else None,
                           overwrite=args.overwrite, progress=not args.quiet, echo=echo)
     n = sum(r.n_samples for r in reports)
     dt = reports[0].dt if reports else float('nan')
+    states = 'no states' if ts.n_states is None else f'n = {ts.n_states} states'
     print(f'wrote {ts.path}: {len(ts)} episode(s), {n} samples at dt = {dt * 1e3:.6g} ms, '
-          f'm = {len(ts.input_names)}, p = {len(ts.output_names)}, n = {ts.n_states}')
+          f'm = {len(ts.input_names)} inputs, p = {len(ts.output_names)} outputs, {states}'
+          + ('' if verbose or args.quiet else
+             ' (per-topic details: soft-rom convert ... --verbose)'))
     return 0

@@ -192,28 +192,31 @@ def _output_indices(spec: str | None, model: LinearROM) -> list[int]:
 
 def plot_outputs(ep: Episode, Y_hat: np.ndarray, model: LinearROM, path: str | Path, *,
                  outputs: str | None = None, t_split: float | None = None) -> Path:
-    """PNG of measured vs predicted output traces of one episode."""
-    import matplotlib
-    matplotlib.use('Agg')
-    import matplotlib.pyplot as plt
+    """PNG of measured vs predicted output traces of one episode.
+
+    Titled with the model (method, variant, forces, r), the episode and what the model was
+    trained on; lengths in mm when the outputs are in metres; the split line in the legend;
+    a prediction that leaves the axis range cut at the edge and marked
+    (:func:`soft_rom.study.figures.output_traces`).
+    """
+    from soft_rom.study.figures import output_traces
 
     idx = _output_indices(outputs, model)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig, axes = plt.subplots(len(idx), 1, figsize=(7, 2.2 * len(idx) + 0.6), sharex=True,
-                             squeeze=False)
-    t = ep.t - ep.t[0]
-    for ax, i in zip(axes[:, 0], idx):
-        unit = model.output_units[i]
-        ax.plot(t, ep.Y[i], 'k-', lw=1.2, label='data')
-        ax.plot(t, Y_hat[i], 'C1--', lw=1.2, label=model_label(model, data_dt=ep.dt))
-        if t_split is not None:
-            ax.axvline(t_split, color='m', lw=1)
-        ax.set_ylabel(f'{model.output_names[i]}' + (f' [{unit}]' if unit else ''))
-    axes[0, 0].legend(loc='best', fontsize=8)
-    axes[-1, 0].set_xlabel('t [s]')
-    axes[0, 0].set_title(f'{ep.name}')
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-    return path
+    units = {model.output_units[i] for i in idx}
+    scale, unit = (1e3, 'mm') if units == {'m'} else (1.0, units.pop() if len(units) == 1
+                                                        else '')
+    label = model_label(model, data_dt=ep.dt)
+    meta = model.metadata if isinstance(model.metadata, dict) else {}
+    prov = meta.get('training') or meta.get('provenance') or {}
+    trained = prov.get('episodes') if isinstance(prov, dict) else None
+    on = (f'; trained on {", ".join(str(e) for e in trained)}'
+          if isinstance(trained, list) and trained else '')
+    seg = '' if t_split is None else f'; split at t = {t_split:g} s'
+    return output_traces(path, ep.t - ep.t[0], ep.Y, {'model': Y_hat}, idx,
+                         [model.output_names[i] for i in idx], t_split=t_split,
+                         rom_labels={'model': label}, scale=scale, unit=unit,
+                         reference_label=f'measured ({ep.name})',
+                         split_label='t-split',
+                         title=f'{label}: episode {ep.name}{on}{seg}')

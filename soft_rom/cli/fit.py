@@ -159,6 +159,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument('--dask', metavar='ADDRESS', default=None,
                         help='fit on a dask.distributed cluster (scheduler address, e.g. '
                              'tcp://host:8786); implies --streaming')
+    parser.add_argument('--dask-timeout', type=float, default=30.0, metavar='S',
+                        help='seconds to wait for the Dask scheduler (to connect, and after '
+                             'losing it; default 30)')
     parser.add_argument('-o', '--output', type=Path, required=True, metavar='OUTDIR',
                         help='directory for the model files (created if missing)')
     parser.add_argument('--overwrite', action='store_true',
@@ -260,15 +263,33 @@ def _settings(args: argparse.Namespace) -> FitSettings:
                        dmdc_variant=args.dmdc_variant or 'paper', era=era)
 
 
-def _reducer(args: argparse.Namespace) -> Any:
+def _reducer(args: argparse.Namespace, clients: list[Any]) -> Any:
+    """The streaming reducer (``--streaming``, ``--dask``: connected here), or ``None``."""
     if not (args.streaming or args.dask is not None):
         return None
     from soft_rom.reduce import StreamingReducer
-    return StreamingReducer(0.95 if args.energy is None else args.energy, client=args.dask)
+    client = None
+    if args.dask is not None:
+        if not (math.isfinite(args.dask_timeout) and args.dask_timeout > 0):
+            raise ConfigError(f'--dask-timeout must be a number of seconds > 0; got '
+                              f'{args.dask_timeout!r}')
+        from soft_rom.scale.dask_backend import connect
+        client = connect(args.dask, args.dask_timeout)
+        clients.append(client)
+    return StreamingReducer(0.95 if args.energy is None else args.energy, client=client)
 
 
 def run(args: argparse.Namespace) -> int:
-    """Execute ``soft-rom fit``."""
+    """Execute ``soft-rom fit`` (a Dask client it connects is closed at the end)."""
+    clients: list[Any] = []
+    try:
+        return _run(args, clients)
+    finally:
+        for client in clients:
+            client.close()
+
+
+def _run(args: argparse.Namespace, clients: list[Any]) -> int:
     from soft_rom.outputs import atomic_files
 
     outdir = Path(args.output)
@@ -287,7 +308,7 @@ def run(args: argparse.Namespace) -> int:
     data = open_training_data(ts, episodes=args.episodes, t_max=args.t_max,
                               provenance=provenance)
     layout = ts.output_layout.to_dict() if getattr(ts, 'output_layout', None) else None
-    reducer = _reducer(args)
+    reducer = _reducer(args, clients)
     fitted: list[FittedModel] = []
     for method in args.method:
         fitted += fit_method(data, method, args.r, settings, reducer, layout=layout,

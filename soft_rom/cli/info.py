@@ -85,9 +85,14 @@ def format_text(d: dict[str, Any]) -> str:
             lines.append(f"  {topic:{width}s}  {info['type']:36s} {info['count']:8d} msgs "
                          f'{rate_s}')
     elif kind == 'trainingset':
-        lines.append(f"training set {d['path']} (format {d['format_version']}): "
+        sums = d.get('checksums')
+        lines.append(f"training set {d['path']} (format {d['format_version']}, "
+                     + (f'checksums: {sums}' if sums else 'no checksums') + '): '
                      f"{len(d['episodes'])} episode(s), n = {d['n_states']}; every chunk of "
-                     'every array present')
+                     'every array present' + (' and matching its checksum' if sums else ''))
+        if not sums:
+            lines.append('  (written before soft_rom stored checksums: a changed byte is not '
+                         'detected; convert the bags again to add them)')
         lines.append(f"  inputs  (m = {len(d['input_names'])}): "
                      f"{_fmt_names(d['input_names'], d['input_units'])}")
         lines.append(f"  outputs (p = {len(d['output_names'])}): "

@@ -87,7 +87,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         help='replace OUT (and the --json file) if soft-rom replay wrote it')
     parser.add_argument('--strict', action='store_true',
                         help='refuse a model that cannot be trusted (unstable, indefinite, ...)')
-    add_json(parser, help='also write the summary as JSON', old='--summary-json')
+    add_json(parser, help='also write the summary as JSON')
     add_quiet(parser)
     parser.set_defaults(func=run)
     return parser
@@ -186,7 +186,7 @@ def run(args: argparse.Namespace) -> int:
                 measured=measured, node_name=args.node_name,
                 frame_id=str(values.get('frame_id', 'world')),
                 components=str(values.get('output_components', 'xz')), overwrite=False,
-                progress=lambda j: bar.update(1) if j % 100 == 0 and j else None)
+                progress=lambda j: bar.update(100) if j % 100 == 0 and j else None)
     summary = dict(result.summary)
     summary['output_bag'] = str(Path(args.output))
     health = predictor.health()

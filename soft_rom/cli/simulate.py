@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 import time
+from typing import TYPE_CHECKING
 
 from soft_rom.cli._common import (
     add_output,
@@ -20,7 +21,10 @@ from soft_rom.cli._common import (
     int_range,
 )
 
-__all__ = ['add_parser', 'estimate_resources', 'run']
+if TYPE_CHECKING:
+    import numpy as np
+
+__all__ = ['add_parser', 'estimate_resources', 'read_inputs', 'run']
 
 MAX_RESOLUTION = 64
 
@@ -59,6 +63,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         help='tangent of the implicit solve (default: %(default)s)')
     parser.add_argument('--jobs', type=int_range(1, 512), default=1,
                         help='worker processes (default: %(default)s)')
+    parser.add_argument('--inputs', type=Path, metavar='U.npz',
+                        help='drive the FOM with given pressures instead of random ones: an '
+                             '.npz with t (k,) on a uniform grid in s and U (6, k) in Pa (e.g. '
+                             'the closed_loop.npz of soft-rom control); writes one bag named '
+                             'after the file')
     parser.add_argument('--overwrite', action='store_true',
                         help='replace bags that soft-rom simulate wrote before (never others)')
     add_quiet(parser, old=True)
@@ -69,33 +78,29 @@ def estimate_resources(resolution: int, *, jobs: int, episodes: int, steps: int,
                        state: bool) -> tuple[int, float, float]:
     """``(n_dof, memory_bytes, disk_bytes)`` of a simulation, before building anything.
 
-    Memory: per worker, the band storage of the rest system (about 3.8 cross-sections of
-    DOFs wide, measured 131 at resolution 1 and 395 at 2) twice (matrix and factor) plus
-    about 3 kB per DOF for the sparse matrices and work vectors, plus 150 MB of
-    interpreter; disk: per sample the inputs and centerline, and with the state the nodal
-    positions (8 bytes per DOF).
+    Memory: per worker, :func:`soft_rom.sim.eel.memory_estimate` (the rest-system factor
+    of the linear solver installed, CHOLMOD or banded, and the operators); disk: per sample
+    the inputs and centerline, and with the state the nodal positions (8 bytes per DOF).
     """
-    nx, ny, nz = 48 * resolution, 4 * resolution, 6 * resolution
-    section = (ny + 1) * (nz + 1)
-    n_nodes = (nx + 1) * section
-    n_dof = 3 * n_nodes
-    band = 3.8 * section * n_dof * 8.0
-    workers = min(jobs, episodes)
-    memory = workers * (2.0 * band + 3000.0 * n_dof + 150e6)
+    from soft_rom.sim.eel import memory_estimate
+
+    n_dof, per_worker = memory_estimate(resolution)
+    memory = min(jobs, episodes) * per_worker
     per_sample = 2048.0 + (8.0 * n_dof if state else 0.0)
     disk = episodes * steps * per_sample
     return n_dof, memory, disk
 
 
-def _check_existing(out: Path, episodes: int, overwrite: bool) -> None:
+def _check_existing(out: Path, episodes: int, overwrite: bool,
+                    names: list[str] | None = None) -> None:
     """Refuse to replace a bag that soft-rom simulate did not write."""
     import json
 
     from soft_rom.errors import OutputExistsError
     from soft_rom.outputs import is_marked
 
-    for e in range(1, episodes + 1):
-        bag = out / f'ep{e}'
+    for name in names or [f'ep{e}' for e in range(1, episodes + 1)]:
+        bag = out / name
         side_path = bag.with_suffix('.json')
         if side_path.exists() or side_path.is_symlink():
             if not overwrite:
@@ -126,6 +131,63 @@ def _check_existing(out: Path, episodes: int, overwrite: bool) -> None:
                                     'replace it (--overwrite only replaces soft_rom outputs)')
 
 
+def read_inputs(path: Path, n_chambers: int = 6) -> tuple[float, np.ndarray]:
+    """``(dt, U)`` from an ``.npz`` with ``t`` (k,) on a uniform grid and ``U`` (m, k)."""
+    import numpy as np
+
+    from soft_rom.errors import ConfigError
+
+    if not path.is_file():
+        raise FileNotFoundError(2, 'No such file or directory', str(path))
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if 't' not in z.files or 'U' not in z.files:
+                raise ConfigError(f'--inputs {path}: needs arrays t (k,) and U ({n_chambers}, k);'
+                                  f' it has {", ".join(z.files) or "none"}')
+            t = np.asarray(z['t'], dtype=np.float64).reshape(-1)
+            U = np.asarray(z['U'], dtype=np.float64)
+    except (OSError, ValueError, EOFError) as err:
+        if isinstance(err, ConfigError):
+            raise
+        raise ConfigError(f'--inputs {path}: not a readable .npz ({err})') from None
+    if U.ndim != 2 or U.shape != (n_chambers, t.size) or t.size < 1:
+        raise ConfigError(f'--inputs {path}: U must be ({n_chambers}, k) with k = len(t) = '
+                          f'{t.size}; got {U.shape}')
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(U))):
+        raise ConfigError(f'--inputs {path}: t and U must be finite (NaN or Inf found)')
+    if t.size == 1:
+        return 1e-3, U
+    steps = np.diff(t)
+    dt = float(np.median(steps))
+    if not dt > 0 or np.max(np.abs(steps - dt)) > 1e-6 * dt:
+        raise ConfigError(f'--inputs {path}: t must be a uniform increasing grid (steps from '
+                          f'{steps.min():g} to {steps.max():g} s)')
+    return dt, U
+
+
+def _run_inputs(args: argparse.Namespace, out: Path) -> int:
+    from soft_rom.outputs import mark
+    from soft_rom.sim.eel import EelConfig, EelModel
+    from soft_rom.sim.record import record_episode
+
+    dt, U = read_inputs(args.inputs)
+    name = args.inputs.stem
+    _check_existing(out, 1, args.overwrite, [name])
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    model = EelModel(EelConfig(resolution=args.resolution))
+    side = record_episode(model, 0, out / name, storage=args.storage, n_steps=U.shape[1], dt=dt,
+                          state=not args.no_state, overwrite=args.overwrite,
+                          progress=not args.quiet, jacobian=args.jacobian, pressures=U,
+                          source=str(args.inputs))
+    mark(out / name, 'simulated')
+    lo, hi = side['tail_z_range_m']
+    print(f'eel FOM: {side["n_dof"]:,} DOF, {U.shape[1]} steps of {dt:g} s from {args.inputs}')
+    print(f'  {out / name}  ({name}.json)  {time.perf_counter() - t0:.1f} s simulated+written, '
+          f'tail z in [{1e3 * lo:.1f}, {1e3 * hi:.1f}] mm')
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
     """Simulate, record, print a summary; returns the exit code."""
     from soft_rom.errors import ResourceError
@@ -134,6 +196,8 @@ def run(args: argparse.Namespace) -> int:
 
     out = Path(args.output)
     check_writable_folder(out, 'bags')
+    if args.inputs is not None:
+        return _run_inputs(args, out)
     _check_existing(out, args.episodes, args.overwrite)
     n_dof, memory, disk = estimate_resources(args.resolution, jobs=args.jobs,
                                              episodes=args.episodes, steps=args.steps,

@@ -5,8 +5,11 @@ from __future__ import annotations
 import argparse
 from collections.abc import Iterator
 import contextlib
+import functools
+import os
 from pathlib import Path
 import shutil
+from typing import Any
 
 from soft_rom.cli._common import (
     add_output,
@@ -18,7 +21,8 @@ from soft_rom.cli._common import (
     parse_r_list,
 )
 
-__all__ = ['add_parser', 'add_study_options', 'prepare_study', 'run', 'study_output']
+__all__ = ['add_parser', 'add_study_options', 'prepare_study', 'print_timings', 'run',
+           'study_output']
 
 
 def add_study_options(parser: argparse.ArgumentParser, *, default_output: Path) -> None:
@@ -26,6 +30,9 @@ def add_study_options(parser: argparse.ArgumentParser, *, default_output: Path) 
     from soft_rom.cli.simulate import MAX_RESOLUTION
 
     add_output(parser, help='report folder', default=default_output, old=True)
+    parser.add_argument('--overwrite', action='store_true',
+                        help='replace the report folder if a soft-rom study or demo wrote it '
+                             '(its recorded episodes are reused when the settings match)')
     parser.add_argument('--resolution', type=int_range(1, MAX_RESOLUTION), default=1,
                         help='eel mesh resolution (1 = fast default; 4 = paper size)')
     parser.add_argument('--episodes', type=int_range(2, 1000), default=6,
@@ -39,41 +46,49 @@ def add_study_options(parser: argparse.ArgumentParser, *, default_output: Path) 
                         help='reuse (or write) the episode bags in this folder')
     parser.add_argument('--jobs', type=int_range(1, 512), default=2,
                         help='processes for simulating episodes (default: %(default)s)')
-    add_quiet(parser, old=True)
+    add_quiet(parser)
 
 
-def _check_study_folder(out: Path) -> None:
-    """A study writes into its folder run after run; never into a folder that is not one.
+def _check_study_folder(out: Path, overwrite: bool) -> None:
+    """A study never writes into a folder that is not a study's, nor over one unasked.
 
-    Accepted: a new or empty folder, one marked as a soft_rom study, or one a study wrote
-    before the marker existed (``summary.json`` and ``report.md``).
+    Refused: an existing folder without ``--overwrite``; with it, one that is not marked
+    as a soft_rom study and is not one a study wrote before the marker existed
+    (``summary.json`` and ``report.md``).
     """
     from soft_rom.errors import OutputExistsError
-    from soft_rom.outputs import is_marked
+    from soft_rom.outputs import is_marked, mark
+    from soft_rom.outputs_inplace import restore_interrupted
 
+    restore_interrupted(out)
     if not out.exists() and not out.is_symlink():
         return
+    if not overwrite:
+        raise OutputExistsError(f'{out} exists already; pass --overwrite to replace it, or '
+                                'choose another -o folder')
     if out.is_dir() and not out.is_symlink():
-        if is_marked(out, ('study',)) or not any(out.iterdir()):
+        if is_marked(out, ('study',)):
             return
         if (out / 'summary.json').is_file() and (out / 'report.md').is_file():
+            mark(out, 'study')         # written by a study before the marker existed
             return
     raise OutputExistsError(f'{out} is not a soft_rom study folder (it holds other files); '
-                            'choose a new or empty -o folder')
+                            '--overwrite replaces only a study or demo folder: choose a new '
+                            '-o folder')
 
 
-def prepare_study(args: argparse.Namespace) -> bool:
-    """Check the folders and resources of a study before any work, then mark its folder.
+def prepare_study(args: argparse.Namespace) -> None:
+    """Check the folders and resources of a study before any work.
 
-    Refused: an output folder that is not a study's, a simulation that cannot fit in
-    memory or on disk (with the estimate). Returns whether the folder was created here.
+    Refused: an existing output folder without ``--overwrite`` or that is not a study's,
+    a simulation that cannot fit in memory or on disk (with the estimate).
     """
     from soft_rom.cli.simulate import estimate_resources
     from soft_rom.errors import ResourceError
     from soft_rom.outputs import check_free_space
 
     check_writable_folder(Path(args.output), 'report')
-    _check_study_folder(Path(args.output))
+    _check_study_folder(Path(args.output), args.overwrite)
     if args.bags is not None:
         check_writable_folder(Path(args.bags), 'bags')
     n_dof, memory, disk = estimate_resources(args.resolution, jobs=args.jobs,
@@ -86,30 +101,68 @@ def prepare_study(args: argparse.Namespace) -> bool:
             'lower --resolution or fewer --jobs')
     check_free_space(Path(args.bags or args.output), disk,
                      f'the study bags at --resolution {args.resolution}')
-    created = not Path(args.output).exists()
-    Path(args.output).mkdir(parents=True, exist_ok=True)
-    from soft_rom.outputs import mark
-    mark(args.output, 'study')
-    return created
+
+
+def _reuse_bags(parked: Path, dest: Path, *, cfg: Any) -> None:
+    """Hard links to the previous folder's recorded episodes (``bags/ep<i>`` and sidecars).
+
+    Only episodes the study will use, recorded with the same settings (their sidecar says
+    so), are carried over; the study records the others. Bags are never written after they
+    are closed, so the links leave the previous folder as it is.
+    """
+    from soft_rom.errors import BagError
+    from soft_rom.study.run import _read_sidecar, _same_recording
+
+    old = parked / 'bags'
+    if not old.is_dir() or old.is_symlink():
+        return
+    wanted = dict(seed=cfg.seed, storage=cfg.storage, n_steps=int(round(cfg.duration / cfg.dt)),
+                  dt=cfg.dt)
+    for i in range(1, cfg.n_episodes + 1):
+        sidecar, bag = old / f'ep{i}.json', old / f'ep{i}'
+        if not sidecar.is_file() or not bag.is_dir() or bag.is_symlink():
+            continue
+        try:
+            if not _same_recording(_read_sidecar(sidecar), wanted, cfg.resolution):
+                continue
+        except BagError:
+            continue
+        try:
+            (dest / 'bags').mkdir(exist_ok=True)
+            shutil.copytree(bag, dest / 'bags' / bag.name, copy_function=os.link)
+            os.link(sidecar, dest / 'bags' / sidecar.name)
+        except OSError:                     # no hard links here: record them again
+            shutil.rmtree(dest / 'bags', ignore_errors=True)
+            return
 
 
 @contextlib.contextmanager
-def study_output(args: argparse.Namespace) -> Iterator[Path]:
-    """:func:`prepare_study`, then the run (yields the output folder).
+def study_output(args: argparse.Namespace, cfg: Any) -> Iterator[Path]:
+    """:func:`prepare_study`, then the run in the output folder (yielded).
 
-    A folder this run created is removed if the run stops before writing anything into it
-    (a refused ``--bags`` folder, Ctrl-C at once).
+    The folder is built in place (its training set and models record their paths); a
+    previous study there is parked until the run ends and comes back if it stops
+    (:func:`soft_rom.outputs_inplace.rebuilt_dir`): an interrupted run leaves the previous folder,
+    or none, never a mix. The previous folder's recorded episodes are reused when ``cfg``
+    records them the same way.
     """
-    from soft_rom.outputs import MARKER
+    from soft_rom.outputs_inplace import rebuilt_dir
 
-    out = Path(args.output)
-    created = prepare_study(args)
-    try:
+    prepare_study(args)
+    reuse = None if args.bags is not None else functools.partial(_reuse_bags, cfg=cfg)
+    with rebuilt_dir(args.output, overwrite=args.overwrite, kind='study', what='study folder',
+                     carry_over=reuse) as out:
         yield out
-    except BaseException:
-        if created and {f.name for f in out.iterdir()} <= {MARKER}:
-            shutil.rmtree(out, ignore_errors=True)
-        raise
+
+
+def print_timings(summary: dict[str, Any]) -> None:
+    """The stage times and the machine they were measured on, one line each."""
+    timings = summary.get('timings', {})
+    if timings:
+        print('stage times: ' + ', '.join(f'{k} {v:.0f} s' for k, v in timings.items()))
+    machine = summary.get('machine')
+    if machine:
+        print(f'machine: {machine["description"]}')
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -127,22 +180,60 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         help='r values for DMDc (default 2:22:2)')
     parser.add_argument('--r-era', type=parse_r_list, default=tuple(range(20, 43, 2)),
                         help='r values for ERA/OKID (default 20:42:2)')
-    parser.add_argument('--t-train', type=finite_float(0.0, 1.999, lo_open=True), default=1.5,
-                        help='end of training in study 1, seconds, below the 2 s episodes '
-                             '(default 1.5)')
+    parser.add_argument('--t-train', type=finite_float(0.0, 1.999, lo_open=True), default=None,
+                        help='end of training in study 1, seconds, below the episode length '
+                             '(default 1.5, or 3/4 of --duration)')
+    parser.add_argument('--duration', type=finite_float(0.005, 60.0), default=2.0,
+                        help='episode length in seconds (default: %(default)s, as the paper)')
+    parser.add_argument('--staged', action='store_true',
+                        help='run in resumable stages with streaming fits (the default from '
+                             '--resolution 3 on; see soft_rom.study.paper_scale)')
     parser.set_defaults(func=run)
 
 
+def _run_staged(args: argparse.Namespace, cfg: Any) -> int:
+    """The paper-scale run: resumable stages, its own disk and memory check."""
+    from soft_rom.outputs import is_marked
+    from soft_rom.study.paper_scale import run_paper_scale
+
+    out = Path(args.output)
+    check_writable_folder(out, 'report')
+    # A staged run resumes in its own folder (same command again); any other existing folder
+    # is refused without --overwrite, as for every study.
+    if not ((out / 'stages').is_dir() and is_marked(out, ('study',))):
+        _check_study_folder(out, args.overwrite)
+    if args.bags is not None:
+        check_writable_folder(Path(args.bags), 'bags')
+    summary = run_paper_scale(out, cfg, bag_dir=args.bags, progress=not args.quiet,
+                              echo=print)
+    print(f'report: {out / "report.md"}')
+    for line in summary.get('conclusions', []):
+        print(f'  - {line}')
+    return 0
+
+
 def run(args: argparse.Namespace) -> int:
+    from soft_rom.errors import ConfigError
     from soft_rom.study.run import run_study, StudyConfig
 
+    t_train = args.t_train if args.t_train is not None else min(1.5, 0.75 * args.duration)
+    if not t_train < args.duration:
+        raise ConfigError(f'--t-train {t_train:g} must be below --duration {args.duration:g}')
+    staged = args.staged or args.resolution >= 3
     cfg = StudyConfig(resolution=args.resolution, n_episodes=args.episodes, seed=args.seed,
-                      storage=args.storage, t_train=args.t_train, r_lopinf=args.r_lopinf,
-                      r_dmdc=args.r_dmdc, r_era=args.r_era, jobs=args.jobs)
+                      storage=args.storage, t_train=t_train, r_lopinf=args.r_lopinf,
+                      r_dmdc=args.r_dmdc, r_era=args.r_era, jobs=args.jobs,
+                      duration=args.duration, r_cubic=() if staged else (4,))
+    if staged:
+        if args.only:
+            raise ConfigError('--only is not available with --staged (or --resolution >= 3): '
+                             'the staged run does both studies')
+        return _run_staged(args, cfg)
     studies = (args.only,) if args.only else (1, 2)
-    with study_output(args) as out:
+    with study_output(args, cfg) as out:
         summary = run_study(out, cfg, progress=not args.quiet, studies=studies,
                             bag_dir=args.bags)
+    print_timings(summary)
     print(f'report: {out / "report.md"}')
     for line in summary.get('conclusions', []):
         print(f'  - {line}')

@@ -163,7 +163,7 @@ def _consistent(plans: Sequence[BagPlan], mapping: BagMapping) -> None:
 def convert(bags: Sequence[str | Path], out: str | Path, mapping: BagMapping | None = None, *,
             storage: str = 'auto', include_state: bool | None = None,
             overwrite: bool = False, progress: bool = True,
-            echo: Callable[[str], Any] | None = None
+            echo: Callable[[ConversionReport], Any] | None = None
             ) -> tuple[TrainingSet, list[ConversionReport]]:
     """Convert bags (one episode each, more where long gaps split them) to a training set.
 
@@ -184,7 +184,8 @@ def convert(bags: Sequence[str | Path], out: str | Path, mapping: BagMapping | N
     progress : bool
         Show tqdm progress bars.
     echo : callable, optional
-        Called with each bag's formatted report (the CLI prints them).
+        Called with each bag's :class:`ConversionReport` as soon as it is converted (the
+        CLI prints it).
 
     Returns
     -------
@@ -230,7 +231,7 @@ def convert(bags: Sequence[str | Path], out: str | Path, mapping: BagMapping | N
                 writer.update_metadata(ep['name'], {'conversion_report': report.to_dict()})
             reports.append(report)
             if echo is not None:
-                echo(report.format())
+                echo(report)
     return TrainingSet.open(out), reports
 
 

@@ -112,10 +112,36 @@ class ConversionReport:
         n, r, reason = best
         return f'{r.role} {r.topic}: {n} of {r.read} dropped ({reason})'
 
+    def summary_line(self) -> str:
+        """One line: samples, episodes, grid, and only what was not plain (drops, gaps, splits).
+
+        ``'bag ep1 (mcap): 2000 samples, 1 episode, 1 ms grid; nothing dropped, filled or
+        split'``; the details are in :meth:`format`.
+        """
+        n_ep = len(self.episodes)
+        head = (f'bag {self.bag} ({self.storage}): {self.n_samples} samples, {n_ep} '
+                f'episode{"s" if n_ep != 1 else ""}, {_ms(self.dt)} grid')
+        dropped = sum(sum(r.dropped.values()) for r in self.topics.values())
+        read = sum(r.read for r in self.topics.values())
+        notes = []
+        if dropped:
+            notes.append(f'dropped {dropped} of {read} messages (most: {self.main_cause()})')
+        gaps = sum(r.grid_gap_interpolated for r in self.topics.values())
+        if gaps:
+            notes.append(f'{gaps} grid points interpolated across lost samples')
+        held = sum(r.held_over_gap for r in self.topics.values() if r.role == 'input')
+        if held:
+            notes.append(f'inputs held over a gap at {held} grid points')
+        splits = sum(r.splits for r in self.topics.values() if r.role == 'output')
+        if splits:
+            notes.append(f'split {splits} time{"s" if splits != 1 else ""} at long gaps')
+        notes += self.notes
+        return head + '; ' + ('; '.join(notes) if notes else 'nothing dropped, filled or split')
+
     def format(self) -> str:
         """Human-readable multi-line summary."""
         lines = [f'bag {self.bag} ({self.storage}): {self.n_samples} samples in '
-                 f'{len(self.episodes)} episode(s) on a {self.dt * 1e3:.6g} ms grid']
+                 f'{len(self.episodes)} episode(s) on a {_ms(self.dt)} grid']
         for ep in self.episodes:
             lines.append(f"  episode {ep['name']}: {ep['n_samples']} samples, "
                          f"{ep['duration_s']:.6f} s from stamp {ep['t0_ns']} ns")
@@ -124,10 +150,10 @@ class ConversionReport:
             line = (f'  {r.role:6s} {r.topic} [{r.msgtype.split("/")[-1]}]: read {r.read}, '
                     f'used {r.used}, dropped {drops}')
             if math.isfinite(r.period_s):
-                line += f'; period {r.period_s * 1e3:.4g} ms, jitter {r.jitter_s * 1e3:.3g} ms'
+                line += f'; period {_ms(r.period_s)}, jitter {_ms(r.jitter_s)}'
             if r.role == 'input':
                 line += (f'; held over a gap at {r.held_over_gap} grid points, max hold '
-                         f'{r.max_hold_s * 1e3:.4g} ms')
+                         f'{_ms(r.max_hold_s)}')
             else:
                 line += (f'; grid points: {r.grid_exact} at a sample, {r.grid_interpolated} '
                          f'interpolated, {r.grid_gap_interpolated} across lost samples')
@@ -137,3 +163,15 @@ class ConversionReport:
             lines.extend(f'         {e}' for e in r.examples)
         lines.extend(f'  note: {n}' for n in self.notes)
         return '\n'.join(lines)
+
+
+def _ms(seconds: float) -> str:
+    """A duration in ms to the nanosecond the stamps have: ``'1 ms'``, ``'8.333 ms'``, ``'0 ms'``.
+
+    Stamps are whole nanoseconds, so anything below half a nanosecond (a float rest such as
+    a jitter of 4e-16 ms) is 0.
+    """
+    if not math.isfinite(seconds):
+        return 'n/a'
+    ns = round(seconds * 1e9)
+    return f'{ns / 1e6:.6g} ms'

@@ -14,7 +14,12 @@ from numpy.typing import NDArray
 from soft_rom.errors import DatasetError
 
 FORMAT = 'soft_rom.trainingset'
-FORMAT_VERSION = 2
+FORMAT_VERSION = 3
+#: Versions this soft_rom reads: 1 (absolute times), 2 (no checksums), 3 (a CRC-32C after
+#: every chunk of every array, :mod:`soft_rom.dataset.checksum`).
+READ_VERSIONS = (1, 2, 3)
+#: First version whose chunks carry checksums.
+CHECKSUM_VERSION = 3
 #: Marker kind of a training-set folder (:mod:`soft_rom.outputs`).
 KIND = 'trainingset'
 #: Format version 1 (absolute times) is read when every episode starts before this (s).
@@ -38,6 +43,8 @@ def _zarr() -> Any:
 
 
 def _open_group(path: Path, mode: str) -> Any:
+    from soft_rom.dataset.checksum import register
+    register()                     # the crc32c filter, also with numcodecs < 0.14
     zarr = _zarr()
     major = int(str(zarr.__version__).split('.')[0])
     if mode == 'w' and major >= 3:
@@ -51,18 +58,22 @@ def _create_array(group: Any, name: str, shape: tuple[int, ...], chunks: tuple[i
     """Create a float64 array under ``group`` with the zarr 3 or the zarr 2 API.
 
     Every chunk written is stored, also one of zeros (zarr 3 leaves those out by default):
-    the reader takes a missing chunk for a damaged set (:data:`ALL_CHUNKS`).
+    the reader takes a missing chunk for a damaged set (:data:`ALL_CHUNKS`). Every chunk
+    ends with its CRC-32C (the ``crc32c`` filter, :mod:`soft_rom.dataset.checksum`).
     """
+    from soft_rom.dataset.checksum import codec
     chunks = tuple(max(int(c), 1) for c in chunks)
+    filters = [codec()]
     if hasattr(group, 'create_array'):  # zarr 3
         kw: dict[str, Any] = {} if compress else {'compressors': None}
         arr = group.create_array(name, shape=shape, chunks=chunks, dtype='f8',
-                                 fill_value=0.0, order=order,
+                                 fill_value=0.0, order=order, filters=filters,
                                  config={'write_empty_chunks': True}, **kw)
     else:  # zarr 2
         kw = {} if compress else {'compressor': None}
         arr = group.create_dataset(name, shape=shape, chunks=chunks, dtype='f8',
-                                   fill_value=0.0, order=order, write_empty_chunks=True, **kw)
+                                   fill_value=0.0, order=order, write_empty_chunks=True,
+                                   filters=filters, **kw)
     if data is not None and data.size:
         arr[...] = data
     return arr

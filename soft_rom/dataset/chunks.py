@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from soft_rom.dataset.checksum import crc32c
 from soft_rom.errors import DatasetError
 
 __all__ = ['ChunkFileWriter']
@@ -25,26 +26,28 @@ class ChunkFileWriter:
 
     ``Q`` is stored in Fortran order: an uncompressed zarr v2 chunk is then the raw bytes of
     its columns one after the other (edge chunks padded with the fill value), in a file named
-    ``'<i>.<j>'``. The files of the chunk column being filled stay open and each snapshot is
-    appended to them (its row block ``i`` to file ``i``) as it arrives, straight from the
-    array it arrived in: no copy, and the message buffer is released a few snapshots later
-    (holding whole chunk columns of message buffers made every new message land in fresh
-    pages, whose page faults cost more than a copy). Writes are at most 1 MiB (larger ones
-    were several times slower on Linux). A background thread overlaps the writes with
-    reading the bag; at most ``queue_size`` snapshots wait for it. With ``drop_cache`` the
-    written files are evicted from the page cache ``drop_lag`` files behind the writer
-    (``POSIX_FADV_DONTNEED``: the first call starts their write-back, a later one drops the
-    clean pages), so that gigabytes of ``Q`` recycle the same pages instead of filling the
-    page cache (measured 3-4x faster to write). The array's shape is updated through zarr
-    when the episode is finished.
+    ``'<i>.<j>'``; with ``checksum`` (the ``crc32c`` filter of format version 3) the file ends
+    with the CRC-32C of those bytes, kept up to date as they are appended. The files of the
+    chunk column being filled stay open and each snapshot is appended to them (its row block
+    ``i`` to file ``i``) as it arrives, straight from the array it arrived in: no copy, and the
+    message buffer is released a few snapshots later (holding whole chunk columns of message
+    buffers made every new message land in fresh pages, whose page faults cost more than a
+    copy). Writes are at most 1 MiB (larger ones were several times slower on Linux). A
+    background thread overlaps the writes with reading the bag; at most ``queue_size``
+    snapshots wait for it. With ``drop_cache`` the written files are evicted from the page
+    cache ``drop_lag`` files behind the writer (``POSIX_FADV_DONTNEED``: the first call starts
+    their write-back, a later one drops the clean pages), so that gigabytes of ``Q`` recycle
+    the same pages instead of filling the page cache (measured 3-4x faster to write). The
+    array's shape is updated through zarr when the episode is finished.
     """
 
     queue_size = 16
     drop_lag = 16       # chunk files (8 MiB each) left in the page cache behind the writer
 
     def __init__(self, directory: Path, n: int, chunks: tuple[int, int], separator: str,
-                 drop_cache: bool = True) -> None:
+                 drop_cache: bool = True, checksum: bool = True) -> None:
         self.directory = directory
+        self.checksum = checksum
         self.n = n
         self.rows, self.cols = chunks
         self.separator = separator
@@ -55,6 +58,7 @@ class ChunkFileWriter:
         self._count = 0                                  # snapshots queued
         self._fds: list[int] = []                        # files of the open chunk column
         self._paths: list[Path] = []
+        self._crcs: list[int] = []                       # running CRC-32C of each open file
         self._open_j = -1
         self._filled = 0                                 # columns in the open chunk column
         self._written: deque[Path] = deque()
@@ -91,22 +95,33 @@ class ChunkFileWriter:
                 path = self.directory / f'{i}{self.separator}{j}'
                 self._fds.append(os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644))
                 self._paths.append(path)
+                self._crcs.append(0)
             self._open_j, self._filled = j, 0
         for i, fd in enumerate(self._fds):
             r0 = i * self.rows
             h = min(self.rows, self.n - r0)
-            _write_all(fd, [col[r0:r0 + h]] if h == self.rows else
-                       [col[r0:r0 + h], self._zeros[:self.rows - h]])
+            parts = [col[r0:r0 + h]] if h == self.rows else \
+                [col[r0:r0 + h], self._zeros[:self.rows - h]]
+            _write_all(fd, parts)
+            if self.checksum:
+                for part in parts:
+                    self._crcs[i] = crc32c(part, self._crcs[i])
         self._filled += 1
 
     def _close_files(self, pad: bool) -> None:
         """Close the open chunk column (``pad``: fill its missing columns with zeros)."""
         fds, paths, self._fds, self._paths = self._fds, self._paths, [], []
+        crcs, self._crcs = self._crcs, []
         self._open_j = -1
         try:
             if pad:
-                for fd in fds:
-                    _write_all(fd, [self._zeros] * (self.cols - self._filled))
+                pads = [self._zeros] * (self.cols - self._filled)
+                for fd, crc in zip(fds, crcs):
+                    _write_all(fd, pads)
+                    if self.checksum:
+                        for part in pads:
+                            crc = crc32c(part, crc)
+                        _write_all(fd, [np.array([crc], dtype='<u4')])
                     if self.drop_cache:      # starts writing it back now
                         os.posix_fadvise(fd, 0, 0, os.POSIX_FADV_DONTNEED)
         finally:

@@ -22,10 +22,12 @@ from soft_rom.dataset._format import (
     _open_group,
     _reconvert,
     ALL_CHUNKS,
+    CHECKSUM_VERSION,
     FORMAT,
     FORMAT_VERSION,
     Q_CHUNK_COLS,
     Q_CHUNK_ROWS,
+    READ_VERSIONS,
     V1_MAX_START_S,
 )
 from soft_rom.dataset.stored import StoredArray, translated
@@ -85,10 +87,11 @@ class TrainingSet:
             raise DatasetError(f'{p} is not a soft_rom training set (format attribute is '
                                f'{attrs.get("format")!r}, expected {FORMAT!r}).')
         version = attrs.get('format_version')
-        if isinstance(version, bool) or version not in (1, FORMAT_VERSION):
+        if isinstance(version, bool) or version not in READ_VERSIONS:
             raise DatasetError(f'{p} has training-set format version {version!r}; this soft_rom '
-                               f'reads versions 1 and {FORMAT_VERSION}. Upgrade soft_rom or '
-                               f'convert the bags again: {_reconvert(p, attrs)}')
+                               f'reads versions {", ".join(map(str, READ_VERSIONS[:-1]))} and '
+                               f'{FORMAT_VERSION}. Upgrade soft_rom or convert the bags again: '
+                               f'{_reconvert(p, attrs)}')
         ts = cls(p, root, attrs)
         ts._check_attrs()
         ts._validate()
@@ -200,12 +203,18 @@ class TrainingSet:
         with translated(f'{self._corrupt(where)}:', self._advice(),
                         what='its metadata (.zarray) cannot be read'):
             raw = group[key]
-            folder = self.path if name is None else self.path / 'episodes' / name
+            base = self.path.absolute()      # a Dask worker's working folder is its own
+            folder = base if name is None else base / 'episodes' / name
             hint = 'was the copy interrupted?'
             if self.attrs.get(ALL_CHUNKS) is not True and key != 'Q':
                 hint += (' Sets written with zarr 3 by soft_rom before it stored every chunk '
                          'lack the chunks that were all zeros')
             arr = StoredArray(raw, folder / key, self._corrupt(where), self._advice(), hint)
+        if self.checksummed and not arr.checksummed:
+            raise DatasetError(f'{self._corrupt(where)}: its .zarray declares no crc32c '
+                               f'checksum, but the set (format version '
+                               f'{self.attrs.get("format_version")}) has one in every chunk; '
+                               f'{self._advice()}')
         self._arrays[(name or '', key)] = arr
         return arr
 
@@ -291,6 +300,12 @@ class TrainingSet:
             raise DatasetError(f'{self.path}: the output layout has {layout.size} outputs, '
                                f'the names {len(self.output_names)}.')
         return layout
+
+    @property
+    def checksummed(self) -> bool:
+        """Whether every chunk ends with its CRC-32C (format version 3 and later)."""
+        version = self.attrs.get('format_version')
+        return isinstance(version, int) and version >= CHECKSUM_VERSION
 
     @property
     def provenance(self) -> dict[str, Any]:
@@ -387,21 +402,24 @@ class TrainingSet:
     def __len__(self) -> int:
         return len(self.episode_names)
 
-    def describe(self) -> dict[str, Any]:
+    def describe(self, verify: bool = True) -> dict[str, Any]:
         """Summary for ``soft-rom info``: per episode ``t0_ns`` and times from its start.
 
-        Every array's chunks are checked (listings only, no data read): a set copied
-        incompletely is refused here too (:class:`~soft_rom.errors.DatasetError`), not only
-        when a fit reads the damaged array.
+        Every array's chunks are checked: a set copied incompletely is refused here too
+        (:class:`~soft_rom.errors.DatasetError`), not only when a fit reads the damaged
+        array. With checksums (format version 3) and ``verify`` every chunk is read and
+        checked against its CRC-32C (all of ``Q``: at disk speed); else listings only.
         """
         eps = {}
         for name in self.episode_names:
             t = self.times(name)
             q = self.q_array(name) if self.has_state(name) else None
-            for key in ('U', 'Y'):
-                self._array(name, key).check()
-            if q is not None:
-                q.check()
+            for arr in [self._array(name, 'U'), self._array(name, 'Y')] + (
+                    [q] if q is not None else []):
+                if verify:
+                    arr.verify()
+                else:
+                    arr.check()
             eps[name] = {
                 'n_samples': int(t.size), 't0_ns': self.t0_ns(name),
                 'duration_s': float(t[-1]) if t.size else 0.0,
@@ -411,6 +429,7 @@ class TrainingSet:
                 'source': self.metadata(name).get('source_bag'),
             }
         return {'path': str(self.path), 'format_version': self.attrs.get('format_version'),
+                'checksums': 'CRC-32C per chunk' if self.checksummed else None,
                 'input_names': self.input_names, 'input_units': self.input_units,
                 'output_names': self.output_names, 'output_units': self.output_units,
                 'n_states': self.n_states, 'episodes': eps, 'provenance': self.provenance}

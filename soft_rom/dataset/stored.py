@@ -11,12 +11,18 @@ array :class:`~soft_rom.dataset.TrainingSet` reads is a :class:`StoredArray`, wh
   directory listing), that every uncompressed chunk (``Q``) is a whole chunk, and that every
   blosc-compressed chunk is as long as its header says (numcodecs' blosc trusts that
   header: a truncated chunk decodes to whatever memory follows it, without an error);
+* before every read checks that the chunks it touches are stored (one ``stat`` each), in
+  the process that reads: a chunk deleted after the first check, or a Dask worker that
+  does not see the files (a mount missing on its host), is refused there, not read as zeros;
 * turns every error of a read into a :class:`~soft_rom.errors.DatasetError` that names the
-  training set, the episode and the array, and says what to do.
+  training set, the episode, the array and, where it can tell, the chunk, and says what to
+  do; on a Dask worker every message (and an operating-system error such as a permission
+  denied) also names the worker.
 
-The format has no checksums: bytes overwritten in place by as many other bytes (in an
-uncompressed ``Q`` chunk, or inside a compressed chunk where the codec does not notice) are
-not detected.
+Sets of format version 3 end every chunk with its CRC-32C (:mod:`soft_rom.dataset.checksum`):
+zarr verifies it at every read, so bytes changed on disk are refused (the chunk named).
+Older sets have no checksums: bytes overwritten in place by as many other bytes are not
+detected there.
 """
 
 from __future__ import annotations
@@ -32,9 +38,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import DTypeLike, NDArray
 
-from soft_rom.errors import DatasetError, SoftRomError
+from soft_rom.dataset.checksum import chunk_crc_problem, CODEC_ID, CRC_BYTES, register
+from soft_rom.errors import dask_worker, DatasetError, one_line, SoftRomError
 
-__all__ = ['BadMetadata', 'StoredArray', 'chunk_problem', 'one_line', 'translated']
+__all__ = ['BadMetadata', 'StoredArray', 'chunk_problem', 'dask_worker', 'one_line',
+           'translated']
 
 #: Errors a read lets through unchanged: soft_rom's own, a caller's bad index, the
 #: operating system's (permissions, I/O: the CLI reports those itself) and lack of memory.
@@ -45,12 +53,9 @@ SHOWN = 4
 BLOSC_HEADER = 16
 
 
-def one_line(err: BaseException, limit: int = 300) -> str:
-    """``'Type: message'`` of ``err`` on one line, at most ``limit`` characters."""
-    text = ' '.join(str(err).split())
-    if len(text) > limit:
-        text = text[:limit - 3] + '...'
-    return f'{type(err).__name__}: {text}' if text else type(err).__name__
+def _on_worker() -> str:
+    worker = dask_worker()
+    return f' on Dask worker {worker}' if worker else ''
 
 
 @contextlib.contextmanager
@@ -132,7 +137,9 @@ def chunk_problem(directory: Path, shape: tuple[int, ...],
         return f'{len(missing)} of its {int(np.prod(grid))} chunks are missing ({names})', True
     compressor = meta.get('compressor')
     whole = int(np.prod(chunks)) * np.dtype(meta.get('dtype')).itemsize
-    if compressor is None and not meta.get('filters'):
+    filters = meta.get('filters') or []
+    if compressor is None and filters in ([], [{'id': CODEC_ID}]):
+        whole += CRC_BYTES if filters else 0
         for key in sorted(stored):     # raw chunks (Q): every one is a whole chunk
             size = os.stat(directory / key).st_size
             if size != whole:
@@ -144,6 +151,14 @@ def chunk_problem(directory: Path, shape: tuple[int, ...],
             if problem is not None:
                 return f'chunk {key} {problem}', False
     return None
+
+
+def _listing(directory: Path) -> list[Path]:
+    """The entries of ``directory`` (none if it is missing or unreadable)."""
+    try:
+        return list(directory.iterdir())
+    except OSError:
+        return []
 
 
 def _chunk_files(directory: Path, nested: bool) -> set[str]:
@@ -176,13 +191,17 @@ def _blosc_problem(path: Path, whole: int | None) -> str | None:
 
 
 class StoredArray:
-    """An array of a training set on disk, checked before its first read.
+    """An array of a training set on disk, checked before its first read and at every read.
 
     ``A[key]`` reads like the zarr array it wraps (numpy-style slicing, e.g. the column
     block ``A[:, a:b]``; the result is a fresh numpy array); :meth:`to_dask` gives a dask
     array of the same chunks, whose reads (also on cluster workers) go through this object.
-    Before the first read :meth:`check` verifies that every chunk is stored; any failure to
-    read raises :class:`~soft_rom.errors.DatasetError` naming the set, episode and array.
+    Before the first read :meth:`check` verifies that every chunk is stored; every read
+    first checks that the chunks it touches are stored, and any failure to read (a chunk
+    whose checksum fails, a damaged file) raises :class:`~soft_rom.errors.DatasetError`
+    naming the set, episode, array and chunk. Pickled (to a Dask worker) it carries its
+    folder, not the zarr array: the worker opens the array itself and checks it again, so
+    that what the worker cannot see or read is said there, with the worker's address.
 
     Parameters
     ----------
@@ -204,11 +223,13 @@ class StoredArray:
     dtype : numpy.dtype
     array : zarr.Array
         The raw array (reads of it are neither checked nor translated).
+    checksummed : bool
+        Whether its chunks carry a CRC-32C (format version 3).
     """
 
     def __init__(self, array: Any, directory: Path, label: str, advice: str,
                  missing_hint: str = 'was the copy interrupted?') -> None:
-        self.array = array
+        self._array = array
         self.directory = Path(directory)
         self.label = label
         self.advice = advice
@@ -217,6 +238,32 @@ class StoredArray:
         self.chunks: tuple[int, ...] = tuple(int(c) for c in array.chunks)
         self.dtype = np.dtype(array.dtype)
         self._checked = False
+        self._layout: tuple[str, bool, int | None] | None = None
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        state['_array'] = None           # reopened where it is read
+        state['_checked'] = False        # and checked there again
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+
+    @property
+    def array(self) -> Any:
+        """The zarr array (opened from :attr:`directory` in a process that got a pickle)."""
+        if self._array is None:
+            from soft_rom.dataset._format import _zarr
+            register()
+            zarr = _zarr()
+            with translated(f'{self.label}:', f'{self.advice}',
+                            what=f'its metadata (.zarray) cannot be read{_on_worker()}'):
+                if not (self.directory / '.zarray').is_file():
+                    raise FileNotFoundError(f'{self.directory / ".zarray"} does not exist')
+                kw = {'zarr_format': 2} if int(str(zarr.__version__).split('.')[0]) >= 3 \
+                    else {}
+                self._array = zarr.open_array(str(self.directory), mode='r', **kw)
+        return self._array
 
     @property
     def ndim(self) -> int:
@@ -228,11 +275,31 @@ class StoredArray:
         """Number of elements."""
         return int(np.prod(self.shape))
 
+    @property
+    def checksummed(self) -> bool:
+        """Whether the chunks end with a CRC-32C (the ``crc32c`` filter)."""
+        return self._chunk_layout()[1]
+
     def __len__(self) -> int:
         return self.shape[0] if self.shape else 0
 
     def __repr__(self) -> str:
         return f'<StoredArray {self.directory} shape={self.shape} chunks={self.chunks}>'
+
+    def _chunk_layout(self) -> tuple[str, bool, int | None]:
+        """``(separator, checksummed, raw chunk bytes or None if compressed)``."""
+        if self._layout is None:
+            try:
+                meta = _zarray(self.directory)
+            except (BadMetadata, OSError, ValueError):
+                meta = {}
+            filters = meta.get('filters') or []
+            raw = None
+            if meta.get('compressor') is None:
+                raw = int(np.prod(self.chunks)) * self.dtype.itemsize
+            self._layout = (meta.get('dimension_separator') or '.',
+                            {'id': CODEC_ID} in filters, raw)
+        return self._layout
 
     def check(self) -> None:
         """Verify once that every chunk is stored and whole; DatasetError if not."""
@@ -242,20 +309,165 @@ class StoredArray:
             found = chunk_problem(self.directory, self.shape, self.chunks)
         except BadMetadata as err:
             found = (str(err), False)
-        except PASS_THROUGH:
-            raise
+            worker = dask_worker()
+            if worker and not any(p.name != '.zarray' for p in _listing(self.directory)):
+                first = self._name((0,) * self.ndim)
+                raise DatasetError(
+                    f'{self.label}: its folder {self.directory} is missing or empty on Dask '
+                    f'worker {worker}: no .zarray, and chunk {first} and every other chunk '
+                    'are missing (does this worker see the same storage as the client? a '
+                    f'mount missing on its host?); {self.advice}') from err
+        except PASS_THROUGH as err:
+            raise self._located(err) from err
         except Exception as err:  # noqa: BLE001 - json and numpy raise many kinds
             found = (f'its metadata cannot be read ({one_line(err)})', False)
         if found is not None:
             problem, missing = found
-            hint = f' ({self.missing_hint})' if missing else ''
-            raise DatasetError(f'{self.label}: {problem}{hint}; {self.advice}')
+            raise DatasetError(f'{self.label}: {problem}{_on_worker()}'
+                               f'{self._hint() if missing else ""}; {self.advice}')
         self._checked = True
+
+    def _hint(self) -> str:
+        if dask_worker():
+            return (f' (does this worker see the same storage as the client? '
+                    f'{self.missing_hint})')
+        return f' ({self.missing_hint})'
+
+    def _located(self, err: BaseException) -> BaseException:
+        """``err`` (an operating-system error) naming the Dask worker, when on one."""
+        where = _on_worker()
+        if not where or not isinstance(err, OSError) or err.errno is None:
+            return err
+        try:
+            return type(err)(err.errno, f'{err.strerror}{where}', err.filename)
+        except Exception:  # noqa: BLE001 - an OSError subclass with another signature
+            return err
+
+    def _touched(self, key: Any) -> list[tuple[int, ...]] | None:
+        """Chunk indices a basic-slicing ``key`` reads (``None``: another kind of key)."""
+        key = key if isinstance(key, tuple) else (key,)
+        ell = [i for i, k in enumerate(key) if k is Ellipsis]
+        if len(ell) > 1:
+            return None
+        if ell:
+            i = ell[0]
+            key = key[:i] + (slice(None),) * (self.ndim - len(key) + 1) + key[i + 1:]
+        if len(key) > self.ndim:
+            return None
+        key = key + (slice(None),) * (self.ndim - len(key))
+        ranges = []
+        for k, size, c in zip(key, self.shape, self.chunks):
+            if isinstance(k, slice):
+                start, stop, step = k.indices(size)
+                if step != 1:
+                    return None
+                if stop <= start:
+                    return []
+                ranges.append(range(start // c, (stop - 1) // c + 1))
+            elif isinstance(k, (int, np.integer)) and not isinstance(k, bool):
+                v = int(k) + (size if k < 0 else 0)
+                if not 0 <= v < size:
+                    return None
+                ranges.append(range(v // c, v // c + 1))
+            else:
+                return None
+        return list(itertools.product(*ranges))
+
+    def _name(self, idx: tuple[int, ...]) -> str:
+        return self._chunk_layout()[0].join(str(i) for i in idx) or '0'
+
+    def _require(self, touched: list[tuple[int, ...]] | None) -> None:
+        """Every chunk of ``touched`` (``None``: all) is stored; DatasetError if not."""
+        if touched is None:
+            grid = [range(-(-s // c)) for s, c in zip(self.shape, self.chunks)]
+            touched = list(itertools.product(*grid))
+        missing = []
+        for idx in touched:
+            name = self._name(idx)
+            try:
+                os.stat(self.directory / name)
+            except FileNotFoundError:
+                missing.append(name)
+            except OSError as err:
+                raise self._located(err) from err
+        if missing:
+            names = ', '.join(missing[:SHOWN]) + (', ...' if len(missing) > SHOWN else '')
+            what = f'chunk {names} is missing' if len(missing) == 1 else \
+                f'chunks {names} are missing'
+            raise DatasetError(f'{self.label}: {what}{_on_worker()}{self._hint()}; '
+                               f'{self.advice}')
+
+    def _bad_chunk(self, touched: list[tuple[int, ...]] | None) -> str | None:
+        """Which chunk of ``touched`` cannot be read and why (after a failed read)."""
+        if touched is None:
+            grid = [range(-(-s // c)) for s, c in zip(self.shape, self.chunks)]
+            touched = list(itertools.product(*grid))
+        _sep, checksummed, raw = self._chunk_layout()
+        for idx in touched:
+            name = self._name(idx)
+            try:
+                if checksummed and raw is not None:
+                    problem = chunk_crc_problem(self.directory / name, raw)
+                else:
+                    region = tuple(slice(i * c, min((i + 1) * c, s))
+                                   for i, c, s in zip(idx, self.chunks, self.shape))
+                    try:
+                        self.array[region]
+                        problem = None
+                    except PASS_THROUGH:
+                        raise
+                    except Exception as err:  # noqa: BLE001 - the codecs raise many kinds
+                        problem = f'cannot be decoded ({one_line(err)})'
+                        if 'checksum' in str(err):
+                            problem = ('fails its CRC-32C checksum (its bytes changed on '
+                                       'disk)')
+            except OSError:
+                continue
+            if problem is not None:
+                return f'chunk {name} {problem}'
+        return None
+
+    def verify(self) -> None:
+        """Check every chunk against its checksum (reads the whole array); DatasetError if not.
+
+        Uncompressed chunks are read file by file (no array is built); compressed ones are
+        decoded by zarr, which verifies them. Without checksums only :meth:`check` runs.
+        """
+        self.check()
+        _sep, checksummed, raw = self._chunk_layout()
+        if not checksummed:
+            return
+        if raw is None:
+            self[...]
+            return
+        grid = [range(-(-s // c)) for s, c in zip(self.shape, self.chunks)]
+        for idx in itertools.product(*grid):
+            name = self._name(idx)
+            try:
+                problem = chunk_crc_problem(self.directory / name, raw)
+            except FileNotFoundError:
+                problem = 'is missing'
+            except OSError as err:
+                raise self._located(err) from err
+            if problem is not None:
+                raise DatasetError(f'{self.label}: chunk {name} {problem}{_on_worker()}; '
+                                   f'{self.advice}')
 
     def __getitem__(self, key: Any) -> Any:
         self.check()
-        with translated(self.label, self.advice):
+        touched = self._touched(key)
+        self._require(touched)
+        try:
             return self.array[key]
+        except PASS_THROUGH as err:
+            located = self._located(err)
+            if located is err:
+                raise
+            raise located from err
+        except Exception as err:  # noqa: BLE001 - zarr, numcodecs raise many kinds
+            bad = self._bad_chunk(touched)
+            what = bad if bad is not None else f'cannot be read ({one_line(err)})'
+            raise DatasetError(f'{self.label}: {what}{_on_worker()}; {self.advice}') from err
 
     def __array__(self, dtype: DTypeLike | None = None,
                   copy: bool | None = None) -> NDArray[Any]:

@@ -27,6 +27,7 @@ from soft_rom.dataset._format import (
     Q_CHUNK_COLS,
     Q_CHUNK_ROWS,
 )
+from soft_rom.dataset.checksum import CODEC_ID
 from soft_rom.dataset.chunks import ChunkFileWriter
 from soft_rom.errors import DatasetError, DimensionError
 
@@ -183,11 +184,11 @@ class EpisodeWriter:
             raise DatasetError(f'episode {self.name!r}: Q array metadata unreadable in '
                                f'{directory} ({err}).') from err
         if (meta.get('zarr_format') != 2 or meta.get('compressor') is not None
-                or meta.get('filters') or meta.get('order') != 'F'
+                or meta.get('filters') != [{'id': CODEC_ID}] or meta.get('order') != 'F'
                 or meta.get('dtype') != '<f8' or list(meta.get('chunks', [])) != list(chunks)):
             raise DatasetError(f'episode {self.name!r}: zarr created Q with an unexpected '
                                f'layout {meta}; the chunk writer needs uncompressed, Fortran '
-                               'order, float64 zarr v2 chunks.')
+                               'order, float64 zarr v2 chunks with the crc32c filter.')
         return ChunkFileWriter(directory, n, chunks, meta.get('dimension_separator') or '.')
 
     def discard(self) -> None:

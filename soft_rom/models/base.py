@@ -17,8 +17,8 @@ the bounded reader of :mod:`soft_rom.models.files`. See
 :func:`load_model`.
 
 A model that loads may still not deserve trust (unstable, indefinite stiffness or damping,
-absurd offsets): :meth:`LinearROM.trust_issues` says why; ``load_model(..., strict=True)``
-refuses such models.
+absurd offsets or gain): :meth:`LinearROM.trust_issues` says why;
+``load_model(..., strict=True)`` refuses such models.
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.data import all_finite, as_signal
 from soft_rom.errors import DimensionError, ModelFileError
+from soft_rom.gain import gain_issue
 from soft_rom.models.archive import valid_text
 from soft_rom.models.files import _META_KEY, FORMAT_NAME, FORMAT_VERSION, MAX_STATES, read_model
 
@@ -352,7 +353,10 @@ class LinearROM(ABC):
         unstable (spectral radius of ``A`` above ``1 + tol``), the output offsets are absurd
         (``|y_ref| >`` :data:`ABSURD_OFFSET`), and for LOpInf models an eigenvalue of the
         continuous system with positive real part and a stiffness ``K`` or damping ``C``
-        that is not symmetric positive semidefinite. Computed once, then cached.
+        that is not symmetric positive semidefinite. A stable model whose steady state, for
+        inputs held within the training range, moves an output by more than
+        :data:`~soft_rom.gain.GAIN_FACTOR` times the largest training deviation has an
+        absurd gain (:func:`soft_rom.gain.gain_issue`). Computed once, then cached.
         """
         if self._trust is None:
             self._trust = self._check_trust()
@@ -371,6 +375,10 @@ class LinearROM(ABC):
         elif margin < -TRUST_TOL:
             issues.append(f'unstable: spectral radius of the discrete A is {1 - margin:.6g} '
                           f'> 1 at dt = {self.dt:g} s')
+        else:
+            gain = gain_issue(self)
+            if gain is not None:
+                issues.append(gain)
         if self.y_ref.size:
             peak = float(np.max(np.abs(self.y_ref)))
             if peak > ABSURD_OFFSET:

@@ -30,10 +30,8 @@ exact for the cubic ``∇V_nl``). Properties:
   ``h Ã / 2`` the Cayley inverse of ``A_d``; ``A_d`` is a ``P``-contraction, so the symmetric
   part of ``S̄`` is negative semidefinite;
 * second order (symmetric), implicit in ``q_{n+1}``: ``r`` unknowns, solved by Newton's method
-  warm-started from the previous step, with step halving as a fallback.
-
-The extended Kalman correction uses :meth:`CubicSecondOrderModel.step_jacobian`, the exact
-derivative of this step map.
+  warm-started from the previous step, with step halving as a fallback; its exact derivative
+  (:meth:`CubicSecondOrderModel.step_jacobian`) serves the extended Kalman correction.
 """
 
 from __future__ import annotations
@@ -47,6 +45,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.data import as_signal
 from soft_rom.errors import DimensionError, SolverError
+from soft_rom.gain import gain_issue
 from soft_rom.models.base import _arr, _leading, DiscreteSystem, LinearROM
 from soft_rom.models.files import register_model_class
 from soft_rom.models.linear import SecondOrderModel
@@ -485,6 +484,10 @@ class CubicSecondOrderModel(LinearROM):
 
     def _check_trust(self) -> list[str]:
         issues = self._linear._check_trust()
+        if not any(i.startswith('unstable') for i in issues):
+            gain = gain_issue(self)          # its equilibria, not its linear part's
+            if gain is not None:
+                issues.append(gain)
         if self.r <= 16:      # certificate cost grows like r^6
             t, _how = quartic_lower_bound(self.H, target=0.0)
             if not t > 0:

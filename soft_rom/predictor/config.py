@@ -60,7 +60,11 @@ class PredictorConfig:
     error_metric : {'deviation', 'absolute'}
         Which windowed error is compared with the thresholds.
     warn_threshold, error_threshold : float
-        Windowed relative error above which the health is ``WARN`` / ``ERROR``.
+        Windowed relative error above which the health is ``WARN`` / ``ERROR``; ``0``
+        (default): a multiple of the model's held-out error recorded in its file (2 x and
+        4 x; files without one: 0.1 and 0.3), see
+        :class:`~soft_rom.predictor.thresholds.Thresholds`. Where both are set,
+        ``warn_threshold`` must not exceed ``error_threshold``.
     initial_state : {'reference', 'measured'}
         Start (and restart after a reset) at the reference, or at the least-squares state
         of the first measured output.
@@ -115,8 +119,8 @@ class PredictorConfig:
     error_window: int = 100
     error_window_s: float = 2.0
     error_metric: str = 'deviation'
-    warn_threshold: float = 0.1
-    error_threshold: float = 0.3
+    warn_threshold: float = 0.0
+    error_threshold: float = 0.0
     initial_state: str = 'reference'
     kalman: bool = False
     process_noise: float = 1e-6
@@ -154,7 +158,7 @@ class PredictorConfig:
             value = getattr(self, name)
             if not (_number(value) and math.isfinite(value) and value > 0):
                 raise bad(name, 'a finite number > 0')
-        if self.warn_threshold > self.error_threshold:
+        if 0 < self.error_threshold < self.warn_threshold:
             raise ConfigError(f'warn_threshold ({self.warn_threshold}) must not exceed '
                               f'error_threshold ({self.error_threshold}).')
         for name in ('error_window', 'max_catchup_steps'):

@@ -77,6 +77,7 @@ from soft_rom.predictor.envelope import Envelopes
 from soft_rom.predictor.health import assess
 from soft_rom.predictor.monitor import ErrorMonitor
 from soft_rom.predictor.stepping import _HISTORY, _ok_ns, Stepping, to_ns
+from soft_rom.predictor.thresholds import Thresholds
 
 __all__ = ['COUNTERS', 'MAX_QUEUED_MEASUREMENTS', 'Predictor', 'to_ns']
 
@@ -150,6 +151,7 @@ class Predictor(Stepping):
             model = load_model(model)
         self._dyn = Dynamics(model, self.config, path)
         self._env = Envelopes(model, self.config)
+        self.thresholds = Thresholds(model, self.config)
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.emit_outputs = False
         self._emitted: list[tuple[int, Array]] = []
@@ -192,6 +194,7 @@ class Predictor(Stepping):
         """Model description (``~/model_info``) with the envelopes and the correction in force."""
         info = dict(self._dyn.info)
         info['envelope'] = self._env.summary()
+        info['monitor'] = self.thresholds.summary()
         info['kalman'] = bool(self.config.kalman)
         return info
 
@@ -244,6 +247,7 @@ class Predictor(Stepping):
         old_u, old_ch = self.u, self.channels
         t = self.t_ns
         self._dyn, self._env, self.config = dyn, env, config
+        self.thresholds = Thresholds(dyn.model, config)
         self._init_buffers()
         if old_u.shape == self.u.shape:
             self.u[:] = old_u
@@ -268,6 +272,7 @@ class Predictor(Stepping):
             self._swap(dyn, Envelopes(self.model, config), config)
             return
         self.config = config
+        self.thresholds = Thresholds(self.model, config)
         if (config.error_window, config.error_window_s) != (old.error_window,
                                                             old.error_window_s):
             self._monitor = ErrorMonitor(config.error_window, int(config.error_window_s * 1e9))

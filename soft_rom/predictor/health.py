@@ -4,15 +4,17 @@ Reasons, worst first:
 
 * ``ERROR`` -- the prediction diverged (outside the output envelope or non-finite) within
   the last ``alarm_hold_s`` (or still is, without ``auto_reset``); the windowed error is
-  above ``error_threshold``;
+  above the error threshold (``error_threshold``, by default a multiple of the model's
+  held-out error: :class:`~soft_rom.predictor.thresholds.Thresholds`);
 * ``STALE`` -- an input has not sent a value yet, or is silent for longer than
   ``input_timeout_s``; measurements were seen but none is left in the window
   (``error_window_s``);
-* ``WARN`` -- within the last ``alarm_hold_s``: a dropped message, an input clipped to its
-  envelope, a measurement outside the output envelope, stamped more than ``clock_reset_s``
-  ahead of the model time or beyond the queue bound, a clock stall or jump; the model
-  is unstable or not trusted (``model.trust_issues()``); the windowed error is above
-  ``warn_threshold``.
+* ``WARN`` -- within the last ``alarm_hold_s``: a dropped message, an input that arrived after
+  its step was taken (``late``: the prediction departs from the offline simulation), an input
+  clipped to its envelope, a measurement outside the output envelope, stamped more than
+  ``clock_reset_s`` ahead of the model time or beyond the queue bound, a clock stall or jump;
+  the model is unstable or not trusted (``model.trust_issues()``); the windowed error is above
+  the warn threshold.
 """
 
 from __future__ import annotations
@@ -25,7 +27,8 @@ from soft_rom.predictor.config import Health
 
 __all__ = ['assess']
 
-_ALARM_LEVEL = {'dropped': 1, 'clipped': 1, 'measured': 1, 'clock': 1, 'diverged': 2}
+_ALARM_LEVEL = {'dropped': 1, 'clipped': 1, 'measured': 1, 'clock': 1, 'late': 1,
+                'diverged': 2}
 
 
 def assess(pred: Any, now_ns: int | None, Level: Any, severity: dict[Any, int]) -> Health:
@@ -58,13 +61,14 @@ def assess(pred: Any, now_ns: int | None, Level: Any, severity: dict[Any, int]) 
                                     f'{pred._dyn.info["stability_margin"]:.3g} < 0)'))
     e_abs, e_dev = pred.windowed_errors(now_ns)
     err = e_dev if cfg.error_metric == 'deviation' else e_abs
+    thr = pred.thresholds
     if math.isfinite(err):
-        if err > cfg.error_threshold:
+        if err > thr.error:
             reasons.append((Level.ERROR, f'{cfg.error_metric} error {err:.3g} > '
-                                         f'{cfg.error_threshold:g}'))
-        elif err > cfg.warn_threshold:
+                                         f'{thr.error:.3g}{thr.error_why}'))
+        elif err > thr.warn:
             reasons.append((Level.WARN, f'{cfg.error_metric} error {err:.3g} > '
-                                        f'{cfg.warn_threshold:g}'))
+                                        f'{thr.warn:.3g}{thr.warn_why}'))
     elif pred._monitor.seen and ch.measured_newest is not None and now_ns is not None:
         age = (now_ns - ch.measured_newest) * 1e-9
         reasons.append((Level.STALE, f'no measurement for {age:.2f} s (window '
@@ -82,6 +86,8 @@ def assess(pred: Any, now_ns: int | None, Level: Any, severity: dict[Any, int]) 
         'kalman': int(pred._dyn.L is not None),
         'stepping': cfg.stepping,
         'output_bound': pred.envelopes.y_bound,
+        'warn_threshold': thr.warn,
+        'error_threshold': thr.error,
         'measured_queued': pred._queued_measurements,
     }
     values.update(pred.counters)

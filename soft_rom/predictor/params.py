@@ -104,9 +104,11 @@ PARAMS: tuple[Param, ...] = (
           range=(1, 1000000), read_only=False),
     Param('error_metric', 'deviation', 'Error held against the thresholds: deviation (from '
           'y_ref) or absolute.', read_only=False, choices=('deviation', 'absolute')),
-    Param('warn_threshold', 0.1, 'Windowed relative error above which status is WARN.',
+    Param('warn_threshold', 0.0, 'Windowed relative error above which status is WARN; 0 = '
+          "2 x the model's held-out error recorded in its file (0.1 for files without it).",
           range=(0.0, 100.0), read_only=False),
-    Param('error_threshold', 0.3, 'Windowed relative error above which status is ERROR.',
+    Param('error_threshold', 0.0, 'Windowed relative error above which status is ERROR; 0 = '
+          "4 x the model's held-out error recorded in its file (0.3 for files without it).",
           range=(0.0, 100.0), read_only=False),
     Param('initial_state', 'reference', 'reference, or measured (from the first measured '
           'centerline).', read_only=False, choices=('reference', 'measured')),

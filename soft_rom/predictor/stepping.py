@@ -95,8 +95,7 @@ class Stepping:
         if self._k is None:
             self._anchor(stamp_ns)
         elif stamp_ns < self._time_of(self._k):
-            self.counters['late'] += 1
-            self.channels.late_one(index)
+            self._late(index, stamp_ns)
         else:
             self._advance_ns(stamp_ns)
         self._latch(index, value)
@@ -163,7 +162,8 @@ class Stepping:
         self.x = A @ self.x + B @ self.u
         self._origin, self._k = t_ns, 0
         self.counters['steps'] += 1
-        self._check_output(t_ns)
+        if self._check_output(t_ns) and self.emit_outputs:
+            self._emitted.append((t_ns, self._output_into(np.empty(d.p))))
         return 1
 
     def _limit_catchup(self, n: int) -> int:
@@ -195,8 +195,34 @@ class Stepping:
             self._k += 1
 
     def _steps(self, n: int) -> None:
+        """``n`` steps; with clocked stepping each one's output is emitted (every step)."""
+        if not self.emit_outputs or self.config.stepping == 'event':
+            for _ in range(n):
+                self.step()
+            return
         for _ in range(n):
             self.step()
+            t_ns = self.t_ns
+            assert t_ns is not None                 # steps are taken only once anchored
+            self._emitted.append((t_ns, self._output_into(np.empty(self._dyn.p))))
+
+    def _late(self, index: int | None, stamp_ns: int) -> None:
+        """An input for a step already taken: counted, and a WARN while it is recent.
+
+        It is applied from the current step on, so the prediction departs from the offline
+        simulation of the same inputs (a pause of the node longer than ``max_lag_s``, an
+        input faster than the step rate).
+        """
+        self.counters['late'] += 1
+        self.channels.late_one(index)
+        assert self._k is not None                  # late only once anchored
+        lag = (self._time_of(self._k) - stamp_ns) * 1e-9
+        names = self.model.input_names
+        name = 'all inputs' if index is None else f'input {names[index]}'
+        self._alarm('late', None, f'{self.counters["late"]} input(s) arrived after their step '
+                                  f'was taken (the last: {name}, {lag * 1e3:.3g} ms behind '
+                                  'the model); they are applied late and the prediction '
+                                  'departs from the offline simulation')
 
     # -- event stepping ------------------------------------------------------------------
     def _take_event(self, index: int | None, value: Any, stamp_ns: int) -> None:
@@ -223,8 +249,7 @@ class Stepping:
                                          value))
         else:
             if s < self._k or self._done:
-                self.counters['late'] += 1
-                self.channels.late_one(index)
+                self._late(index, stamp_ns)
             self._latch(index, value)
             self._update_Bu()
         self._release(self._target())

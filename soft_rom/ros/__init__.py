@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import sys
 
-__all__ = ['main']
+__all__ = ['controller_main', 'main', 'plant_main']
 
-NO_ROS = ('predictor: the ROS 2 Jazzy Python packages are not importable ({err}); source '
+NO_ROS = ('{exe}: the ROS 2 Jazzy Python packages are not importable ({err}); source '
           '/opt/ros/jazzy/setup.bash (apt) or install the ros extra (pip install '
           "'soft_rom[ros]', Python 3.11).")
 
@@ -24,6 +24,26 @@ def main(args: list[str] | None = None) -> int:
     try:
         from soft_rom.ros.predictor_node import main as node_main
     except ImportError as err:
-        print(NO_ROS.format(err=err), file=sys.stderr)
+        print(NO_ROS.format(exe='predictor', err=err), file=sys.stderr)
+        return 2
+    return node_main(args)
+
+
+def controller_main(args: list[str] | None = None) -> int:
+    """Entry point of ``controller`` / ``ros2 run soft_rom controller`` (MPC node)."""
+    try:
+        from soft_rom.ros.controller_node import main as node_main
+    except ImportError as err:
+        print(NO_ROS.format(exe='controller', err=err), file=sys.stderr)
+        return 2
+    return node_main(args)
+
+
+def plant_main(args: list[str] | None = None) -> int:
+    """Entry point of ``plant`` / ``ros2 run soft_rom plant`` (the eel FOM as a node)."""
+    try:
+        from soft_rom.ros.plant_node import main as node_main
+    except ImportError as err:
+        print(NO_ROS.format(exe='plant', err=err), file=sys.stderr)
         return 2
     return node_main(args)

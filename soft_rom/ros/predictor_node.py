@@ -9,6 +9,8 @@ and publishes what it returns:
   decimated, and with each one ``~/output_stamped`` (``sensor_msgs/JointState``:
   ``header.stamp`` = the model time of that prediction, ``name`` = the model's output names,
   ``position`` = the outputs), so that each prediction is paired with its model time;
+* ``~/state`` (``sensor_msgs/JointState``): the ROM state estimate after each batch of
+  steps (deviation coordinates; ``header.stamp`` = its model time), for controllers;
 * ``~/centerline`` (``geometry_msgs/PoseArray``) and ``~/centerline_marker``
   (``visualization_msgs/Marker`` LINE_STRIP, ns ``predicted``; ns ``measured`` when a
   measured centerline is known) at their own rate ``centerline_rate_hz`` (default 30 Hz);
@@ -262,6 +264,10 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
             f'{model.n_outputs} outputs, dt={model.dt:g} s) from {pred.info["path"]}; '
             f'step {pred.h:g} s, {how}'
             + (', Kalman correction on' if pred.config.kalman else ''))
+        trust = pred.info.get('trust') or []
+        if trust:
+            self.get_logger().warning('model not trusted (its predictions may be absurd; '
+                                      'strict_model:=true refuses it): ' + '; '.join(trust))
         self._start_timer()
         self._publish_info()
 
@@ -294,8 +300,10 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
         self._pub_error = pub(Float64, '~/error', 10)
         self._pub_diag = pub(DiagnosticArray, '/diagnostics', 10)
         self._pub_info = pub(String, '~/model_info', self._latched)
+        self._pub_state = pub(JointState, '~/state', 10)
         ents: list[Any] = [self._pub_output, self._pub_output_stamped, self._pub_centerline,
-                           self._pub_marker, self._pub_error, self._pub_diag, self._pub_info]
+                           self._pub_marker, self._pub_error, self._pub_diag, self._pub_info,
+                           self._pub_state]
         ents.append(self.create_service(Trigger, '~/reset', self._on_reset))
         qos = self._input_qos()
         if s.input_mode == 'per_chamber':
@@ -360,6 +368,9 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
         self._stamped_msg = JointState()
         self._stamped_msg.header.frame_id = frame
         self._stamped_msg.name = list(model.output_names)
+        self._state_msg = JointState()
+        self._state_msg.header.frame_id = frame
+        self._state_msg.name = [f'x{i}' for i in range(model.n_states)]
 
     def _make_marker(self, kind: str, n: int) -> Marker:
         ns, marker_id, rgba, width = MARKER_STYLES[kind]
@@ -432,10 +443,23 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
             sm.header.stamp.sec, sm.header.stamp.nanosec = sec, nsec
             sm.position = out.data
             self._pub_output_stamped.publish(sm)
+        if pub.outputs:
+            self._publish_state()
         if pub.centerline is not None:
             self._publish_centerline(*pub.centerline, pub.measured_points, pub.error)
         if pub.diagnostics_due:
             self._publish_diagnostics(self._now_ns())
+
+    def _publish_state(self) -> None:
+        """``~/state``: the ROM state estimate (deviations) stamped with its model time."""
+        loop = self.loop
+        t_ns = None if loop is None else loop.predictor.t_ns
+        if loop is None or t_ns is None:
+            return
+        msg = self._state_msg
+        msg.header.stamp.sec, msg.header.stamp.nanosec = ns_to_stamp(t_ns)
+        msg.position = array_to_data(np.asarray(loop.predictor.x, dtype=np.float64))
+        self._pub_state.publish(msg)
 
     def _publish_centerline(self, t_ns: int, pts: np.ndarray, measured: np.ndarray | None,
                             error: float | None) -> None:

@@ -37,16 +37,17 @@ step,
     (M + h C + h^2 K_t)\, v_{n+1} = M v_n + h \left(f(x_n) + B(x_n) u_n\right),
     \qquad x_{n+1} = x_n + h v_{n+1},
 
-with ``K_t`` the rest stiffness ``K_0`` (``jacobian='rest'``, default: one
-back-substitution per step with the banded Cholesky factor of ``M + hC + h^2 K_0``, computed
-once) or SOFA's warped corotational stiffness at ``x_n`` (``jacobian='corotated'``: conjugate
-gradients preconditioned by that same factor, matrix-free products, 2-6 iterations per
-step). Both are consistent first-order schemes for the same ODE (the nonlinearity is
-entirely in ``f(x_n)``). Measured on Ep 1 against a 4x finer time step (corotated tangent):
-relative deviation error 1.3 % with ``'rest'`` and 1.0 % with ``'corotated'``, the latter
-costing about 2.4x more per step (``benchmarks/bench_sim.py episodes``); hence ``'rest'``
-by default. Input ``u_n`` is held over ``[t_n, t_{n+1})``; sample
-``n`` records ``(t_n, u_n, x_n)``, the convention of :mod:`soft_rom.models`.
+with ``K_t`` the rest stiffness ``K_0`` (``jacobian='rest'``, default: one back-substitution
+per step with the Cholesky factor of ``M + hC + h^2 K_0``, computed once: CHOLMOD's with the
+``fast`` extra, else LAPACK's banded one) or SOFA's warped corotational stiffness at ``x_n``
+(``jacobian='corotated'``: conjugate gradients preconditioned by that same factor,
+matrix-free products, 2-6 iterations per step). Both are consistent first-order schemes for
+the same ODE (the nonlinearity is entirely in ``f(x_n)``). Measured on Ep 1 against a 4x
+finer time step (corotated tangent): relative deviation error 1.3 % with ``'rest'`` and 1.0
+% with ``'corotated'``, the latter costing about 2.4x more per step
+(``benchmarks/bench_sim.py episodes``); hence ``'rest'`` by default. Input ``u_n`` is held
+over ``[t_n, t_{n+1})``; sample ``n`` records ``(t_n, u_n, x_n)``, the convention of
+:mod:`soft_rom.models`.
 
 Outputs: 20 centerline points from ``x = 0`` to the tail tip, each the mean of the nodes of
 the nearest grid cross-sections, linearly interpolated along ``x`` (a fixed sparse map of the
@@ -55,7 +56,7 @@ nodal positions). The linear-model output vector is ``[x_1..x_20, z_1..z_20]`` (
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field, replace
 import functools
 import time
@@ -73,7 +74,8 @@ from soft_rom.sim.fem import CorotationalFEM
 from soft_rom.sim.inputs import DEFAULT_AMPLITUDE, random_pressures
 from soft_rom.sim.mesh import box_grid, cavity_faces, TetMesh, tetrahedralize
 
-__all__ = ['EelConfig', 'EelModel', 'Linearization', 'SimulationResult', 'StepCallback',
+__all__ = ['EelConfig', 'EelModel', 'EelStepper', 'LINEAR_SOLVERS', 'Linearization',
+           'SimulationResult', 'StepCallback', 'cholmod_available', 'memory_estimate',
            'simulate_episode']
 
 Array = NDArray[np.float64]
@@ -302,7 +304,7 @@ class EelModel:
         self.free = np.repeat(self.mesh.nodes[:, 0] > 1e-12 * cfg.length, 3)
         self.centerline_map = self._centerline_map(xs)
         self._K0: sp.csr_matrix | None = None
-        self._factor: dict[float, tuple] = {}
+        self._factor: dict[tuple[float, str], tuple] = {}
 
     # ------------------------------------------------------------------ operators
     def _triangle_forces(self, x: Array) -> Array:
@@ -393,21 +395,39 @@ class EelModel:
         return Linearization(M=M, C=C, K=K, B=B, E=E, q_ref=self.q_ref.copy(),
                              y_ref=E @ self.q_ref, free=self.free.copy())
 
-    def _rest_factor(self, dt: float) -> tuple[_SPDFactor, sp.csr_matrix, Array]:
-        if dt not in self._factor:
+    def _rest_factor(self, dt: float,
+                     solver: str = 'auto') -> tuple[_SPDFactor, sp.csr_matrix, Array]:
+        if (dt, solver) not in self._factor:
             cfg = self.config
             K = self.stiffness()[self.free][:, self.free].tocsr()
             m = np.repeat(self.fem.mass, 3)[self.free]
             A = (sp.diags(m * (1 + dt * cfg.rayleigh_mass))
                  + (dt * cfg.rayleigh_stiffness + dt * dt) * K)
-            self._factor = {dt: (_SPDFactor(A), K, m)}
-        return self._factor[dt]
+            self._factor = {(dt, solver): (_SPDFactor(A, solver), K, m)}
+        return self._factor[dt, solver]
 
     # ------------------------------------------------------------------ simulation
+    def stepper(self, dt: float = 1e-3, *, jacobian: str = 'rest', linear: bool = False,
+                cg_rtol: float = 1e-8, cg_maxiter: int = 50,
+                linear_solver: str = 'auto') -> EelStepper:
+        """A time stepper at rest (``q = q_ref``, ``v = 0``) that takes one input at a time.
+
+        :meth:`simulate` runs the same stepper over a whole input sequence; a closed loop
+        (:mod:`soft_rom.control`) computes each input from the outputs so far. Arguments as
+        in :meth:`simulate`.
+        """
+        if jacobian not in ('corotated', 'rest'):
+            raise ConfigError(f"jacobian must be 'corotated' or 'rest'; got {jacobian!r}.")
+        if not dt > 0:
+            raise ConfigError(f'need dt > 0; got {dt}.')
+        return EelStepper(self, float(dt), jacobian=jacobian, linear=linear, cg_rtol=cg_rtol,
+                          cg_maxiter=cg_maxiter, linear_solver=linear_solver)
+
     def simulate(self, pressures: ArrayLike | Callable[[float], ArrayLike], n_steps: int,
                  dt: float = 1e-3, *, jacobian: str = 'rest', linear: bool = False,
                  store_states: bool = False, callback: StepCallback | None = None,
-                 cg_rtol: float = 1e-8, cg_maxiter: int = 50) -> SimulationResult:
+                 cg_rtol: float = 1e-8, cg_maxiter: int = 50,
+                 linear_solver: str = 'auto') -> SimulationResult:
         """Integrate from rest (``q = q_ref``, ``v = 0``) for ``n_steps`` samples.
 
         One method of about 115 lines: the implicit time loop (corotated forces, Newton
@@ -434,6 +454,10 @@ class EelModel:
             sample, to stream states (e.g. into a bag) without holding them.
         cg_rtol, cg_maxiter : float, int
             Conjugate-gradient tolerance (relative residual) and cap (corotated tangent).
+        linear_solver : {'auto', 'cholmod', 'banded'}
+            Factorization of the rest system (:class:`_SPDFactor`): CHOLMOD when installed
+            (``'auto'``), else LAPACK's banded Cholesky. Both give the same trajectories to
+            round-off; CHOLMOD is faster on large meshes.
 
         Returns
         -------
@@ -457,72 +481,201 @@ class EelModel:
         if not all_finite(U):
             raise DimensionError('pressures contain NaN or Inf.')
 
-        cfg = self.config
         t0 = time.perf_counter()
-        lu, K0f, m = self._rest_factor(dt)
+        stepper = self.stepper(dt, jacobian=jacobian, linear=linear, cg_rtol=cg_rtol,
+                               cg_maxiter=cg_maxiter, linear_solver=linear_solver)
         t_factor = time.perf_counter() - t0
-        free = self.free
-        fem = self.fem
-        X = self.mesh.nodes
-        x = X.copy()
-        v = np.zeros(self.n_dof)
-        follower = cfg.follower and not linear
-        BU = None if follower else (self.B @ U)[free]      # (n_free, k)
-        alpha, beta = cfg.rayleigh_mass, cfg.rayleigh_stiffness
-        h = dt
-        W = self.centerline_map
         t = np.arange(n_steps, dtype=np.float64) * dt
+        W = self.centerline_map
         centerline = np.empty((W.shape[0], 3, n_steps))
         states = np.empty((self.n_nodes, 3, n_steps)) if store_states else None
-        cg_iters = 0
-        cg_worst = 0.0
-
-        def apply_A(R: list[Array], p_free: Array) -> Array:
-            full = np.zeros(self.n_dof)
-            full[free] = p_free
-            kw = fem.warped_matvec(R, full.reshape(-1, 3)).ravel()[free]
-            return m * (1 + h * alpha) * p_free + h * beta * (K0f @ p_free) + h * h * kw
-
+        BU = None if stepper.follower else (self.B @ U)[self.free]      # (n_free, k)
         for j in range(n_steps):
-            centerline[:, :, j] = W @ x
+            centerline[:, :, j] = stepper.centerline()
             if states is not None:
-                states[:, :, j] = x
+                states[:, :, j] = stepper.x
             if callback is not None:
-                callback(j, float(t[j]), U[:, j], centerline[:, :, j], x)
-            if linear:
-                f = -(K0f @ (x - X).ravel()[free])
-                R = None
-            elif jacobian == 'corotated':
-                f_all, R3 = fem.elastic_force(x, return_rotations=True)
-                R = fem.rotation_entries(R3)
-                f = f_all.ravel()[free]
-            else:
-                f = fem.elastic_force(x).ravel()[free]
-                R = None
-            if BU is None:
-                fp = self.pressure_force(x, U[:, j]).ravel()[free]
-            else:
-                fp = BU[:, j]
-            rhs = m * v[free] + h * (f + fp)
-            vf = lu.solve(rhs)
-            if R is not None:
-                vf, it, res = _pcg(functools.partial(apply_A, R), lu.solve, rhs, vf, cg_rtol,
-                                   cg_maxiter)
-                cg_iters += it
-                cg_worst = max(cg_worst, res)
-            if not all_finite(vf):
-                raise SolverError(f'the simulation diverged at step {j} (t = {t[j]:.4f} s); '
-                                  'lower the pressures or the time step.')
-            v[free] = vf
-            x = x + h * v.reshape(-1, 3)
+                callback(j, float(t[j]), U[:, j], centerline[:, :, j], stepper.x)
+            stepper.step(U[:, j], None if BU is None else BU[:, j])
+        lu = stepper.factor
+        cg_iters, cg_worst = stepper.cg_iterations, stepper.cg_worst_residual
         wall = time.perf_counter() - t0
         info = {'solver': lu.kind, 'n_dof': self.n_dof, 'n_nodes': self.n_nodes,
-                'n_tets': int(len(fem.tets)),
+                'n_tets': int(len(self.fem.tets)),
                 'n_steps': n_steps, 'dt': dt, 'jacobian': 'linear' if linear else jacobian,
                 'wall_s': wall, 'factor_s': t_factor, 'cg_iterations': cg_iters,
                 'cg_worst_residual': cg_worst}
         return SimulationResult(t=t, pressures=U, centerline=centerline, states=states, info=info)
 
+
+    def simulate_lockstep(self, pressures: Sequence[ArrayLike], n_steps: int,
+                          dt: float = 1e-3, *,
+                          callbacks: Sequence[StepCallback | None] | None = None,
+                          linear_solver: str = 'auto') -> list[SimulationResult]:
+        """Integrate several episodes side by side, one solve with all of them per step.
+
+        The same scheme as :meth:`simulate` with the rest tangent (the default), so each
+        episode's trajectory equals its own :meth:`simulate` to round-off; the rest system is
+        solved for all episodes at once (a matrix of right-hand sides), which reads the
+        factor once per step instead of once per episode: with CHOLMOD at resolution 4, six
+        right-hand sides cost 2.1 single solves (``docs/simulator_speed.md``).
+
+        Parameters
+        ----------
+        pressures : list of ndarray, shape (6, >= n_steps)
+            One pressure sequence (Pa) per episode.
+        n_steps, dt : int, float
+            Samples per episode and time step (s).
+        callbacks : list of callable or None, optional
+            One :data:`StepCallback` per episode (e.g. its bag writer).
+        linear_solver : {'auto', 'cholmod', 'banded'}
+
+        Returns
+        -------
+        list of SimulationResult
+            Without stored states; ``info['lockstep']`` is the number of episodes.
+        """
+        n_steps = int(n_steps)
+        if n_steps < 1 or not dt > 0:
+            raise ConfigError(f'need n_steps >= 1 and dt > 0; got {n_steps}, {dt}.')
+        Us = []
+        for P in pressures:
+            U = np.asarray(P, dtype=np.float64)
+            if U.ndim != 2 or U.shape[0] != self.n_chambers or U.shape[1] < n_steps:
+                raise DimensionError(f'pressures must be ({self.n_chambers}, >= {n_steps}); '
+                                     f'got {U.shape}. Arrays are (n_channels, n_samples).')
+            if not all_finite(U[:, :n_steps]):
+                raise DimensionError('pressures contain NaN or Inf.')
+            Us.append(U[:, :n_steps])
+        k = len(Us)
+        cbs = list(callbacks) if callbacks is not None else [None] * k
+        if len(cbs) != k:
+            raise DimensionError(f'{k} pressure sequences but {len(cbs)} callbacks.')
+        t0 = time.perf_counter()
+        lu, _K0f, m = self._rest_factor(dt, linear_solver)
+        t_factor = time.perf_counter() - t0
+        free, h, W = self.free, dt, self.centerline_map
+        follower = self.config.follower
+        xs = [self.mesh.nodes.copy() for _ in range(k)]
+        V: Array = np.zeros((int(free.sum()), k))
+        t = np.arange(n_steps, dtype=np.float64) * dt
+        centerlines = [np.empty((W.shape[0], 3, n_steps)) for _ in range(k)]
+        BUs = None if follower else [(self.B @ U)[free] for U in Us]
+        rhs = np.empty_like(V)
+        for j in range(n_steps):
+            for e in range(k):
+                x = xs[e]
+                centerlines[e][:, :, j] = W @ x
+                cb = cbs[e]
+                if cb is not None:
+                    cb(j, float(t[j]), Us[e][:, j], centerlines[e][:, :, j], x)
+                f = self.fem.elastic_force(x).ravel()[free]
+                fp = (self.pressure_force(x, Us[e][:, j]).ravel()[free] if BUs is None
+                      else BUs[e][:, j])
+                rhs[:, e] = m * V[:, e] + h * (f + fp)
+            V = np.asarray(lu.solve(rhs)).reshape(V.shape)
+            if not all_finite(V):
+                raise SolverError(f'the simulation diverged at step {j} (t = {t[j]:.4f} s); '
+                                  'lower the pressures or the time step.')
+            for e in range(k):
+                v = np.zeros(self.n_dof)
+                v[free] = V[:, e]
+                xs[e] = xs[e] + h * v.reshape(-1, 3)
+        wall = time.perf_counter() - t0
+        info = {'solver': lu.kind, 'n_dof': self.n_dof, 'n_nodes': self.n_nodes,
+                'n_tets': int(len(self.fem.tets)), 'n_steps': n_steps, 'dt': dt,
+                'jacobian': 'rest', 'wall_s': wall, 'factor_s': t_factor, 'cg_iterations': 0,
+                'cg_worst_residual': 0.0, 'lockstep': k}
+        return [SimulationResult(t=t, pressures=U, centerline=c, info=dict(info))
+                for U, c in zip(Us, centerlines)]
+
+
+class EelStepper:
+    """One implicit-Euler step at a time of an :class:`EelModel` (see its module docstring).
+
+    Attributes
+    ----------
+    x : ndarray, shape (n_nodes, 3)
+        Nodal positions at the current sample (replaced, never written in place, by
+        :meth:`step`).
+    v : ndarray, shape (n_dof,)
+        Nodal velocities.
+    j : int
+        Steps taken; the current sample time is ``j * dt``.
+    """
+
+    def __init__(self, model: EelModel, dt: float, *, jacobian: str = 'rest',
+                 linear: bool = False, cg_rtol: float = 1e-8, cg_maxiter: int = 50,
+                 linear_solver: str = 'auto') -> None:
+        self.model = model
+        self.dt = dt
+        self.jacobian = jacobian
+        self.linear = linear
+        self.cg_rtol, self.cg_maxiter = cg_rtol, cg_maxiter
+        self.factor, self._K0f, self._m = model._rest_factor(dt, linear_solver)
+        self.follower = model.config.follower and not linear
+        self.x: Array = model.mesh.nodes.copy()
+        self.v = np.zeros(model.n_dof)
+        self.j = 0
+        self.cg_iterations = 0
+        self.cg_worst_residual = 0.0
+
+    @property
+    def t(self) -> float:
+        """Time of the current sample (s)."""
+        return self.j * self.dt
+
+    def centerline(self) -> Array:
+        """Centerline points at the current sample, shape (N, 3)."""
+        return np.asarray(self.model.centerline_map @ self.x)
+
+    def _apply_A(self, R: list[Array], p_free: Array) -> Array:
+        model, h = self.model, self.dt
+        cfg = model.config
+        full = np.zeros(model.n_dof)
+        full[model.free] = p_free
+        kw = model.fem.warped_matvec(R, full.reshape(-1, 3)).ravel()[model.free]
+        return (self._m * (1 + h * cfg.rayleigh_mass) * p_free
+                + h * cfg.rayleigh_stiffness * (self._K0f @ p_free) + h * h * kw)
+
+    def step(self, u: Array, dead_load: Array | None = None) -> None:
+        """Advance one step with chamber pressures ``u`` (6,) held over it.
+
+        ``dead_load`` is ``(B u)[free]`` when the loads do not follow the walls (given by
+        :meth:`EelModel.simulate`, which forms it for all steps at once).
+        """
+        model, h = self.model, self.dt
+        free = model.free
+        x = self.x
+        if self.linear:
+            f = -(self._K0f @ (x - model.mesh.nodes).ravel()[free])
+            R = None
+        elif self.jacobian == 'corotated':
+            f_all, R3 = model.fem.elastic_force(x, return_rotations=True)
+            R = model.fem.rotation_entries(R3)
+            f = f_all.ravel()[free]
+        else:
+            f = model.fem.elastic_force(x).ravel()[free]
+            R = None
+        if self.follower:
+            fp = model.pressure_force(x, u).ravel()[free]
+        elif dead_load is not None:
+            fp = dead_load
+        else:
+            fp = (model.B @ u)[free]
+        rhs = self._m * self.v[free] + h * (f + fp)
+        vf = self.factor.solve(rhs)
+        if R is not None:
+            vf, it, res = _pcg(functools.partial(self._apply_A, R), self.factor.solve, rhs, vf,
+                               self.cg_rtol, self.cg_maxiter)
+            self.cg_iterations += it
+            self.cg_worst_residual = max(self.cg_worst_residual, res)
+        if not all_finite(vf):
+            raise SolverError(f'the simulation diverged at step {self.j} (t = {self.t:.4f} s); '
+                              'lower the pressures or the time step.')
+        self.v[free] = vf
+        self.x = x + h * self.v.reshape(-1, 3)
+        self.j += 1
 
 def simulate_episode(model: EelModel, episode: int, *, seed: int = 0, n_steps: int = 2000,
                      dt: float = 1e-3, amplitude: float = DEFAULT_AMPLITUDE,
@@ -541,17 +694,95 @@ def simulate_episode(model: EelModel, episode: int, *, seed: int = 0, n_steps: i
     return result
 
 
+#: Linear solvers of the rest system, ``'auto'`` first (:class:`_SPDFactor`).
+LINEAR_SOLVERS = ('auto', 'cholmod', 'banded')
+
+
+def memory_estimate(resolution: int, solver: str = 'auto') -> tuple[int, float]:
+    """``(n_dof, bytes)``: the peak memory of simulating episodes, before building the model.
+
+    The larger of two moments, plus 200 MB of interpreter: the assembly of the rest stiffness
+    (about 15 kB per DOF: its element blocks in coordinate form, then compressed), and the
+    factor with the operators and work vectors (3 kB per DOF). CHOLMOD's factor has about
+    ``9.5e6 (n / 32886)^1.4`` entries (measured 9.5 M, 48 M and 150 M at resolutions 2, 3
+    and 4), at about 12 bytes an entry with its supernodal padding; the banded factor is
+    about 3.8 cross-sections of DOFs wide (measured 395 at resolution 2, 1,355 at 4).
+    Measured peak RSS (``benchmarks/bench_sim.py``): 0.28, 0.61, 1.63 and 3.52 GB (CHOLMOD)
+    at resolutions 1-4, 3.70 GB (banded) at 4; estimated 0.28, 0.71, 1.81, 3.89 and 4.12 GB.
+    """
+    nx, ny, nz = EelConfig(resolution=resolution).grid_shape()
+    section = (ny + 1) * (nz + 1)
+    n_dof = 3 * (nx + 1) * section
+    if solver == 'auto':
+        solver = 'cholmod' if cholmod_available() else 'banded'
+    if solver == 'cholmod':
+        factor = 12.0 * 9.5e6 * (n_dof / 32886.0) ** 1.4
+    else:
+        factor = 3.8 * section * n_dof * 8.0
+    return n_dof, max(15e3 * n_dof, factor + 3e3 * n_dof) + 200e6
+
+
+#: Environment variables that fix the thread count of the BLAS CHOLMOD loads.
+_BLAS_THREAD_VARS = ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS')
+
+
+def _cholmod() -> Any:
+    """``sksparse.cholmod``, its BLAS loaded with one thread (ImportError without it).
+
+    A CHOLMOD solve is a sequence of small BLAS calls, one per supernode; a threaded BLAS
+    synchronizes its threads at each, which on a loaded machine made a resolution-2 step
+    13x slower in wall time than one thread (measured 2.7 s against 0.2 s, same CPU time).
+    The thread count is read when the library loads, so it is set for that moment only
+    (the variables are restored; a value the user set is kept).
+    """
+    import sys
+    if 'sksparse.cholmod' in sys.modules:
+        return sys.modules['sksparse.cholmod']
+    import os
+    saved = {k: os.environ.get(k) for k in _BLAS_THREAD_VARS}
+    for k in _BLAS_THREAD_VARS:
+        os.environ.setdefault(k, '1')
+    try:
+        import sksparse.cholmod
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+    return sksparse.cholmod
+
+
+def cholmod_available() -> bool:
+    """Whether CHOLMOD (scikit-sparse, the ``fast`` extra) can be imported."""
+    try:
+        _cholmod()
+    except ImportError:
+        return False
+    return True
+
+
 class _SPDFactor:
     """Cholesky factorization of the SPD rest matrix ``M + h C + h^2 K_0``, reused every step.
 
-    The nodes are numbered x-major, so the matrix of the slender body is banded with a
-    half-bandwidth of about three cross-sections of DOFs; LAPACK's banded Cholesky
-    (``pbtrf``/``pbtrs``) then beats SuperLU's general sparse LU by about 4x per solve on
-    the default mesh (measured: 0.66 ms vs 2.6 ms at 5,040 free DOFs). Above ``max_bytes``
-    of band storage it falls back to SuperLU with a symmetric minimum-degree ordering.
+    ``'cholmod'``: CHOLMOD's supernodal Cholesky with its fill-reducing ordering (METIS nested
+    dissection or AMD, whichever fills less), from scikit-sparse (the ``fast`` extra). At the
+    paper's size (233,082 free DOFs) its factor has 150 M entries against the band's 316 M,
+    and a solve reads it in BLAS blocks: measured 1.8x faster for one right-hand side
+    (``benchmarks/bench_sim.py``). ``'banded'``: the nodes are numbered x-major, so the
+    matrix of the slender body is banded with a half-bandwidth of about three cross-sections
+    of DOFs, and LAPACK's banded Cholesky (``pbtrf``/``pbtrs``) beats SuperLU's general
+    sparse LU; above ``max_bytes`` of band storage it falls back to SuperLU with a symmetric
+    minimum-degree ordering. ``'auto'``: CHOLMOD when installed, else banded.
     """
 
-    def __init__(self, A: sp.spmatrix, max_bytes: float = 6e9) -> None:
+    def __init__(self, A: sp.spmatrix, kind: str = 'auto', max_bytes: float = 6e9) -> None:
+        if kind not in LINEAR_SOLVERS:
+            raise ConfigError(f'linear solver must be one of {", ".join(LINEAR_SOLVERS)}; '
+                              f'got {kind!r}.')
+        if kind == 'cholmod' or (kind == 'auto' and cholmod_available()):
+            self._init_cholmod(A)
+            return
         coo = sp.triu(A, format='coo')
         n = A.shape[0]
         bw = int(np.max(coo.col - coo.row)) if coo.nnz else 0
@@ -570,8 +801,24 @@ class _SPDFactor:
         self._lu = spla.splu(A.tocsc(), permc_spec='MMD_AT_PLUS_A', diag_pivot_thresh=0.0,
                              options={'SymmetricMode': True})
 
+    def _init_cholmod(self, A: sp.spmatrix) -> None:
+        try:
+            cholmod = _cholmod()
+        except ImportError as err:
+            raise ConfigError('the CHOLMOD linear solver needs scikit-sparse: pip install '
+                              "'soft_rom[fast]' (with SuiteSparse, e.g. apt install "
+                              'libsuitesparse-dev), or use the banded solver') from err
+        self.kind = 'cholmod'
+        try:
+            self._chol = cholmod.cholesky(sp.csc_matrix(A), mode='supernodal')
+        except cholmod.CholmodNotPositiveDefiniteError as err:
+            raise SolverError(f'the rest system matrix is not positive definite: {err}') \
+                from err
+
     def solve(self, b: Array) -> Array:
-        """``A^{-1} b``."""
+        """``A^{-1} b`` for ``b`` of shape (n,) or (n, k)."""
+        if self.kind == 'cholmod':
+            return np.asarray(self._chol.solve_A(b))
         if self.kind == 'superlu':
             return self._lu.solve(b)
         return sla.cho_solve_banded((self._cb, False), b, check_finite=False)

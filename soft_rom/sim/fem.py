@@ -36,6 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 import scipy.sparse as sp
 
 from soft_rom.errors import ConfigError, DimensionError
+from soft_rom.sim import _kernels
 from soft_rom.sim.mesh import NodalDOFs
 
 __all__ = ['CorotationalFEM', 'lame', 'polar_rotation']
@@ -130,6 +131,10 @@ class CorotationalFEM(NodalDOFs):
         Positively oriented tetrahedra.
     young, poisson, density : float or ndarray, shape (n_tets,)
         Young's modulus (Pa), Poisson's ratio, density (kg/m^3), per element or uniform.
+    compiled : bool
+        Compute :meth:`elastic_force` with the compiled element loop
+        (:mod:`soft_rom.sim._kernels`) when numba is installed (the ``fast`` extra); about
+        3x faster than the numpy path, same forces to round-off. ``False``: numpy always.
 
     Attributes
     ----------
@@ -141,7 +146,8 @@ class CorotationalFEM(NodalDOFs):
     """
 
     def __init__(self, nodes: ArrayLike, tets: ArrayLike, *, young: ArrayLike,
-                 poisson: ArrayLike, density: ArrayLike) -> None:
+                 poisson: ArrayLike, density: ArrayLike, compiled: bool = True) -> None:
+        self.compiled = bool(compiled)
         self.nodes = np.ascontiguousarray(nodes, dtype=np.float64)
         self.tets = np.ascontiguousarray(tets, dtype=np.int64)
         if self.nodes.ndim != 2 or self.nodes.shape[1] != 3:
@@ -170,6 +176,10 @@ class CorotationalFEM(NodalDOFs):
         self._t = [np.ascontiguousarray(self.tets[:, a]) for a in range(4)]
         self._Dinv = [[np.ascontiguousarray(Dm_inv[:, r, c]) for c in range(3)]
                       for r in range(3)]
+        # the compiled element loop's inputs (soft_rom.sim._kernels)
+        self._dm_inv = np.ascontiguousarray(Dm_inv)
+        self._two_mu_v = 2.0 * self.volume * self.mu
+        self._lam_v = self.volume * self.lam
 
     def deformation_gradient(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         """``F`` of every element for positions ``x`` (n_nodes, 3); shape (n_tets, 3, 3)."""
@@ -202,6 +212,10 @@ class CorotationalFEM(NodalDOFs):
             Only if ``return_rotations``.
         """
         x = np.asarray(x, dtype=np.float64)
+        if not return_rotations and self.compiled and _kernels.AVAILABLE:
+            f = _kernels.elastic_force(x, self.tets, self._dm_inv, self._two_mu_v, self._lam_v)
+            if f is not None:
+                return f
         F = self._F_soa(x)
         R = _polar_soa(F)
         tr = sum(R[i] * F[i] for i in range(9)) - 3.0          # tr(R^T F - I)

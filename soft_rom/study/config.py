@@ -49,6 +49,16 @@ class StudyConfig:
         ``reg``, ``eps4`` of the cubic fit, fixed; ``None`` (default): chosen on held-out
         training data, as ``soft-rom fit --forces cubic`` does
         (:class:`~soft_rom.pipeline.cubic.HeldOutCubicSelection`).
+    blas_threads : int or None
+        BLAS threads of the whole run (threadpoolctl; ``None``: the library's default, one
+        per core). Default 1: the SVDs and factorizations of the fits are medium-sized, and
+        with one thread per core they run several times slower as soon as another process
+        takes a core (the threads wait for each other); the simulation's worker processes
+        take one each as well.
+    streaming : bool
+        Reduce by streaming the snapshots from disk with bounded memory
+        (:class:`~soft_rom.reduce.StreamingReducer`) instead of loading them: the
+        paper-scale run (:mod:`soft_rom.study.paper_scale`).
     """
 
     resolution: int = 1
@@ -68,6 +78,8 @@ class StudyConfig:
     era_options: dict[str, Any] = field(default_factory=lambda: dict(ERA_EEL_OPTIONS))
     r_cubic: tuple[int, ...] = (4,)
     cubic_options: dict[str, Any] | None = None
+    blas_threads: int | None = 1
+    streaming: bool = False
 
     def __post_init__(self) -> None:
         if self.n_episodes < 2:

@@ -15,10 +15,12 @@ Pipeline (every step goes through the same public pieces a user calls):
 from __future__ import annotations
 
 from collections.abc import Sequence
+import contextlib
 from dataclasses import asdict
 import json
-import math
+import os
 from pathlib import Path
+import platform
 import time
 from typing import Any
 
@@ -26,11 +28,18 @@ import numpy as np
 
 from soft_rom.errors import BagError, ConfigError
 from soft_rom.study.config import StudyConfig
+from soft_rom.study.presets import CUBIC_EEL_OPTIONS, ERA_EEL_OPTIONS
 from soft_rom.study.replay import replay_check
 from soft_rom.study.report import study_report
-from soft_rom.study.studies import _conclusions, study_time_extrapolation, study_unseen_inputs
 
-__all__ = ['StudyConfig', 'run_study', 'simulate_bags']
+# _conclusions, _in_memory, _record_held_out: re-exported for the paper-scale run and tests.
+from soft_rom.study.studies import _conclusions as _conclusions
+from soft_rom.study.studies import _in_memory as _in_memory
+from soft_rom.study.studies import _jsonable, study_time_extrapolation, study_unseen_inputs, sweep
+from soft_rom.study.studies import _record_held_out as _record_held_out
+
+__all__ = ['CUBIC_EEL_OPTIONS', 'ERA_EEL_OPTIONS', 'StudyConfig', 'run_study', 'simulate_bags',
+           'study_time_extrapolation', 'study_unseen_inputs', 'sweep']
 
 
 # ----------------------------------------------------------------------------- simulation
@@ -101,20 +110,6 @@ def _same_recording(meta: dict[str, Any], wanted: dict[str, Any], resolution: in
                if k in ('seed', 'storage', 'n_steps', 'dt', 'resolution'))
 
 
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, (np.floating, np.integer)):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None                      # strict JSON: an error that blew up is null
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
 def run_study(out_dir: str | Path, cfg: StudyConfig | None = None, *, progress: bool = True,
               studies: Sequence[int] = (1, 2), replay: bool = False,
               bag_dir: str | Path | None = None) -> dict[str, Any]:
@@ -133,18 +128,36 @@ def run_study(out_dir: str | Path, cfg: StudyConfig | None = None, *, progress: 
     bag_dir : path, optional
         Reuse bags from here (simulated there if missing).
     """
+    cfg = cfg or StudyConfig()
+    with _blas_threads(cfg.blas_threads):
+        return _run_study(Path(out_dir), cfg, progress=progress, studies=studies,
+                          replay=replay, bag_dir=bag_dir)
+
+
+def _blas_threads(n: int | None) -> Any:
+    """At most ``n`` BLAS threads in this process while the context lasts (threadpoolctl)."""
+    if n is None:
+        return contextlib.nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:      # a ROS install without it: the library's default applies
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=int(n), user_api='blas')
+
+
+def _run_study(out: Path, cfg: StudyConfig, *, progress: bool, studies: Sequence[int],
+               replay: bool, bag_dir: str | Path | None) -> dict[str, Any]:
     from tqdm import tqdm
 
     from soft_rom.convert import convert
     from soft_rom.dataset import TrainingSet
 
-    cfg = cfg or StudyConfig()
-    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    load_start = _load()
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     bags = simulate_bags(Path(bag_dir) if bag_dir else out / 'bags', cfg, progress=progress)
-    timings['simulate (bags)'] = time.perf_counter() - t0
+    timings['simulate'] = time.perf_counter() - t0
     t0 = time.perf_counter()
     data_path = out / 'data.zarr'
     ts = TrainingSet.open(data_path) if data_path.exists() else None
@@ -175,11 +188,11 @@ def run_study(out_dir: str | Path, cfg: StudyConfig | None = None, *, progress: 
     if 1 in studies:
         t0 = time.perf_counter()
         summary['study1'] = study_time_extrapolation(ts, cfg, out, tick)
-        timings['study 1 (fit + evaluate)'] = time.perf_counter() - t0
+        timings['study 1'] = time.perf_counter() - t0
     if 2 in studies and len(ts.episode_names) >= 3:
         t0 = time.perf_counter()
         summary['study2'] = study_unseen_inputs(ts, cfg, out, tick)
-        timings['study 2 (fit + evaluate)'] = time.perf_counter() - t0
+        timings['study 2'] = time.perf_counter() - t0
     bar.close()
     if replay and 'study2' in summary:
         t0 = time.perf_counter()
@@ -187,7 +200,34 @@ def run_study(out_dir: str | Path, cfg: StudyConfig | None = None, *, progress: 
         timings['replay'] = time.perf_counter() - t0
     summary['conclusions'] = _conclusions(summary.get('study1'), summary.get('study2'))
     summary['timings'] = timings
-    (out / 'summary.json').write_text(json.dumps(_jsonable(summary), indent=2,
-                                                    allow_nan=False))
-    (out / 'report.md').write_text(study_report(summary))
+    summary['machine'] = _machine(load_start)
+    strict = _jsonable(summary)
+    (out / 'summary.json').write_text(json.dumps(strict, indent=2, allow_nan=False))
+    (out / 'report.md').write_text(study_report(strict))   # the report of summary.json
     return summary
+
+
+def _load() -> float | None:
+    """The 1-minute load average (``None`` where the system has none)."""
+    try:
+        return float(os.getloadavg()[0])
+    except (AttributeError, OSError):
+        return None
+
+
+def _machine(load_start: float | None) -> dict[str, Any]:
+    """What the timings were measured on: CPUs, their model, the load, BLAS threads."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path('/proc/cpuinfo').read_text().splitlines():
+            if line.startswith('model name'):
+                cpu = ' '.join(line.split(':', 1)[1].split())
+                break
+    except OSError:
+        pass
+    load_end = _load()
+    n = os.cpu_count()
+    loads = ('' if load_start is None or load_end is None else
+             f', load average {load_start:.1f} at the start and {load_end:.1f} at the end')
+    return {'cpus': n, 'cpu': cpu, 'load_start': load_start, 'load_end': load_end,
+            'description': f'{n} CPUs ({cpu}){loads}'}

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 import logging
+import math
 from pathlib import Path
 import time
 from typing import Any
@@ -38,13 +39,16 @@ METHODS = ('lopinf', 'dmdc', 'era', 'lopinf_cubic')
 
 def sweep(method: str, rs: Sequence[int], episodes: Sequence[Episode], ts: Any, *,
           era_options: dict[str, Any] | None = None,
-          cubic_options: dict[str, Any] | None = None) -> dict[int, LinearROM]:
+          cubic_options: dict[str, Any] | None = None,
+          streaming: bool = False) -> dict[int, LinearROM]:
     """ROMs of one method for several ``r``: the pipeline of ``soft-rom fit``.
 
     ``method`` is ``'lopinf'``, ``'dmdc'``, ``'era'`` or ``'lopinf_cubic'`` (LOpInf with cubic
     forces: ``cubic_options`` fixed, or ``None`` for the held-out selection). The expensive
     part is shared: one POD (LOpInf), one pair of SVDs (DMDc), one OKID and Hankel SVD
-    (ERA/OKID, one episode).
+    (ERA/OKID, one episode). With ``streaming``, the snapshots of the stored episodes (the
+    ``episodes`` are their heads) are streamed from disk by
+    :class:`~soft_rom.reduce.StreamingReducer` (bounded memory: the paper-scale run).
     """
     era = dict(era_options or {})
     if method == 'era':
@@ -54,13 +58,26 @@ def sweep(method: str, rs: Sequence[int], episodes: Sequence[Episode], ts: Any, 
     cubic = method == 'lopinf_cubic'
     settings = FitSettings(forces='cubic' if cubic else 'linear',
                            cubic_options=cubic_options if cubic else None, era=era)
-    data = open_training_data(
-        list(episodes), q_ref=ts.q_ref, y_ref=ts.y_ref,
-        channels={key: getattr(ts, key, None) for key in CHANNEL_KEYS},
-        provenance={'training_set': str(getattr(ts, 'path', '')),
-                    'time_ranges': [[float(ep.t[0]), float(ep.t[-1])] for ep in episodes]})
+    provenance = {'training_set': str(getattr(ts, 'path', '')),
+                  'time_ranges': [[float(ep.t[0]), float(ep.t[-1])] for ep in episodes]}
+    reducer = None
+    if streaming and method != 'era':
+        from soft_rom.reduce import StreamingReducer
+        first = ts[episodes[0].name]
+        t_max = (None if all(ep.n_samples == ts[ep.name].n_samples for ep in episodes)
+                 else float(max(ep.t[-1] for ep in episodes) - first.t[0]
+                            + 0.5 * episodes[0].dt))
+        data = open_training_data(ts, episodes=[ep.name for ep in episodes], t_max=t_max,
+                                  provenance=provenance)
+        reducer = StreamingReducer()
+    else:
+        data = open_training_data(
+            list(episodes), q_ref=ts.q_ref, y_ref=ts.y_ref,
+            channels={key: getattr(ts, key, None) for key in CHANNEL_KEYS},
+            provenance=provenance)
     fitted = fit_method(data, 'lopinf' if cubic else method,
-                        tuple(sorted(set(int(r) for r in rs))), settings, notes=False)
+                        tuple(sorted(set(int(r) for r in rs))), settings, reducer,
+                        notes=False)
     return {fit.model.r: fit.model for fit in fitted}
 
 
@@ -122,7 +139,8 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
         t0 = time.perf_counter()
         try:
             models = sweep(method, grids[method], [train], ts,
-                           era_options=cfg.era_options, cubic_options=cfg.cubic_options)
+                           era_options=cfg.era_options, cubic_options=cfg.cubic_options,
+                           streaming=cfg.streaming)
         except Exception as err:  # a failed fit is a result to report, not a crash
             LOG.warning('study 1: %s failed: %s', method, err)
             models = {}
@@ -140,17 +158,24 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
             if tick:
                 tick(f'{method} r={r}')
         curves[method] = c
-    best = {}
+    best: dict[str, dict[str, Any]] = {}
     for method, c in curves.items():
         if not c['r']:
             continue
         i = int(np.nanargmin(c['train']))
         best[method] = {k: c[k][i] for k in ('r', 'train', 'test', 'train_dev', 'test_dev')}
-    figures.errors_vs_r(out / 'errors_vs_r.png', curves, paper=paper.TIME_EXTRAPOLATION)
+        best[method]['label'] = labels[(method, int(c['r'][i]))]
+    split = (f'Ep 1, trained on t < {cfg.t_train:g} s, tested on {cfg.t_train:g}–'
+             f'{float(ep1.t[-1] + ep1.dt):g} s')
+    figures.errors_vs_r(out / 'errors_vs_r.png', curves, paper=paper.TIME_EXTRAPOLATION,
+                        title=f'Study 1, time extrapolation: {split}; relative output error '
+                              '(ours in colour, the paper in grey)', y_max=1.0)
     figures.errors_vs_r(out / 'errors_vs_r_deviation.png',
                         {m: {'r': c['r'], 'train': c['train_dev'], 'test': c['test_dev']}
                          for m, c in curves.items()},
-                        metric_label='Relative error on deviations')
+                        metric_label='Relative error on deviations', y_max=10.0,
+                        title=f'Study 1, time extrapolation: {split}; relative error on '
+                              'deviations from y_ref')
     # The paper's y10 and y20 "at different scales": z of the mid-body point and of the tail.
     names = ts.output_names
     index = _layout_index(ts)
@@ -160,7 +185,10 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
     figures.output_traces(out / 'traces.png', ep1.t, ep1.Y,
                           {m: predictions[m][int(b['r'])] for m, b in best.items()}, rows,
                           [names[i] for i in rows], t_split=cfg.t_train,
-                          rom_labels={m: labels[(m, int(b['r']))] for m, b in best.items()})
+                          rom_labels={m: str(b['label']) for m, b in best.items()},
+                          title=f'Study 1, time extrapolation: {split}; mid-body and tail '
+                                'height of the FOM and of the ROM of each method with the '
+                                'lowest training error')
     return {'t_train': cfg.t_train, 't_end': float(ep1.t[-1] + ep1.dt), 'curves': curves,
             'best': best, 'trace_names': [names[i] for i in rows]}
 
@@ -171,7 +199,11 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
     train_eps = [_in_memory(ts['ep1']), _in_memory(ts['ep2'])]
     tests = [ts[n] for n in ts.episode_names if n not in ('ep1', 'ep2')]
     y_ref = ts.y_ref
-    chosen, models, swept, era_episode = _choose_models(ts, cfg, train_eps, tests, tick)
+    fit_seconds: dict[str, float] = {}
+    chosen, models, swept, era_episode = _choose_models(ts, cfg, train_eps, tests, tick,
+                                                        fit_seconds)
+    for method, model in models.items():
+        chosen[method]['label'] = model_label(model)
     test: dict[str, dict[str, float]] = {}
     test_dev: dict[str, dict[str, float]] = {}
     preds: dict[str, dict[str, np.ndarray]] = {}
@@ -181,16 +213,25 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
             Yh = _predict(model, ep)
             preds[method][ep.name] = Yh
             test[method][ep.name], test_dev[method][ep.name] = _errors(ep.Y, Yh, y_ref)
-    labels = {m: model_label(model) for m, model in models.items()}
-    figures.error_bars(out / 'bars.png', test, paper=paper.UNSEEN_INPUTS, rom_labels=labels)
+    labels = {m: c['label'] + (f' (fit on {_ep(c["episode"])})' if 'episode' in c else '')
+              for m, c in chosen.items()}
+    split = (f'trained on Ep 1 + Ep 2, tested on {_ep(tests[0].name)}–{_ep(tests[-1].name)}'
+             if len(tests) > 1 else f'trained on Ep 1 + Ep 2, tested on {_ep(tests[0].name)}')
+    figures.error_bars(out / 'bars.png', test, paper=paper.UNSEEN_INPUTS, rom_labels=labels,
+                       title=f'Study 2, unseen inputs: {split}; relative output error (black '
+                             'ticks: the paper)')
     figures.error_bars(out / 'bars_deviation.png', test_dev, rom_labels=labels,
-                       metric_label='Relative error on deviations')
+                       metric_label='Relative error on deviations',
+                       title=f'Study 2, unseen inputs: {split}; relative error on deviations '
+                             'from y_ref')
     shapes_png = _shapes_figure(ts, cfg, out, tests[0], preds, labels)
     for method, model in models.items():
+        if method in HELD_OUT_METHODS:
+            _record_held_out(method, model, chosen[method], train_eps, ts, cfg)
         model.save(out / 'models' / f'eel_{method}_r{chosen[method]["r"]}.npz')
     result = {'chosen': chosen, 'era_episode': era_episode, 'test': test, 'test_dev': test_dev,
               'shape_episode': tests[0].name, 'shape_times': list(cfg.shape_times),
-              'shapes_png': shapes_png}
+              'shapes_png': shapes_png, 'fit_seconds': fit_seconds}
     if 'lopinf_cubic' in models:
         result['cubic_vs_linear'] = _cubic_vs_linear(models['lopinf_cubic'], swept, tests,
                                                      train_eps, ts, y_ref)
@@ -203,18 +244,23 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
 
 
 def _choose_models(ts: Any, cfg: StudyConfig, train_eps: list[Episode], tests: list[Episode],
-                   tick: Callable[[str], None] | None
+                   tick: Callable[[str], None] | None, fit_seconds: dict[str, float]
                    ) -> tuple[dict[str, dict[str, Any]], dict[str, LinearROM],
                               dict[str, dict[int, LinearROM]], str | None]:
-    """Each method's ROM with the lowest training error; ERA/OKID from the better episode."""
+    """Each method's ROM with the lowest training error; ERA/OKID from the better episode.
+
+    ``fit_seconds`` receives each method's fitting time (all its sweeps).
+    """
     grids = {'lopinf': cfg.r_lopinf, 'dmdc': cfg.r_dmdc, 'era': cfg.r_era,
              'lopinf_cubic': cfg.r_cubic}
     swept: dict[str, dict[int, LinearROM]] = {}
 
     def pick(method: str, eps: Sequence[Episode]) -> tuple[float, int, LinearROM] | None:
+        t0 = time.perf_counter()
         try:
             models = sweep(method, grids[method], eps, ts, era_options=cfg.era_options,
-                           cubic_options=cfg.cubic_options)
+                           cubic_options=cfg.cubic_options, streaming=cfg.streaming)
+            fit_seconds[method] = fit_seconds.get(method, 0.0) + time.perf_counter() - t0
         except Exception as err:
             LOG.warning('study 2: %s on %s failed: %s', method, [e.name for e in eps], err)
             return None
@@ -263,8 +309,42 @@ def _shapes_figure(ts: Any, cfg: StudyConfig, out: Path, shape_ep: Episode,
         shapes[method] = [_shape(index, pred[shape_ep.name][:, j]) for j in cols]
     shapes_png = f'centerline_{shape_ep.name}.png'
     if index:
-        figures.centerline_shapes(out / shapes_png, cfg.shape_times, shapes, rom_labels=labels)
+        figures.centerline_shapes(
+            out / shapes_png, cfg.shape_times, shapes, rom_labels=labels,
+            title=f'Study 2, unseen inputs: centerline of test episode {_ep(shape_ep.name)} '
+                  f'(trained on Ep 1 + Ep 2), FOM and ROMs at t = '
+                  f'{", ".join(f"{t:g}" for t in cfg.shape_times)} s')
     return shapes_png
+
+
+#: Methods whose saved study models record their held-out error (the predictor's monitor
+#: thresholds; :func:`soft_rom.evaluation.held_out_errors`). The cubic fit is left out: its
+#: conic refits would double its cost.
+HELD_OUT_METHODS = ('lopinf', 'dmdc', 'era')
+
+
+def _record_held_out(method: str, model: LinearROM, chosen: dict[str, Any],
+                     train_eps: Sequence[Episode], ts: Any, cfg: StudyConfig) -> None:
+    """``model.metadata['held_out']``: the same fit, on held-out training data."""
+    from soft_rom.evaluation import held_out_errors
+
+    r = int(chosen['r'])
+    eps = [e for e in train_eps if e.name == chosen['episode']] if 'episode' in chosen \
+        else list(train_eps)
+
+    def refit(episodes: Sequence[Episode]) -> LinearROM:
+        return sweep(method, [r], episodes, ts, era_options=cfg.era_options,
+                     cubic_options=cfg.cubic_options)[r]
+
+    try:
+        model.metadata['held_out'] = held_out_errors(refit, eps, ts.y_ref)
+    except Exception as err:  # noqa: BLE001 -- no held-out error: the monitor's defaults
+        LOG.warning('study 2: held-out error of %s r=%d not recorded: %s', method, r, err)
+
+
+def _ep(name: str) -> str:
+    """``'ep3'`` -> ``'Ep 3'`` (the paper's spelling); other names as they are."""
+    return f'Ep {name[2:]}' if name.startswith('ep') and name[2:].isdigit() else name
 
 
 def _cubic_vs_linear(cubic: LinearROM, swept: dict[str, dict[int, LinearROM]],
@@ -337,3 +417,17 @@ def _conclusions(s1: dict[str, Any] | None, s2: dict[str, Any] | None) -> list[s
                        + ', '.join(f'{e} {v:.2f}' for e, v in cub['ratio'].items())
                        + f': <= 0.5 on {cub["wins"]} of {len(cub["ratio"])} (target: >= 3).')
     return out
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, (np.floating, np.integer)):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None                      # strict JSON: an error that blew up is null
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj

@@ -42,9 +42,10 @@ def test_convert_cli_then_info_trainingset(bag, tmp_path, capsys):
     assert main(['convert', str(bag), '-o', str(out), '--quiet']) == 2      # exists
     assert 'exists already' in capsys.readouterr().err
     assert main(['convert', str(bag), '-o', str(out), '--overwrite', '--no-state',
-                 '--dt', '0.02']) == 0
+                 '--dt', '0.02', '--verbose']) == 0
     captured = capsys.readouterr()
     assert 'output /soft_robot/centerline [PoseArray]: read 11, used 11' in captured.err
+    assert 'no states' in captured.out
     assert main(['info', '--json', str(out)]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d['kind'] == 'trainingset' and d['n_states'] is None

@@ -231,3 +231,24 @@ def test_an_episode_selected_twice_is_refused(lab, capsys) -> None:
         err = capsys.readouterr().err
         assert "['lab2'] selected more than once" in err and 'Traceback' not in err
     assert not (root / 'twice').exists()
+
+
+def test_convert_says_one_line_per_bag_and_the_details_with_verbose(lab, capsys) -> None:
+    root = lab['root']
+    for extra, per_bag in (([], 1), (['-v'], 4)):
+        out = root / f'lines{len(extra)}.zarr'
+        assert main(['convert', str(root / 'lab1'), str(root / 'lab2'), '-o', str(out),
+                     *extra]) == 0
+        captured = capsys.readouterr()
+        lines = [seg.strip() for line in captured.err.splitlines() for seg in line.split('\r')]
+        heads = [seg for seg in lines if seg.startswith('bag ')]
+        assert len(heads) == 2, captured.err
+        assert all('samples' in h and 'ms grid' in h for h in heads), heads
+        report = [seg for seg in lines if seg and not seg.startswith(('lab1', 'lab2'))
+                  and '%|' not in seg]
+        assert len(report) >= 2 * per_bag, report
+        assert 'e-1' not in captured.err          # no float rests such as 'jitter 4e-16 ms'
+        assert 'no states' in captured.out and 'n = None' not in captured.out
+        if not extra:
+            assert len(report) == 2 and '--verbose' in captured.out
+            assert any('interpolated' in h or 'dropped' in h for h in heads), heads

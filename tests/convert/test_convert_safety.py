@@ -192,6 +192,27 @@ def test_descending_header_stamps_are_refused_with_the_fix(tmp_path):
     assert ep.n_samples == 50
 
 
+@pytest.mark.parametrize('stamps', ['log', 'header'])
+def test_log_times_beyond_int64_are_refused_in_one_line(tmp_path, capsys, stamps):
+    # an MCAP stores log times as uint64; ROS 2 time is int64 ns: from the 21st message on
+    # the log times are 2**63 and more (the header stamps are ordinary epoch stamps)
+    start = 2 ** 63 - 20 * DT_NS
+    hooks = {('y', j): (lambda ns, j=j: (ns, _pose_array(ns, np.zeros((N_PTS, 3))),
+                                         start + j * DT_NS)) for j in range(50)}
+    bag = tmp_path / 'rec'
+    _bag(bag, k=50, hooks=hooks)
+    mapping = tmp_path / 'map.yaml'
+    mapping.write_text(f'time:\n  stamps: {stamps}\n')
+    out = tmp_path / 'o.zarr'
+    assert main(['convert', str(bag), '--mapping', str(mapping), '-o', str(out),
+                 '--quiet']) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert f'/soft_robot/centerline in bag {bag}: log time {2 ** 63} ns is beyond' in err
+    assert 'Traceback' not in err and 'a bug' not in err
+    assert not out.exists() and not _hidden(tmp_path)
+
+
 # -- overwrite ----------------------------------------------------------------------------
 def test_overwrite_onto_a_bag_or_foreign_folder_is_refused_untouched(tmp_path, capsys):
     rec = tmp_path / 'rec'

@@ -148,8 +148,114 @@ def test_damaged_q_fails_only_when_q_is_read(damaged):
 def test_scrambled_compressed_chunk_is_translated(damaged):
     """A chunk of the right length whose bytes are damaged: blosc's error, named."""
     _scramble_payload(_chunks(damaged / 'episodes/ep1/Y')[0])
-    with pytest.raises(DatasetError, match=r"episode 'ep1', array Y cannot be read \("
-                                           r'RuntimeError: error during blosc'):
+    with pytest.raises(DatasetError, match=r"episode 'ep1', array Y: chunk 0.0 cannot be "
+                                           r'decoded \(RuntimeError: error during blosc'):
+        TrainingSet.open(damaged)['ep1']
+
+
+# -- checksums (format version 3) -----------------------------------------------------------
+def flip_low_mantissa_bits(chunk: Path, values: int = 10, bits: int = 16) -> None:
+    """Flip the lowest ``bits`` mantissa bits of the first ``values`` float64 of a raw chunk.
+
+    The values stay finite and within 1e-11 relative of what they were: read as data, they
+    would pass every plausibility check.
+    """
+    data = np.frombuffer(bytearray(chunk.read_bytes()), dtype=np.uint8)
+    words = data[:8 * values].view('<u8')
+    words ^= np.uint64((1 << bits) - 1)
+    chunk.write_bytes(data.tobytes())
+
+
+def test_every_array_carries_a_checksum(intact):
+    ts = TrainingSet.open(intact)
+    assert ts.checksummed and ts.attrs['format_version'] == 3
+    for key in ('t', 'U', 'Y', 'Q'):
+        meta = json.loads((intact / 'episodes/ep1' / key / '.zarray').read_text())
+        assert meta['filters'] == [{'id': 'crc32c'}], key
+    for key in ('q_ref', 'y_ref'):
+        meta = json.loads((intact / key / '.zarray').read_text())
+        assert meta['filters'] == [{'id': 'crc32c'}], key
+
+
+def test_flipped_mantissa_bits_are_refused_with_the_chunk_named(damaged):
+    chunk = damaged / 'episodes/ep1/Q' / '1.1'               # rows 4..7, columns 8..15
+    flip_low_mantissa_bits(chunk)
+    ts = TrainingSet.open(damaged)
+    ep = ts['ep1']
+    np.testing.assert_array_equal(np.asarray(ep.Q[:, 0:8]), _episodes()[0].Q[:, 0:8])
+    with pytest.raises(DatasetError) as err:
+        ep.Q[:, 8:16]
+    text = str(err.value)
+    assert f"episode 'ep1', array Q: chunk {chunk.name} fails its CRC-32C checksum" in text
+    assert '\n' not in text
+    with pytest.raises(DatasetError, match=f'chunk {re.escape(chunk.name)} fails its CRC-32C'):
+        ts.describe()                       # info reads every chunk
+
+
+def test_chunk_deleted_after_the_check_is_refused_where_it_is_read(damaged):
+    import pickle
+    ts = TrainingSet.open(damaged)
+    q = ts.q_array('ep1')
+    np.asarray(q[:, 0:8])                   # the first read checks every chunk
+    shipped = pickle.dumps(q)               # what a Dask worker gets
+    chunk = damaged / 'episodes/ep1/Q' / _chunks(damaged / 'episodes/ep1/Q')[-1].name
+    chunk.unlink()
+    with pytest.raises(DatasetError, match=f'array Q: chunk {re.escape(chunk.name)} is '
+                                           'missing'):
+        q[:, 32:40]
+    np.testing.assert_array_equal(np.asarray(q[:, 0:8]), _episodes()[0].Q[:, 0:8])
+    worker_copy = pickle.loads(shipped)
+    assert worker_copy._array is None       # opened again where it is read
+    with pytest.raises(DatasetError, match=f'chunk {re.escape(chunk.name)} is missing'):
+        worker_copy[:, 0:8]                 # ... and checked there again
+
+
+def _as_version_2(path: Path) -> None:
+    """Rewrite a set as soft_rom wrote it before checksums: no filter, format version 2."""
+    import zarr
+    kw: dict = {'zarr_format': 2, 'config': {'write_empty_chunks': True}} \
+        if int(zarr.__version__.split('.')[0]) >= 3 else {'write_empty_chunks': True}
+    dirs = [p.parent for p in path.rglob('.zarray')]
+    for d in dirs:
+        old = zarr.open_array(str(d), mode='r')
+        data, meta = np.asarray(old[...]), json.loads((d / '.zarray').read_text())
+        shutil.rmtree(d)
+        new = zarr.open_array(str(d), mode='w', shape=data.shape, chunks=tuple(meta['chunks']),
+                              dtype='f8', order=meta['order'], fill_value=0.0,
+                              compressor=None, **kw)
+        new[...] = data
+    attrs = json.loads((path / '.zattrs').read_text())
+    attrs['format_version'] = 2
+    (path / '.zattrs').write_text(json.dumps(attrs))
+
+
+def test_sets_written_before_checksums_keep_loading(damaged, capsys):
+    _as_version_2(damaged)
+    ts = TrainingSet.open(damaged)
+    assert not ts.checksummed and ts.describe()['checksums'] is None
+    np.testing.assert_array_equal(np.asarray(ts['ep1'].Q[...]), _episodes()[0].Q)
+    np.testing.assert_array_equal(ts['ep2'].Y, _episodes()[1].Y)
+    assert main(['info', str(damaged)]) == 0
+    out = capsys.readouterr().out
+    assert '(format 2, no checksums)' in out and 'convert the bags again to add them' in out
+    assert main(['info', str(_intact_copy(damaged))]) == 0
+    out = capsys.readouterr().out
+    assert '(format 3, checksums: CRC-32C per chunk)' in out and 'matching its checksum' in out
+
+
+def _intact_copy(damaged: Path) -> Path:
+    path = damaged.parent / 'fresh.zarr'
+    TrainingSet.from_episodes(path, _episodes(), q_chunks=Q_CHUNKS)
+    return path
+
+
+def test_checksum_filter_removed_from_a_version_3_array_is_refused(damaged):
+    meta_path = damaged / 'episodes/ep1/U/.zarray'
+    meta = json.loads(meta_path.read_text())
+    meta['filters'] = None
+    meta_path.write_text(json.dumps(meta))
+    with pytest.raises(DatasetError, match=r"episode 'ep1', array U: its .zarray declares no "
+                                           'crc32c checksum'):
         TrainingSet.open(damaged)['ep1']
 
 

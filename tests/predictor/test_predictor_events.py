@@ -416,9 +416,13 @@ def test_unstamped_arrays_follow_the_senders_sequence_not_the_reception_jitter()
     assert np.abs(Yhat - Y).max() <= 1e-12 * np.abs(Y).max()
     kv = dict(loop.diagnostics(int(recv[-1])).values)
     assert kv['stamp_resync'] == '0'
-    # a pause longer than max_lag_s: re-synchronised to the reception clock, counted
-    loop.on_array(U[:, 0], 0, int(recv[-1]) + 10 ** 9)
-    assert dict(loop.diagnostics(int(recv[-1]) + 10 ** 9).values)['stamp_resync'] == '1'
+    # the sender pauses for 1 s, then sends at its rate again: no burst catches the sequence
+    # up, so after 32 messages it is re-synchronised to the reception clock, counted once
+    after = int(recv[-1]) + 10 ** 9
+    for j in range(50):
+        loop.on_array(U[:, 0], 0, after + j * H_NS)
+    assert dict(loop.diagnostics(after + 50 * H_NS).values)['stamp_resync'] == '1'
+    assert abs(loop.predictor.t_ns - (after + 49 * H_NS)) <= H_NS // 2      # on its grid
 
 
 def test_unstamped_slower_sender_gets_its_own_period() -> None:
@@ -580,3 +584,75 @@ def test_unstamped_sender_that_speeds_up_gets_a_new_step_per_message() -> None:
     assert loop.predictor.counters['late'] == 0
     lead = max(t - a for t, a in zip(times, recv.tolist()))
     assert lead <= loop.predictor.config.max_lag_s * 1e9 + H_NS
+
+
+@pytest.mark.parametrize('stall_ms', [0, 47, 50, 80, 120, 150, 300])
+def test_a_stall_of_the_node_keeps_one_step_per_array(stall_ms) -> None:
+    # the audit's case: 1,000 un-stamped arrays sent at 1 kHz, received at j ms, but the
+    # node stalls at array 100 and then takes the backlog in a burst
+    from soft_rom.predictor.loop import SequenceClock
+    clock = SequenceClock(1_000_000, 100_000_000, 1_000_000_000)
+    recv = [j * H_NS if j < 100 else max(j, 100 + stall_ms) * H_NS for j in range(1000)]
+    stamps = np.array([clock.stamp(t) for t in recv])
+    assert np.all(np.diff(stamps) == H_NS) and clock.resyncs == 0
+    model = _model(m=3)
+    U = _inputs(3, 1000, seed=5)
+    loop = RuntimeLoop(Predictor(model))
+    got = []
+    for j, t in enumerate(recv):
+        got += loop.on_array(U[:, j], 0, T0_NS + t).outputs
+    assert len(got) == 1000 and loop.predictor.counters['steps'] == 999
+    Yhat = np.array([y for _, y in got]).T
+    np.testing.assert_allclose(Yhat, model.simulate(U), rtol=0, atol=1e-9)
+
+
+def test_a_rate_change_is_followed_but_a_stall_is_not() -> None:
+    from soft_rom.predictor.loop import SequenceClock
+    clock = SequenceClock(1_000_000, 100_000_000, 1_000_000_000)
+    recv = [j * H_NS for j in range(2000)] + [2000 * H_NS + j * 2 * H_NS for j in range(2000)]
+    stamps = np.array([clock.stamp(t) for t in recv])
+    assert clock.period == 2 * H_NS                 # the sender now sends at 500 Hz
+    assert abs(stamps[-1] - recv[-1]) <= 100 * H_NS   # and the sequence follows it
+    assert np.all(np.diff(stamps[-500:]) == 2 * H_NS)
+
+
+def test_fixed_stepping_publishes_every_step_it_integrates() -> None:
+    model = _model(m=3)
+    loop = RuntimeLoop(Predictor(model, PredictorConfig(stepping='fixed')))
+    times = [t for t, _ in loop.on_array(np.ones(3), T0_NS, T0_NS).outputs]
+    for t in (T0_NS, T0_NS + H_NS, T0_NS + 4 * H_NS, T0_NS + 4 * H_NS, T0_NS + 9 * H_NS):
+        times += [t for t, _ in loop.tick(t).outputs]
+    assert times == [T0_NS + j * H_NS for j in range(10)]
+    assert loop.predictor.counters['steps'] == 9
+    U = np.ones((3, 10))
+    # each published output is the model's at its step (inputs held from t0)
+    ref = model.simulate(U)
+    loop2 = RuntimeLoop(Predictor(model, PredictorConfig(stepping='fixed')))
+    outs = loop2.on_array(np.ones(3), T0_NS, T0_NS).outputs
+    outs += loop2.tick(T0_NS).outputs + loop2.tick(T0_NS + 9 * H_NS).outputs
+    np.testing.assert_allclose(np.array([y for _, y in outs]).T, ref, rtol=0, atol=1e-12)
+
+
+def test_late_inputs_are_counted_and_warned_with_the_lag() -> None:
+    model = _model(m=3)
+    loop = RuntimeLoop(Predictor(model, PredictorConfig(max_lag_s=0.1)))
+    for j in range(50):                                # all three in step
+        for i in range(3):
+            loop.on_channel(i, 0.0, T0_NS + j * H_NS, T0_NS + j * H_NS)
+    assert loop.diagnostics(T0_NS + 50 * H_NS).level == int(Level.OK)
+    # a pause: chamber 0's backlog of 150 ms is taken first; max_lag_s pushes the model on
+    for j in range(50, 200):
+        loop.on_channel(0, 1.0, T0_NS + j * H_NS, T0_NS + 200 * H_NS)
+    for j in range(50, 200):                           # the others' backlog: many are late
+        for i in (1, 2):
+            loop.on_channel(i, 1.0, T0_NS + j * H_NS, T0_NS + 200 * H_NS)
+    pred = loop.predictor
+    late = pred.counters['late']
+    assert late > 0 and late == sum(pred.channels.late)
+    assert pred.counters['lag_forced'] > 0
+    d = loop.diagnostics(T0_NS + 201 * H_NS)
+    kv = dict(d.values)
+    assert d.level == int(Level.WARN), d.message
+    assert f'{late} input(s) arrived after their step was taken' in d.message
+    assert 'ms behind the model' in d.message and 'departs from the offline' in d.message
+    assert int(kv['input.chamber_2.late']) + int(kv['input.chamber_3.late']) == late

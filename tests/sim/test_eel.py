@@ -196,3 +196,23 @@ def test_resolution_two_is_finer(eel: EelModel) -> None:
     fine = EelModel(resolution=2)
     assert fine.n_dof == 33237
     assert sp.issparse(fine.B) and fine.B.shape == (fine.n_dof, 6)
+
+
+def test_lockstep_episodes_equal_their_own_simulations(eel: EelModel) -> None:
+    Us = [random_pressures(40, 1e-3, seed=0, episode=e) for e in (1, 2, 3)]
+    seen: list[tuple[int, int]] = []
+
+    def cb(e: int):
+        return lambda j, t, u, cl, x: seen.append((j, e))
+
+    many = eel.simulate_lockstep(Us, 40, callbacks=[cb(0), cb(1), cb(2)])
+    assert seen[:6] == [(0, 0), (0, 1), (0, 2), (1, 0), (1, 1), (1, 2)]
+    for U, r in zip(Us, many):
+        one = eel.simulate(U, 40)
+        assert np.abs(r.centerline - one.centerline).max() <= 1e-12
+        assert np.abs(one.centerline[-1, 2] - one.centerline[-1, 2, 0]).max() > 1e-4
+        assert r.info['lockstep'] == 3 and r.info['solver'] == one.info['solver']
+    with pytest.raises(DimensionError):
+        eel.simulate_lockstep([Us[0][:5]], 40)
+    with pytest.raises(DimensionError):
+        eel.simulate_lockstep(Us, 40, callbacks=[None])

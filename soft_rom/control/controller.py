@@ -1,0 +1,282 @@
+"""The controller core: estimator + MPC + reference, with the safety rules of the node.
+
+:class:`Controller` is what both the in-process closed loop (:mod:`soft_rom.control.loop`)
+and the ROS node (``ros2 run soft_rom controller``) run. It never raises on bad data and
+never returns a command outside the bounds or not finite:
+
+* a measurement of the wrong size, with NaN/Inf, or older than the last one is dropped
+  (counted, with the reason);
+* a reference of the wrong size, with NaN/Inf, or ending before the current time is
+  refused; the one in force stays;
+* without a measurement yet (``missing``), or with none for ``stale_after`` seconds
+  (``stale``), the last command is held (clipped into the bounds); with an external state
+  estimate (``external_state``, the predictor node's ``~/state``) the same holds for it;
+* an infeasible or failed QP holds the last command (clipped into the bounds).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+import math
+import time
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from soft_rom.control.estimator import EstimatorConfig, OffsetFreeEstimator
+from soft_rom.control.mpc import MPC, MPCConfig
+from soft_rom.control.reference import Reference
+from soft_rom.errors import DimensionError
+
+__all__ = ['Command', 'Controller']
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Command:
+    """One control step's result.
+
+    Attributes
+    ----------
+    u : ndarray, shape (m,)
+        The command (finite, within the bounds).
+    status : str
+        ``'ok'``, ``'missing'`` (no measurement yet), ``'stale'``, ``'no_reference'``,
+        ``'infeasible'`` or ``'failed'`` (QP).
+    solve_s : float
+        QP solve wall time (0 when none ran).
+    step_s : float
+        Whole control step wall time (estimate, reference, solve).
+    step_cpu_s : float
+        The same in thread CPU time (what the step costs, without preemption by other
+        processes on a loaded machine).
+    saturated : int
+        Inputs at a bound.
+    tracking_error : float
+        ``||y_est - r|| / sqrt(p)`` at the step (RMS over outputs, output units; NaN
+        without a reference).
+    detail : str
+    """
+
+    u: Array
+    status: str
+    solve_s: float = 0.0
+    step_s: float = 0.0
+    step_cpu_s: float = 0.0
+    saturated: int = 0
+    tracking_error: float = float('nan')
+    detail: str = ''
+
+
+@dataclass
+class _Counters:
+    measurements: int = 0
+    measurements_dropped: int = 0
+    states_dropped: int = 0
+    references_refused: int = 0
+    steps: int = 0
+    qp_failed: int = 0
+    qp_infeasible: int = 0
+    held: int = 0
+    last_problem: str = ''
+    by_status: dict[str, int] = field(default_factory=dict)
+
+
+class Controller:
+    """MPC with an offset-free estimator on a linear ROM.
+
+    Parameters
+    ----------
+    model : LinearROM
+    mpc : MPCConfig, optional
+    estimator : EstimatorConfig, optional
+    stale_after : float
+        Seconds without a measurement after which the command is held (default 0.1 s).
+    external_state : bool
+        The ROM state comes from outside (:meth:`set_state`: the predictor node running the
+        model on the applied commands); the measurements then correct the disturbance
+        only, which is the offset-free estimator with state noise 0 (internal model
+        control). The state is carried to each control time on the commands applied since.
+    """
+
+    def __init__(self, model: Any, mpc: MPCConfig | None = None,
+                 estimator: EstimatorConfig | None = None, *, stale_after: float = 0.1,
+                 external_state: bool = False) -> None:
+        self.model = model
+        self.external_state = bool(external_state)
+        self.state: tuple[float, Array] | None = None
+        self._history: list[tuple[float, Array]] = []
+        self.mpc = MPC(model, mpc)
+        self.estimator = OffsetFreeEstimator(model, estimator)
+        self.stale_after = float(stale_after)
+        self.reference: Reference | None = None
+        self.u = self.mpc.fallback(np.zeros(self.mpc.m))
+        self.t_measured: float | None = None
+        self.started = False
+        self.counters = _Counters()
+
+    @property
+    def h(self) -> float:
+        """Control step (s)."""
+        return self.mpc.h
+
+    def start(self, t: float) -> None:
+        """Anchor the estimator at time ``t`` at rest, with the current command held."""
+        self.estimator.reset(t, self.u)
+        self.started = True
+
+    # -- inputs -------------------------------------------------------------------------
+    def set_reference(self, ref: Reference, now: float | None = None) -> str:
+        """Use ``ref`` from now on; returns ``''`` or why it was refused (the old one stays)."""
+        why = ''
+        if not isinstance(ref, Reference):
+            why = 'not a reference'
+        elif ref.n_outputs != self.mpc.p:
+            why = f'reference has {ref.n_outputs} outputs; the model has {self.mpc.p}'
+        elif not (np.all(np.isfinite(ref.Y)) and np.all(np.isfinite(ref.t))):
+            why = 'reference has NaN/Inf'
+        elif now is not None and ref.t[-1] < now and ref.t.size > 1:
+            why = f'reference ends at {ref.t[-1]:.3f} s, before now ({now:.3f} s)'
+        if why:
+            self.counters.references_refused += 1
+            self.counters.last_problem = why
+            return why
+        self.reference = ref
+        return ''
+
+    def measure(self, y: ArrayLike, t: float) -> str:
+        """A measured absolute output at time ``t``; returns ``''`` or why it was dropped."""
+        why = ''
+        try:
+            y = np.asarray(y, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            y = np.zeros(0)
+        if y.shape != (self.mpc.p,):
+            why = f'measurement of {y.size} values; the model has {self.mpc.p} outputs'
+        elif not np.all(np.isfinite(y)):
+            why = f'measurement with {int(np.count_nonzero(~np.isfinite(y)))} NaN/Inf value(s)'
+        elif not math.isfinite(t):
+            why = 'measurement time not finite'
+        elif self.t_measured is not None and t <= self.t_measured:
+            why = f'measurement at {t:.4f} s is not newer than the last ({self.t_measured:.4f} s)'
+        if why:
+            self.counters.measurements_dropped += 1
+            self.counters.last_problem = why
+            return why
+        if not self.started:
+            self.start(t)
+        self.estimator.predict_to(t)
+        self.estimator.correct(y)
+        self.t_measured = t
+        self.counters.measurements += 1
+        return ''
+
+    def set_state(self, x: ArrayLike, t: float) -> str:
+        """An external state estimate at time ``t``; returns ``''`` or why it was dropped."""
+        why = ''
+        try:
+            x = np.asarray(x, dtype=np.float64).reshape(-1)
+        except (TypeError, ValueError):
+            x = np.zeros(0)
+        if x.shape != (self.mpc.n,):
+            why = f'state of {x.size} values; the model has {self.mpc.n} states'
+        elif not np.all(np.isfinite(x)):
+            why = 'state with NaN/Inf'
+        elif not math.isfinite(t):
+            why = 'state time not finite'
+        elif self.state is not None and t < self.state[0]:
+            why = f'state at {t:.4f} s is older than the last ({self.state[0]:.4f} s)'
+        if why:
+            self.counters.states_dropped += 1
+            self.counters.last_problem = why
+            return why
+        self.state = (float(t), x.copy())
+        return ''
+
+    def _carry_state(self, t: float) -> None:
+        """The external state carried to ``t`` on the commands applied since its time."""
+        if self.state is None:
+            return
+        ts, x = self.state
+        est = self.estimator
+        u = self._history[0][1] if self._history else self.u
+        later = []
+        for tc, uc in self._history:
+            if tc <= ts + 1e-9:
+                u = uc
+            else:
+                later.append((tc, uc))
+        est.x, est.t, est.u = x.copy(), ts, u.copy()
+        for tc, uc in later:
+            if tc > t:
+                break
+            est.predict_to(tc)
+            est.u = uc.copy()
+        est.predict_to(t)
+
+    # -- the control step ---------------------------------------------------------------
+    def step(self, t: float) -> Command:
+        """The command to apply from time ``t`` for one control step."""
+        t0 = time.perf_counter()
+        c0 = time.thread_time()
+        self.counters.steps += 1
+        status, detail, solve_s, sat, err = 'ok', '', 0.0, 0, float('nan')
+        ref = self.reference
+        if self.t_measured is None:
+            status, detail = 'missing', 'no measurement yet: command held'
+        elif t - self.t_measured > self.stale_after:
+            status, detail = 'stale', (f'last measurement {t - self.t_measured:.3f} s old '
+                                       f'(> {self.stale_after:g} s): command held')
+        elif self.external_state and self.state is None:
+            status, detail = 'missing', 'no state estimate yet: command held'
+        elif self.external_state and self.state is not None and \
+                t - self.state[0] > self.stale_after:
+            status, detail = 'stale', (f'state estimate {t - self.state[0]:.3f} s old '
+                                       f'(> {self.stale_after:g} s): command held')
+        elif ref is None:
+            status, detail = 'no_reference', 'no reference: command held'
+        if status != 'ok' or ref is None:
+            u = self.mpc.fallback(self.u)
+        else:
+            est = self.estimator
+            if self.external_state:
+                self._carry_state(t)
+            est.predict_to(t)
+            times = t + self.h * np.arange(1, self.mpc.N + 1)
+            R = ref.at(times)
+            err = float(np.linalg.norm(est.output() - ref.at([t])[:, 0])
+                        / math.sqrt(self.mpc.p))
+            try:
+                res = self.mpc.solve(est.x, est.d, R, self.u)
+            except DimensionError as e:       # cannot happen with checked inputs; be safe
+                res = None
+                detail = str(e)
+            if res is None:
+                status, u = 'failed', self.mpc.fallback(self.u)
+            else:
+                solve_s = res.qp.seconds
+                u, sat = res.u, res.saturated
+                if not res.qp.ok:
+                    status = res.qp.status if res.qp.status == 'infeasible' else 'failed'
+                    detail = f'QP {res.qp.status} ({res.qp.detail}): command held'
+        if not np.all(np.isfinite(u)):         # belt and braces: never a NaN command
+            u = self.mpc.centre.copy()
+        u = np.clip(u, self.mpc.lo, self.mpc.hi)
+        if status in ('failed', 'infeasible'):
+            setattr(self.counters, f'qp_{status}', getattr(self.counters, f'qp_{status}') + 1)
+        if status != 'ok':
+            self.counters.held += 1
+            self.counters.last_problem = detail
+        self.counters.by_status[status] = self.counters.by_status.get(status, 0) + 1
+        self.u = u
+        self._history.append((float(t), u.copy()))
+        del self._history[:-64]
+        if self.started:
+            self.estimator.predict_to(t)
+            self.estimator.set_input(u)
+        return Command(u=u.copy(), status=status, solve_s=solve_s,
+                       step_s=time.perf_counter() - t0, step_cpu_s=time.thread_time() - c0,
+                       saturated=sat, tracking_error=err,
+                       detail=detail)

@@ -1,0 +1,362 @@
+"""Linear model predictive control of a ROM's outputs (condensed, warm-started QP).
+
+At each control step ``h`` (a whole multiple of the model's ``dt``; the exact zero-order-hold
+discretization :meth:`~soft_rom.models.LinearROM.discretize`) the MPC chooses the inputs of
+the next ``N`` steps,
+
+.. math::
+
+    \\min_{u_0..u_{N-1}} \\sum_{j=1}^{N} \\frac{w_y}{p} \\Big\\| \\frac{\\hat y_j - r_j}{s_y}
+    \\Big\\|^2 + \\sum_{j=0}^{N-1} \\frac{w_{\\Delta}}{m} \\| v_j - v_{j-1} \\|^2
+    + \\frac{w_0}{m} \\| P_0 v_j \\|^2
+
+    x_{j+1} = A x_j + B u_j, \\quad \\hat y_j = C x_j + D u_j + d + y_{ref}, \\quad
+    u_j = c + S v_j, \\quad -1 \\le v_j \\le 1, \\quad |v_j - v_{j-1}| \\le \\delta,
+
+where ``v`` are the inputs scaled to the box ``[u_min, u_max]`` (centre ``c``, half-width
+``S``), ``s_y`` the output scale (the training data's largest output deviation), ``d`` the
+estimated output disturbance (:mod:`soft_rom.control.estimator`; held over the horizon,
+which makes the loop offset-free), ``v_{-1}`` the input applied last and ``δ`` the rate
+bound per step. ``P_0`` projects onto the input directions that the model's steady-state
+gain does not see (for the eel's antagonistic training data: both chambers of a segment
+pressurised together); a small weight there keeps the MPC from driving the plant where the
+model knows nothing, and changes nothing the model can see, so tracking stays offset-free.
+
+The states are eliminated (condensed form): the Hessian ``H`` (``N m`` square) and the
+constraint matrix are fixed and factorized once; each step forms the linear term from the
+state, disturbance, reference and last input, and solves with the warm-started solver of
+:mod:`soft_rom.control.qp`. Only the first input is applied (receding horizon).
+
+The cubic LOpInf (nonlinear restoring force) is refused: the MPC is linear.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from soft_rom.control.qp import make_solver, QPResult
+from soft_rom.errors import ConfigError, DimensionError
+
+__all__ = ['MPC', 'MPCConfig', 'MPCStep', 'input_bounds']
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MPCConfig:
+    """Settings of the MPC (SI units).
+
+    Parameters
+    ----------
+    step : float
+        Control step ``h`` (s); a whole multiple of the model's ``dt`` (default 10 ms).
+    horizon : float
+        Prediction horizon (s), ``N = round(horizon / step)`` steps (default 0.2 s).
+    output_weight : float
+        ``w_y``: weight of the output error (mean over outputs, scaled by ``s_y``).
+    rate_weight : float
+        ``w_Δ``: weight of the scaled input increments (mean over inputs).
+    null_weight : float
+        ``w_0``: weight of the inputs in the directions the model's steady-state gain does
+        not see.
+    u_min, u_max : tuple of float, optional
+        Input bounds (one value per input, or one for all); default the training range
+        recorded in the model file (``metadata['envelope']``).
+    rate_max : float, optional
+        Largest input change per second (one value for all inputs, in input units per s);
+        default: the full range ``u_max - u_min`` in 50 ms.
+    solver : str
+        ``'daqp'`` (default) or ``'osqp'``.
+    """
+
+    step: float = 0.01
+    horizon: float = 0.2
+    output_weight: float = 1.0
+    rate_weight: float = 1e-3
+    null_weight: float = 1e-2
+    u_min: tuple[float, ...] | None = None
+    u_max: tuple[float, ...] | None = None
+    rate_max: float | None = None
+    solver: str = 'daqp'
+
+    def __post_init__(self) -> None:
+        for name in ('step', 'horizon'):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ConfigError(f'MPC {name} must be a positive number of seconds; got {v!r}.')
+        for name in ('output_weight', 'rate_weight', 'null_weight'):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise ConfigError(f'MPC {name} must be a finite number >= 0; got {v!r}.')
+        if self.output_weight <= 0:
+            raise ConfigError('MPC output_weight must be > 0 (nothing would be tracked).')
+        if self.rate_max is not None and not (math.isfinite(self.rate_max)
+                                              and self.rate_max > 0):
+            raise ConfigError(f'MPC rate_max must be > 0; got {self.rate_max!r}.')
+        if self.horizon < self.step * (1 - 1e-9):
+            raise ConfigError(f'MPC horizon {self.horizon:g} s is shorter than one step '
+                              f'({self.step:g} s).')
+
+
+def input_bounds(model: Any, u_min: ArrayLike | None = None,
+                 u_max: ArrayLike | None = None) -> tuple[Array, Array]:
+    """Input bounds: given, else the training range in the model file.
+
+    Returns
+    -------
+    lo, hi : ndarray, shape (m,)
+
+    Raises
+    ------
+    ConfigError
+        No bound given and none recorded, or a bound that is not finite or ``lo >= hi``.
+    """
+    m = int(model.n_inputs)
+    env = model.metadata.get('envelope') if isinstance(model.metadata, dict) else None
+    env = env if isinstance(env, dict) else {}
+
+    def side(value: ArrayLike | None, key: str, flag: str) -> Array:
+        if value is None:
+            value = env.get(key)
+            if not value:
+                raise ConfigError(f'the model file records no training input range; give the '
+                                  f'input bounds ({flag}).')
+        a = np.array(value, dtype=np.float64).reshape(-1)
+        if a.size == 1:
+            a = np.full(m, a[0])
+        if a.size != m:
+            raise ConfigError(f'{flag} needs 1 or {m} values (one per input); got {a.size}.')
+        if not np.all(np.isfinite(a)):
+            raise ConfigError(f'{flag} must be finite; got {a.tolist()}.')
+        return a
+
+    lo, hi = side(u_min, 'u_min', '--u-min'), side(u_max, 'u_max', '--u-max')
+    if np.any(lo >= hi):
+        i = int(np.argmax(lo >= hi))
+        raise ConfigError(f'input bounds: u_min >= u_max for input {i} ({lo[i]:g} >= '
+                          f'{hi[i]:g}); give u_min below u_max.')
+    return lo, hi
+
+
+@dataclass(frozen=True)
+class MPCStep:
+    """One MPC solve.
+
+    Attributes
+    ----------
+    u : ndarray, shape (m,)
+        The input to apply now (in bounds; the last one, clipped, when the QP failed).
+    plan : ndarray, shape (m, N) or None
+        The optimal input sequence.
+    qp : QPResult
+    saturated : int
+        Inputs of ``u`` at a bound.
+    """
+
+    u: Array
+    plan: Array | None
+    qp: QPResult
+    saturated: int
+
+
+class MPC:
+    """Linear MPC of a :class:`~soft_rom.models.LinearROM`'s outputs.
+
+    Parameters
+    ----------
+    model : LinearROM
+        LOpInf (continuous, discretized exactly at ``config.step``), DMDc or ERA/OKID
+        (discrete: ``config.step`` a whole multiple of their ``dt``).
+    config : MPCConfig
+
+    Attributes
+    ----------
+    h : float
+        Control step (s).
+    N : int
+        Horizon in steps.
+    system : DiscreteSystem
+        The model at step ``h``.
+    lo, hi : ndarray, shape (m,)
+        Input bounds.
+    rate : ndarray, shape (m,)
+        Largest input change per step.
+    y_scale : float
+        ``s_y`` (output units).
+    """
+
+    def __init__(self, model: Any, config: MPCConfig | None = None) -> None:
+        cfg = config or MPCConfig()
+        if getattr(model, 'is_nonlinear', False) or getattr(model, 'is_linear', True) is False:
+            raise ConfigError(
+                f'{getattr(model, "method", "this")} model is nonlinear (cubic LOpInf): the MPC '
+                'is linear; fit a linear LOpInf (soft-rom fit --forces linear) to control with.')
+        if not callable(getattr(model, 'discretize', None)):
+            raise ConfigError(f'{type(model).__name__} cannot be discretized; the MPC needs a '
+                              'linear ROM (LOpInf, DMDc, ERA/OKID).')
+        ratio = cfg.step / float(model.dt)
+        j = int(round(ratio))
+        if j < 1 or abs(ratio - j) > 1e-6:
+            raise ConfigError(f'the control step {cfg.step:g} s must be a whole multiple of the '
+                              f'model time step {model.dt:g} s (e.g. {max(j, 1) * model.dt:g} s).')
+        self.model = model
+        self.config = cfg
+        self.h = j * float(model.dt)
+        self.N = max(1, int(round(cfg.horizon / self.h)))
+        self.system = model.discretize(self.h)
+        A, B, C, D, _ = self.system
+        self.n, self.m, self.p = A.shape[0], B.shape[1], C.shape[0]
+        self.lo, self.hi = input_bounds(model, cfg.u_min, cfg.u_max)
+        self.centre = 0.5 * (self.lo + self.hi)
+        self.half = 0.5 * (self.hi - self.lo)
+        rate = (2 * self.half / 0.05) if cfg.rate_max is None else np.full(self.m, cfg.rate_max)
+        self.rate = np.asarray(rate, dtype=np.float64) * self.h
+        env = model.metadata.get('envelope') if isinstance(model.metadata, dict) else None
+        dev = env.get('y_dev_max') if isinstance(env, dict) else None
+        self.y_scale = float(dev) if isinstance(dev, (int, float)) and dev and dev > 0 else \
+            max(float(np.max(np.abs(model.y_ref))), 1.0)
+        self._build()
+        self.solver = make_solver(cfg.solver, self.H, self.A_rate)
+        self.v_last: Array | None = None
+
+    # -- construction -------------------------------------------------------------------
+    def _build(self) -> None:
+        A, B, C, D, _ = self.system
+        n, m, p, N = self.n, self.m, self.p, self.N
+        S = np.diag(self.half)
+        # impulse blocks C A^k B, k = 0..N-1, and the state-to-output blocks C A^j, j = 1..N
+        CAk = []
+        M = C.copy()
+        for _ in range(N):
+            CAk.append(M)
+            M = M @ A
+        Phi = np.zeros((N * p, n))
+        G = np.zeros((N * p, N * m))                     # outputs 1..N from inputs 0..N-1
+        P = C @ A
+        for j in range(1, N + 1):
+            Phi[(j - 1) * p:j * p] = P
+            P = P @ A
+            for i in range(j):
+                G[(j - 1) * p:j * p, i * m:(i + 1) * m] = CAk[j - 1 - i] @ B
+            i_d = min(j, N - 1)                          # y_j sees u_j (u_N = u_{N-1})
+            G[(j - 1) * p:j * p, i_d * m:(i_d + 1) * m] += D
+        if not (np.all(np.isfinite(G)) and np.all(np.isfinite(Phi))):
+            raise ConfigError(f'the {self.model.method} model overflows over a '
+                              f'{N * self.h:g} s horizon; shorten the horizon.')
+        Gs = G @ np.kron(np.eye(N), S)                  # in scaled inputs v
+        wy = self.config.output_weight / (p * self.y_scale ** 2)
+        wd = self.config.rate_weight / m
+        # Input directions the steady-state gain does not see.
+        gain = self._steady_gain() @ S
+        _U, sv, Vt = np.linalg.svd(gain)
+        weak = np.ones(m, dtype=bool)
+        if sv.size and sv[0] > 0:
+            weak[:sv.size] = sv < 1e-3 * sv[0]
+        V = Vt.T
+        P0 = V[:, weak] @ V[:, weak].T
+        w0 = self.config.null_weight / m
+        Dlt = np.eye(N * m) - np.eye(N * m, k=-m)       # v_j - v_{j-1}
+        H = wy * Gs.T @ Gs + wd * Dlt.T @ Dlt + w0 * np.kron(np.eye(N), P0)
+        H += 1e-10 * np.trace(H) / (N * m) * np.eye(N * m)   # strictly convex
+        self.H = 0.5 * (H + H.T)
+        self._Fx = wy * Gs.T @ Phi                      # linear term per unit state
+        self._Fe = wy * Gs.T                            # per unit output offset (stacked)
+        self._Fc = G @ np.tile(self.centre, N)          # outputs of the centre input
+        self._Fv = wd * Dlt.T[:, :m]                    # from v_{-1}
+        self.A_rate = Dlt
+        self.H_inputs = self.H - wy * Gs.T @ Gs         # the input-only terms (benchmarks)
+        self.weak_inputs = int(weak.sum())
+
+    def _steady_gain(self) -> Array:
+        A, B, C, D, _ = self.system
+        try:
+            return C @ np.linalg.solve(np.eye(self.n) - A, B) + D
+        except np.linalg.LinAlgError:
+            return C @ np.linalg.lstsq(np.eye(self.n) - A, B, rcond=None)[0] + D
+
+    # -- solving ------------------------------------------------------------------------
+    def scale(self, u: ArrayLike) -> Array:
+        """Inputs in the scaled box coordinates ``v = (u - c) / S``."""
+        return (np.asarray(u, dtype=np.float64) - self.centre) / self.half
+
+    def unscale(self, v: ArrayLike) -> Array:
+        """Inputs from scaled coordinates, ``u = c + S v``."""
+        return self.centre + self.half * np.asarray(v, dtype=np.float64)
+
+    def solve(self, x: ArrayLike, d: ArrayLike, reference: ArrayLike,
+              u_last: ArrayLike) -> MPCStep:
+        """The input to apply now.
+
+        Parameters
+        ----------
+        x : ndarray, shape (n,)
+            State estimate (deviation coordinates) at the current control time.
+        d : ndarray, shape (p,)
+            Output disturbance estimate (held over the horizon).
+        reference : ndarray, shape (p, N)
+            Absolute reference outputs at the next ``N`` control times ``t + h .. t + N h``.
+        u_last : ndarray, shape (m,)
+            The input applied over the last step (the origin of the rate bounds).
+
+        Returns
+        -------
+        MPCStep
+            When the QP is infeasible or fails, ``u`` is :meth:`fallback` (``u_last`` held,
+            clipped into the bounds) and ``plan`` is ``None``.
+        """
+        N, m = self.N, self.m
+        f, lb, ub, lbA, ubA = self.qp_data(x, d, reference, u_last)
+        if not (np.all(np.isfinite(f)) and np.all(np.isfinite(lbA))):
+            res = QPResult(None, 'failed', 0, 0.0, 'non-finite QP data')
+        else:
+            res = self.solver.solve(f, lb, ub, lbA, ubA)
+        if res.ok and res.x is not None:
+            v = np.clip(res.x.reshape(N, m), -1.0, 1.0)
+            plan = self.unscale(v).T
+            u = np.clip(plan[:, 0], self.lo, self.hi)
+            self.v_last = v[0]
+        else:
+            plan = None
+            u = self.fallback(u_last)
+        saturated = int(np.count_nonzero((u <= self.lo + 1e-9 * self.half)
+                                         | (u >= self.hi - 1e-9 * self.half)))
+        return MPCStep(u=u, plan=plan, qp=res, saturated=saturated)
+
+    def qp_data(self, x: ArrayLike, d: ArrayLike, reference: ArrayLike,
+                u_last: ArrayLike) -> tuple[Array, Array, Array, Array, Array]:
+        """``(f, lb, ub, lbA, ubA)`` of the QP for the arguments of :meth:`solve`."""
+        N, m, p = self.N, self.m, self.p
+        x = np.asarray(x, dtype=np.float64)
+        d = np.asarray(d, dtype=np.float64)
+        R = np.asarray(reference, dtype=np.float64)
+        u_last = np.asarray(u_last, dtype=np.float64)
+        if x.shape != (self.n,) or d.shape != (p,) or R.shape != (p, N) or u_last.shape != (m,):
+            raise DimensionError(
+                f'MPC.solve needs x ({self.n},), d ({p},), reference ({p}, {N}), u_last ({m},);'
+                f' got {x.shape}, {d.shape}, {R.shape}, {u_last.shape}.')
+        v_last = self.scale(u_last)
+        offset = (self._Fc + np.tile(d + self.model.y_ref, N)
+                  - (R.T.reshape(-1)))                   # stacked over j = 1..N
+        f = self._Fx @ x + self._Fe @ offset - self._Fv @ v_last
+        dv = self.rate / self.half
+        lbA = np.tile(-dv, N)
+        ubA = np.tile(dv, N)
+        lbA[:m] += v_last
+        ubA[:m] += v_last
+        ones = np.ones(N * m)
+        return f, -ones, ones.copy(), lbA, ubA
+
+    def fallback(self, u_last: ArrayLike) -> Array:
+        """The safe command: ``u_last`` held, clipped into the bounds.
+
+        A ``u_last`` of the wrong size or not finite is replaced by the centre of the bounds.
+        """
+        u_last = np.array(u_last, dtype=np.float64).reshape(-1)
+        if u_last.shape != (self.m,) or not np.all(np.isfinite(u_last)):
+            return self.centre.copy()
+        return np.clip(u_last, self.lo, self.hi)

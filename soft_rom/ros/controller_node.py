@@ -1,0 +1,261 @@
+"""``ros2 run soft_rom controller``: MPC on a ROM as a ROS 2 node, a thin shell.
+
+The core is :class:`soft_rom.control.Controller` (offset-free estimator + MPC), the same the
+in-process loop (``soft-rom control``) runs. The node:
+
+* takes the reference as a parameter (``reference``: ``wave:…``, ``step:…``, an ``.npz``,
+  ``episode:BAG``; its time 0 is ``reference_t0_s`` on the node's clock, default the first
+  control tick) or from a topic
+  (``reference_topic``, ``geometry_msgs/PoseArray``: the desired centerline at
+  ``header.stamp``; samples are interpolated, the last one held);
+* takes the ROM state from the predictor node (``state_topic``, its ``~/state``; the
+  predictor runs the model on the commands this node publishes) and corrects the output
+  disturbance with the measured centerline (``measured_topic``); with ``state_topic: ''``
+  it estimates the state itself from the measured centerline, as ``soft-rom control`` does;
+* every ``step_s`` (sim time with ``use_sim_time``) publishes the pressure commands on the
+  predictor's input topics (one ``sensor_msgs/FluidPressure`` per chamber, stamped with the
+  control time), the reference shape on ``~/reference`` (``PoseArray``) and
+  ``/diagnostics`` (status, solve and step time, tracking error, saturation, counters).
+
+Bad input never stops it: a measurement, state or reference of the wrong size, with NaN, or
+stamped in the past is dropped and counted; without a fresh state or measurement, or when
+the QP is infeasible or fails, the last command is held, clipped into the bounds
+(diagnostics WARN with the reason).
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+from typing import Any
+
+from builtin_interfaces.msg import Time as TimeMsg
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Pose, PoseArray
+import numpy as np
+from rcl_interfaces.msg import ParameterDescriptor
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from sensor_msgs.msg import FluidPressure, JointState
+from std_msgs.msg import Header
+
+from soft_rom.control import Controller, EstimatorConfig, MPCConfig, parse_reference, Reference
+from soft_rom.control.reference import _model_outputs
+from soft_rom.predictor.conversions import ns_to_stamp, poses_to_points, set_points, stamp_to_ns
+
+__all__ = ['ControllerNode', 'main']
+
+DEFAULT_TOPICS = [f'/soft_robot/pressure/chamber_{i}' for i in range(1, 7)]
+
+
+class StartupError(Exception):
+    """A bad parameter or model at start-up (logged as one line): exit status 1."""
+
+
+class ControllerNode(Node):
+    """Publishes pressure commands that make the measured centerline follow a reference."""
+
+    def __init__(self, node_name: str = 'soft_rom_controller', **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+
+        def declare(name: str, value: Any, text: str) -> Any:
+            return self.declare_parameter(name, value, ParameterDescriptor(
+                description=text, read_only=True)).value
+
+        model_path = str(declare('model_path', '', 'linear model file (.npz)'))
+        spec = str(declare('reference', '', 'built-in reference or .npz (empty: the topic)'))
+        self.reference_topic = str(declare('reference_topic', '~/reference_in',
+                                           'PoseArray reference samples'))
+        self.measured_topic = str(declare('measured_topic', '/soft_robot/centerline',
+                                          'measured centerline (PoseArray)'))
+        self.state_topic = str(declare('state_topic', '/soft_rom_predictor/state',
+                                       "the predictor's ~/state ('' : estimate it here)"))
+        self.topics = list(declare('input_topics', DEFAULT_TOPICS, 'pressure command topics'))
+        step = float(declare('step_s', 0.01, 'control step, s'))
+        horizon = float(declare('horizon_s', 0.2, 'prediction horizon, s'))
+        rate_weight = float(declare('rate_weight', 1e-3, 'weight of input increments'))
+        noise = float(declare('sensor_noise', 5e-4, 'measurement noise std, m'))
+        sensor_rate = float(declare('sensor_rate_hz', 120.0, 'measured centerline rate'))
+        stale = float(declare('stale_after_s', 0.1, 'hold the command beyond this age'))
+        duration = float(declare('reference_duration_s', 60.0, 'length of a built-in one'))
+        self.frame_id = str(declare('frame_id', 'world', 'frame of ~/reference'))
+        self.ref_t0 = float(declare('reference_t0_s', -1.0, "clock time of the reference's "
+                                    't = 0 (< 0: the first control tick)'))
+        from soft_rom.models import load_model
+        try:
+            self.model = load_model(model_path)
+            external = bool(self.state_topic)
+            est = EstimatorConfig(measurement_noise=max(noise, 1e-5), sensor_rate=sensor_rate,
+                                  **({'process_noise': 0.0} if external else {}))
+            self.core = Controller(self.model, MPCConfig(step=step, horizon=horizon,
+                                                         rate_weight=rate_weight), est,
+                                   stale_after=stale, external_state=external)
+            self.fixed_ref = parse_reference(spec, self.model, duration=duration) \
+                if spec else None
+        except (OSError, ValueError) as err:
+            self.get_logger().error(f'cannot start: {err}')
+            raise StartupError(str(err)) from None
+        self.t0: float | None = None
+        self.samples: list[tuple[float, np.ndarray]] = []
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        self.pubs = [self.create_publisher(FluidPressure, t, qos) for t in self.topics]
+        self.pub_ref = self.create_publisher(PoseArray, '~/reference', 10)
+        self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_subscription(PoseArray, self.measured_topic, self._on_measured, qos)
+        if self.state_topic:
+            self.create_subscription(JointState, self.state_topic, self._on_state, qos)
+        if self.reference_topic:
+            self.create_subscription(PoseArray, self.reference_topic, self._on_reference, qos)
+        self.create_timer(self.core.h, self._on_tick)
+        self.last: Any = None
+        self.callback_errors = 0
+        n = len([nm for nm in self.model.output_names if nm.startswith('x')])
+        self.ref_msg = PoseArray()
+        self.ref_msg.header.frame_id = self.frame_id
+        self.ref_msg.poses = [Pose() for _ in range(n)]
+
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
+
+    def _guard(self, what: str, err: Exception) -> None:
+        self.callback_errors += 1
+        self.get_logger().warning(f'{what}: {type(err).__name__}: {err} (dropped)',
+                                  throttle_duration_sec=5.0)
+
+    def _on_measured(self, msg: PoseArray) -> None:
+        try:
+            y = _model_outputs(self.model, poses_to_points(msg.poses)) \
+                if len(msg.poses) * 2 == self.model.n_outputs else np.zeros(0)
+            why = self.core.measure(y, stamp_to_ns(msg.header.stamp) * 1e-9)
+            if why:
+                self.get_logger().warning(f'measurement dropped: {why}',
+                                          throttle_duration_sec=5.0)
+        except Exception as err:  # noqa: BLE001 - the node never dies on a message
+            self._guard('measured centerline', err)
+
+    def _on_state(self, msg: JointState) -> None:
+        try:
+            why = self.core.set_state(np.asarray(msg.position, dtype=np.float64),
+                                      stamp_to_ns(msg.header.stamp) * 1e-9)
+            if why:
+                self.get_logger().warning(f'state dropped: {why}', throttle_duration_sec=5.0)
+        except Exception as err:  # noqa: BLE001
+            self._guard('state', err)
+
+    def _on_reference(self, msg: PoseArray) -> None:
+        try:
+            t = stamp_to_ns(msg.header.stamp) * 1e-9
+            n = len(msg.poses)
+            y = _model_outputs(self.model, poses_to_points(msg.poses)) \
+                if 2 * n == self.model.n_outputs else np.zeros(n * 2)
+            now = self._now()
+            why = ''
+            if y.size != self.model.n_outputs:
+                why = f'{n} points; the model has {self.model.n_outputs // 2}'
+            elif not np.all(np.isfinite(y)):
+                why = 'NaN/Inf in the reference'
+            elif t < now - self.core.h:
+                why = f'stamped {now - t:.3f} s in the past'
+            if why:
+                self.core.counters.references_refused += 1
+                self.core.counters.last_problem = f'reference sample refused: {why}'
+                self.get_logger().warning(f'reference sample refused: {why}',
+                                          throttle_duration_sec=5.0)
+                return
+            self.samples = [s for s in self.samples if s[0] < t and s[0] >= now - 1.0]
+            self.samples.append((t, y))
+            ts = np.array([s[0] for s in self.samples])
+            self.core.set_reference(Reference(t=ts, Y=np.stack([s[1] for s in self.samples],
+                                                                axis=1), label='topic'))
+        except Exception as err:  # noqa: BLE001
+            self._guard('reference', err)
+
+    def _on_tick(self) -> None:
+        try:
+            now = self._now()
+            if self.t0 is None:
+                self.t0 = now if self.ref_t0 < 0 else self.ref_t0
+                if self.fixed_ref is not None:
+                    f = self.fixed_ref
+                    self.core.set_reference(Reference(t=f.t + self.t0, Y=f.Y, label=f.label))
+            cmd = self.core.step(now)
+            sec, nsec = ns_to_stamp(int(round(now * 1e9)))
+            stamp = TimeMsg(sec=sec, nanosec=nsec)
+            for pub, value in zip(self.pubs, cmd.u.tolist()):
+                pub.publish(FluidPressure(header=_header(stamp), fluid_pressure=value))
+            ref = self.core.reference
+            if ref is not None:
+                y = ref.at([now])[:, 0]
+                names = self.model.output_names
+                pts = np.zeros((len(self.ref_msg.poses), 3))
+                for row, nm in enumerate(names):
+                    if nm[:1] in 'xz' and nm[1:].isdigit() and int(nm[1:]) <= len(pts):
+                        pts[int(nm[1:]) - 1, 'xyz'.index(nm[0])] = y[row]
+                self.ref_msg.header.stamp = stamp
+                set_points([p.position for p in self.ref_msg.poses], pts)
+                self.pub_ref.publish(self.ref_msg)
+            self._diagnostics(stamp, cmd)
+        except Exception as err:  # noqa: BLE001
+            self._guard('control step', err)
+
+    def _diagnostics(self, stamp: TimeMsg, cmd: Any) -> None:
+        c = self.core.counters
+        level = DiagnosticStatus.OK if cmd.status == 'ok' else DiagnosticStatus.WARN
+        if cmd.status in ('failed', 'infeasible'):
+            level = DiagnosticStatus.ERROR
+        values = {
+            'status': cmd.status, 'solve_ms': f'{cmd.solve_s * 1e3:.3f}',
+            'step_ms': f'{cmd.step_s * 1e3:.3f}', 'tracking_error_m': f'{cmd.tracking_error:.6g}',
+            'saturated_inputs': str(cmd.saturated), 'qp_infeasible': str(c.qp_infeasible),
+            'qp_failed': str(c.qp_failed), 'held': str(c.held),
+            'measurements': str(c.measurements),
+            'measurements_dropped': str(c.measurements_dropped),
+            'states_dropped': str(c.states_dropped),
+            'references_refused': str(c.references_refused),
+            'callback_errors': str(self.callback_errors), 'last_problem': c.last_problem,
+        }
+        status = DiagnosticStatus(level=level, name=f'{self.get_name()}: control',
+                                  message=cmd.detail or cmd.status,
+                                  hardware_id=self.get_name(),
+                                  values=[KeyValue(key=k, value=v) for k, v in values.items()])
+        self.pub_diag.publish(DiagnosticArray(header=_header(stamp), status=[status]))
+
+
+def _header(stamp: TimeMsg) -> Header:
+    return Header(stamp=stamp)
+
+
+def main(args: list[str] | None = None) -> int:
+    """Run the node until SIGINT/SIGTERM; exit status 0 (1: bad model or parameter)."""
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT,
+                                                                       signal.SIGTERM)}
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    node = None
+    code = 0
+    executor = SingleThreadedExecutor()
+    try:
+        node = ControllerNode()
+        executor.add_node(node)
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+    except StartupError:
+        code = 1
+    except KeyboardInterrupt:
+        pass
+    finally:
+        executor.shutdown(timeout_sec=1.0)
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        for s, h in previous.items():
+            signal.signal(s, h)
+    return code
+
+
+if __name__ == '__main__':  # pragma: no cover
+    sys.exit(main())

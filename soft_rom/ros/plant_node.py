@@ -1,0 +1,204 @@
+"""``ros2 run soft_rom plant``: the embedded eel FOM as a ROS 2 node (the closed loop's plant).
+
+A thin shell over :class:`soft_rom.sim.EelStepper`: it takes chamber pressures (one
+``sensor_msgs/FluidPressure`` per chamber, the predictor's input topics), steps the FOM at
+``dt`` and publishes ``/clock`` at every step, so that the closed loop runs in sim time at
+the plant's pace, and the measured centerline (``geometry_msgs/PoseArray``, with Gaussian
+noise ``sensor_noise`` at ``sensor_rate_hz``, stamped with the plant time).
+
+A pressure stamped ``t`` applies from the first plant step at or after ``t``. With
+``lockstep_s`` > 0 (default 0.01, the controller's step), at each multiple of it the plant
+waits (up to ``command_timeout_s`` of wall time, then holds) for a command stamped at that
+time on every chamber, so a slow or loaded machine does not change the loop. After
+``duration_s`` (0: none) of sim time it stops stepping; ``record_path`` then gets an
+``.npz`` with ``t``, ``U`` (applied) and ``Y`` (noise-free centerline, ``x`` then ``z``
+rows), as ``soft-rom control`` records it.
+"""
+
+from __future__ import annotations
+
+import functools
+import signal
+import sys
+import threading
+import time
+from typing import Any
+
+from builtin_interfaces.msg import Time as TimeMsg
+from geometry_msgs.msg import Pose, PoseArray
+import numpy as np
+from rcl_interfaces.msg import ParameterDescriptor
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import FluidPressure
+
+from soft_rom.predictor.conversions import ns_to_stamp, set_points, stamp_to_ns
+
+__all__ = ['PlantNode', 'main']
+
+DEFAULT_TOPICS = [f'/soft_robot/pressure/chamber_{i}' for i in range(1, 7)]
+
+
+class PlantNode(Node):
+    """The FOM, stepped on pressure messages; publishes ``/clock`` and the measured centerline."""
+
+    def __init__(self, node_name: str = 'soft_rom_plant', **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
+
+        def declare(name: str, value: Any, text: str) -> Any:
+            return self.declare_parameter(name, value, ParameterDescriptor(
+                description=text, read_only=True)).value
+
+        self.resolution = int(declare('resolution', 1, 'FOM mesh resolution (1: 5,145 DOF)'))
+        self.dt = float(declare('dt', 1e-3, 'plant step, s'))
+        self.sensor_rate = float(declare('sensor_rate_hz', 120.0, 'measured centerline rate'))
+        self.noise = float(declare('sensor_noise', 5e-4, 'measurement noise std, m'))
+        self.seed = int(declare('seed', 0, 'noise seed'))
+        self.topics = list(declare('input_topics', DEFAULT_TOPICS, 'chamber pressure topics'))
+        self.measured_topic = str(declare('measured_topic', '/soft_robot/centerline',
+                                          'measured centerline topic'))
+        self.frame_id = str(declare('frame_id', 'world', 'frame of the centerline'))
+        self.lockstep = float(declare('lockstep_s', 0.01, 'wait for commands at multiples of '
+                                                          'this sim time (0: never)'))
+        self.timeout = float(declare('command_timeout_s', 2.0, 'wall seconds to wait'))
+        self.duration = float(declare('duration_s', 0.0, 'sim seconds to run (0: no end)'))
+        self.record_path = str(declare('record_path', '', '.npz written at the end'))
+        from soft_rom.sim import EelModel
+        self.eel = EelModel(resolution=self.resolution)
+        self.stepper = self.eel.stepper(self.dt)
+        self.rng = np.random.default_rng(self.seed)
+        m = self.eel.n_chambers
+        self.value = np.zeros(m)
+        self.pending: list[list[tuple[int, float]]] = [[] for _ in range(m)]
+        self.newest = np.full(m, -1, dtype=np.int64)
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        for i, topic in enumerate(self.topics[:m]):
+            self.create_subscription(FluidPressure, topic,
+                                     functools.partial(self._on_pressure, i), qos)
+        self.pub_clock = self.create_publisher(Clock, '/clock', 10)
+        self.pub_measured = self.create_publisher(PoseArray, self.measured_topic, 10)
+        n = self.eel.centerline_map.shape[0]
+        self.msg = PoseArray()
+        self.msg.header.frame_id = self.frame_id
+        self.msg.poses = [Pose() for _ in range(n)]
+        self.positions = [p.position for p in self.msg.poses]
+        self.t_rec: list[float] = []
+        self.U_rec: list[np.ndarray] = []
+        self.Y_rec: list[np.ndarray] = []
+        self.held = 0
+        self.frame = 0
+
+    def _on_pressure(self, i: int, msg: FluidPressure) -> None:
+        v = float(msg.fluid_pressure)
+        if not np.isfinite(v):
+            return
+        t = stamp_to_ns(msg.header.stamp)
+        self.pending[i].append((t, v))
+        self.newest[i] = max(self.newest[i], t)
+
+    def _apply(self, t_ns: int) -> None:
+        for i, queue in enumerate(self.pending):
+            keep = []
+            for ts, v in sorted(queue):
+                if ts <= t_ns:
+                    self.value[i] = v
+                else:
+                    keep.append((ts, v))
+            self.pending[i] = keep
+
+    def step(self, spin: Any) -> bool:
+        """One plant step (False when ``duration_s`` is reached)."""
+        j = self.stepper.j
+        t = j * self.dt
+        if self.duration > 0 and t >= self.duration - 1e-9:
+            return False
+        t_ns = int(round(t * 1e9))
+        sec, nsec = ns_to_stamp(t_ns)
+        self.pub_clock.publish(Clock(clock=TimeMsg(sec=sec, nanosec=nsec)))
+        points = self.stepper.centerline()
+        per = self.sensor_rate * self.dt
+
+        def sample(k: int) -> int:               # frame k is taken at plant sample j
+            return int(np.floor(k / per + 1e-9))
+
+        while sample(self.frame) < j:
+            self.frame += 1
+        if sample(self.frame) == j:
+            while sample(self.frame) == j:
+                self.frame += 1
+            noisy = points + (self.noise * self.rng.standard_normal(points.shape)
+                              if self.noise > 0 else 0.0)
+            self.msg.header.stamp = TimeMsg(sec=sec, nanosec=nsec)
+            set_points(self.positions, noisy)
+            self.pub_measured.publish(self.msg)
+        if self.lockstep > 0 and j > 0 and \
+                abs(t / self.lockstep - round(t / self.lockstep)) < 1e-6:
+            deadline = time.monotonic() + self.timeout
+            while np.any(self.newest < t_ns) and time.monotonic() < deadline:
+                spin(0.002)
+            if np.any(self.newest < t_ns):
+                self.held += 1
+        spin(0.0)
+        self._apply(t_ns)
+        if self.record_path:
+            self.t_rec.append(t)
+            self.U_rec.append(self.value.copy())
+            self.Y_rec.append(np.concatenate([points[:, 0], points[:, 2]]))
+        self.stepper.step(self.value.copy())
+        return True
+
+    def save(self) -> None:
+        """Write ``record_path`` (when set)."""
+        if not self.record_path or not self.t_rec:
+            return
+        np.savez(self.record_path, t=np.array(self.t_rec), U=np.array(self.U_rec).T,
+                 Y=np.array(self.Y_rec).T, held=np.array(self.held))
+
+
+def main(args: list[str] | None = None) -> int:
+    """Run the plant until SIGINT/SIGTERM (or ``duration_s``); exit status 0."""
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT,
+                                                                       signal.SIGTERM)}
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    node = None
+    executor = SingleThreadedExecutor()
+    try:
+        node = PlantNode(parameter_overrides=[Parameter('use_sim_time', value=False)])
+        executor.add_node(node)
+
+        def spin(timeout: float) -> None:
+            executor.spin_once(timeout_sec=timeout)
+
+        # start when a commander (the controller) publishes on every pressure topic
+        while not stop.is_set() and rclpy.ok() and not all(
+                node.count_publishers(topic) for topic in node.topics):
+            spin(0.05)
+
+        while not stop.is_set() and rclpy.ok():
+            if not node.step(spin):
+                node.save()
+                node.record_path = ''
+                while not stop.is_set() and rclpy.ok():
+                    spin(0.1)
+        if node.record_path:
+            node.save()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        executor.shutdown(timeout_sec=1.0)
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+        for s, h in previous.items():
+            signal.signal(s, h)
+    return 0
+
+
+if __name__ == '__main__':  # pragma: no cover
+    sys.exit(main())

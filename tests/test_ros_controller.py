@@ -1,0 +1,100 @@
+"""The controller node under rclpy: bad messages never stop it or make it command NaN."""
+
+from __future__ import annotations
+
+import signal
+
+from _eel_rom import modal_rom
+from _ros import client_fixture, no_noise, NodeProcess, require_rclpy
+import numpy as np
+import pytest
+
+require_rclpy()
+
+from builtin_interfaces.msg import Time  # noqa: E402
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from geometry_msgs.msg import Pose, PoseArray  # noqa: E402
+from sensor_msgs.msg import FluidPressure, JointState  # noqa: E402
+
+client = client_fixture('controller_test_client')
+
+
+def _poses(points: np.ndarray, t: float) -> PoseArray:
+    msg = PoseArray()
+    sec = int(t)
+    msg.header.stamp = Time(sec=sec, nanosec=int(round((t - sec) * 1e9)))
+    for x, y, z in points:
+        p = Pose()
+        p.position.x, p.position.y, p.position.z = float(x), float(y), float(z)
+        msg.poses.append(p)
+    return msg
+
+
+@pytest.fixture(scope='module')
+def model_path(tmp_path_factory):
+    return modal_rom(4).save(tmp_path_factory.mktemp('m') / 'eel_modal_r4.npz')
+
+
+def test_bad_messages_are_dropped_and_commands_stay_safe(tmp_path, model_path, client) -> None:
+    model = modal_rom(4)
+    rest = np.stack([model.y_ref[:20], np.zeros(20), model.y_ref[20:]], axis=1)
+    node = NodeProcess(tmp_path, {'model_path': str(model_path), 'reference': '',
+                                  'reference_topic': '/t/ref', 'measured_topic': '/t/meas',
+                                  'state_topic': '/t/state', 'stale_after_s': 0.3},
+                       name='ctl', exe='controller')
+    try:
+        commands: list[tuple[int, float]] = []
+        diags: list[dict[str, str]] = []
+        for i in range(6):
+            client.node.create_subscription(
+                FluidPressure, f'/soft_robot/pressure/chamber_{i + 1}',
+                lambda m, i=i: commands.append((i, m.fluid_pressure)), 100)
+        client.node.create_subscription(
+            DiagnosticArray, '/diagnostics',
+            lambda m: diags.extend({kv.key: kv.value for kv in s.values} | {'msg': s.message}
+                                   for s in m.status), 100)
+        pub_meas = client.node.create_publisher(PoseArray, '/t/meas', 100)
+        pub_ref = client.node.create_publisher(PoseArray, '/t/ref', 100)
+        pub_state = client.node.create_publisher(JointState, '/t/state', 100)
+        assert client.spin_until(lambda: len(commands) >= 12, 60), node.log()
+        assert any(d['status'] == 'missing' for d in diags)
+        now = client.node.get_clock().now().nanoseconds * 1e-9
+        pub_meas.publish(_poses(rest[:19], now))                          # wrong size
+        bad = rest.copy()
+        bad[3, 2] = np.nan
+        pub_meas.publish(_poses(bad, now))                                # NaN
+        pub_ref.publish(_poses(rest[:10], now + 1))                       # wrong size
+        pub_ref.publish(_poses(bad, now + 1))                             # NaN
+        pub_ref.publish(_poses(rest, now - 5.0))                          # in the past
+        pub_state.publish(JointState(position=[1.0, 2.0]))               # wrong size
+        pub_state.publish(JointState(position=[float('nan')] * model.n_states))
+
+        def counters_seen() -> bool:
+            d = diags[-1] if diags else {}
+            return (int(d.get('measurements_dropped', 0)) >= 2
+                    and int(d.get('references_refused', 0)) >= 3
+                    and int(d.get('states_dropped', 0)) >= 2)
+        assert client.spin_until(counters_seen, 30), (diags[-1:], node.log())
+        # then good data: it controls
+        target = rest.copy()
+        target[10:, 2] += 0.005
+        for k in range(60):
+            t = client.node.get_clock().now().nanoseconds * 1e-9
+            pub_meas.publish(_poses(rest, t))
+            st = JointState(position=[0.0] * model.n_states)
+            st.header.stamp = Time(sec=int(t), nanosec=int((t - int(t)) * 1e9))
+            pub_state.publish(st)
+            if k % 10 == 0:
+                pub_ref.publish(_poses(target, t + 0.5))
+            client.spin_for(0.02)
+        assert any(d['status'] == 'ok' for d in diags[-20:]), diags[-3:]
+        # silence: the state goes stale and the command is held
+        assert client.spin_until(lambda: diags and diags[-1]['status'] == 'stale', 10)
+        assert node.proc.poll() is None
+        values = np.array([v for _i, v in commands])
+        assert np.all(np.isfinite(values))
+        assert np.all(values >= -50e3) and np.all(values <= 50e3)
+        assert node.stop(signal.SIGINT) == 0
+        assert not no_noise(node.log()), node.log()
+    finally:
+        node.kill()
