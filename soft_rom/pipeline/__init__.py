@@ -23,10 +23,17 @@ from soft_rom.pipeline.data import (
     output_coordinates,
     select_episodes,
 )
-from soft_rom.pipeline.fit import finalize_model, fit_models, FittedModel, for_orders, Reducer
+from soft_rom.pipeline.fit import (
+    finalize_model,
+    fit_models,
+    FittedModel,
+    for_orders,
+    held_out_by_order,
+    Reducer,
+)
 from soft_rom.pipeline.settings import fit_method, FitSettings, make_learner, replace_learner
 
 __all__ = ['COORDINATES', 'CUBIC_GRID', 'CubicChoice', 'FitSettings', 'FittedModel',
            'HeldOutCubicSelection', 'Reducer', 'choose_coordinates', 'finalize_model',
-           'fit_method', 'fit_models', 'for_orders', 'make_learner', 'open_training_data',
-           'output_coordinates', 'replace_learner', 'select_episodes']
+           'fit_method', 'fit_models', 'for_orders', 'held_out_by_order', 'make_learner',
+           'open_training_data', 'output_coordinates', 'replace_learner', 'select_episodes']

@@ -7,7 +7,9 @@
    needs (POD coordinates for LOpInf, snapshot coordinates for DMDc, nothing for ERA/OKID);
 2. the learner fits on the reduced data (the expensive part, shared by every ``r``);
 3. each ``r`` gets its model from that fit (``model_for``);
-4. :func:`finalize_model` writes what every model file records about its fit.
+4. with ``held_out``, the same learner and orders are fitted again on part of the training
+   data, and each model's error on the rest is measured (:func:`held_out_by_order`);
+5. :func:`finalize_model` writes what every model file records about its fit.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 import copy
 from dataclasses import dataclass, field
+import logging
 import sys
 import time
 from typing import Any, Protocol
@@ -22,10 +25,13 @@ from typing import Any, Protocol
 from soft_rom.errors import ConfigError
 from soft_rom.learners.registry import Learner
 from soft_rom.models import LinearROM
-from soft_rom.models.labels import model_label, model_stem
+from soft_rom.models.labels import model_kind, model_label, model_stem
 from soft_rom.reduce import InMemoryPOD, ReducedData, TrainingData
 
-__all__ = ['FittedModel', 'Reducer', 'finalize_model', 'fit_models', 'for_orders']
+__all__ = ['FittedModel', 'Reducer', 'finalize_model', 'fit_models', 'for_orders',
+           'held_out_by_order']
+
+LOG = logging.getLogger(__name__)
 
 
 class Reducer(Protocol):
@@ -98,7 +104,8 @@ def for_orders(learner: Learner, r_values: Sequence[int] | None) -> Learner:
 def fit_models(data: TrainingData, learner: Learner, r_values: Sequence[int] | None = None,
                reducer: Reducer | None = None, *, progress: bool = False,
                layout: dict[str, Any] | None = None,
-               extra: dict[str, Any] | None = None) -> list[FittedModel]:
+               extra: dict[str, Any] | None = None,
+               held_out: bool = False) -> list[FittedModel]:
     """Reduce ``data`` once, fit ``learner`` on it, and return one model per ``r``.
 
     Parameters
@@ -118,6 +125,10 @@ def fit_models(data: TrainingData, learner: Learner, r_values: Sequence[int] | N
         The training set's output layout, recorded in every model.
     extra : dict, optional
         More metadata for every model.
+    held_out : bool
+        Also record each model's error on training data it was not fitted on
+        (``metadata['held_out']``, the predictor's monitor thresholds;
+        :func:`held_out_by_order`).
 
     Returns
     -------
@@ -146,8 +157,54 @@ def fit_models(data: TrainingData, learner: Learner, r_values: Sequence[int] | N
             bar.update(1)
     finally:
         bar.close()
-    for fitted in out:
-        finalize_model(fitted.model, reduced, reducer, layout=layout, extra=extra)
+    held = (held_out_by_order(data, learner, out, reducer) if held_out
+            else [None] * len(out))
+    for fitted, errors in zip(out, held):
+        finalize_model(fitted.model, reduced, reducer, layout=layout, extra=extra,
+                       held_out=errors)
+    return out
+
+
+def held_out_by_order(data: TrainingData, learner: Learner, fitted: Sequence[FittedModel],
+                      reducer: Reducer | None = None) -> list[dict[str, Any] | None]:
+    """Each model's error on training data it was not fitted on, as the study records it.
+
+    :func:`soft_rom.evaluation.held_out_errors` with the same learner and the same orders:
+    with two or more training episodes each is left out in turn, with one (ERA/OKID fits
+    one) its last fifth is predicted by the model fitted on the rest. The orders share each
+    refit, as in :func:`fit_models`. A model whose refit fails gets ``None`` (the monitor's
+    default thresholds), logged.
+    """
+    from soft_rom.evaluation import held_out_errors
+
+    if not fitted:
+        return []
+    rs = tuple(int(model_kind(f.model)['r']) for f in fitted)
+    used = fitted[0].model.metadata.get('training', {}).get('episodes')
+    eps = [ep for ep in data.episodes if not used or ep.name in used]
+    refits: dict[tuple[tuple[str, int], ...], list[LinearROM] | Exception] = {}
+
+    def refit(subset: Sequence[Any], i: int) -> LinearROM:
+        key = tuple((ep.name, ep.n_samples) for ep in subset)
+        if key not in refits:             # one refit serves every order (a failure too)
+            part = TrainingData(episodes=list(subset), q_ref=data.q_ref, y_ref=data.y_ref,
+                                names=data.names)
+            try:
+                refits[key] = [f.model for f in fit_models(part, learner, rs, reducer)]
+            except Exception as err:  # noqa: BLE001 -- raised again for every order below
+                refits[key] = err
+        done = refits[key]
+        if isinstance(done, Exception):
+            raise done
+        return done[i]
+
+    out: list[dict[str, Any] | None] = []
+    for i, f in enumerate(fitted):
+        try:
+            out.append(held_out_errors(lambda subset, i=i: refit(subset, i), eps, data.y_ref))
+        except Exception as err:  # noqa: BLE001 -- no held-out error: the monitor's defaults
+            LOG.info('held-out error of %s not recorded: %s', f.label, err)
+            out.append(None)
     return out
 
 
@@ -156,11 +213,13 @@ _NAMES = {'lopinf': 'LOpInf', 'dmdc': 'DMDc', 'era': 'ERA/OKID'}
 
 def finalize_model(model: LinearROM, reduced: ReducedData, reducer: Reducer, *,
                    layout: dict[str, Any] | None = None,
-                   extra: dict[str, Any] | None = None) -> None:
+                   extra: dict[str, Any] | None = None,
+                   held_out: dict[str, Any] | None = None) -> None:
     """Record in ``model.metadata`` what its file says about the fit: the one place.
 
     Training provenance (set, episodes, time ranges), the coordinates, the reducer, the
-    output layout, the label (method, variant, forces, r) and ``extra``.
+    output layout, the label (method, variant, forces, r), the held-out error
+    (:mod:`soft_rom.predictor.thresholds` reads it) and ``extra``.
     """
     meta = model.metadata
     training = dict(reduced.metadata.get('training', {}))
@@ -174,6 +233,8 @@ def finalize_model(model: LinearROM, reduced: ReducedData, reducer: Reducer, *,
     if layout is not None:
         meta['output_layout'] = layout
     meta['label'] = model_label(model, data_dt=reduced.dt)
+    if held_out is not None:
+        meta['held_out'] = held_out
     meta.update(extra or {})
 
 

@@ -77,6 +77,11 @@ class FitSettings:
         ERA/OKID keywords (``decimation``, ``n_markov``, ``observer_order``, ``output_rank``,
         ``okid_rcond``, ``okid_ridge``, ``hsv_tol``, ``episode``, ...); ``None`` values are
         the learner's defaults.
+    held_out : bool
+        Record each model's held-out error (``metadata['held_out']``, from which the
+        predictor sets its monitor thresholds): the fit is repeated on part of the training
+        data (:func:`~soft_rom.pipeline.fit.held_out_by_order`). In memory only, and not
+        for cubic forces chosen on held-out data (their selection already refits).
     """
 
     energy: float | None = None
@@ -93,6 +98,7 @@ class FitSettings:
     dmdc_p: int | None = None
     dmdc_variant: str = 'paper'
     era: dict[str, Any] = field(default_factory=dict)
+    held_out: bool = True
 
 
 def make_learner(method: str, settings: FitSettings | None = None,
@@ -164,8 +170,9 @@ def fit_method(data: TrainingData, method: str, r_values: Sequence[int] | None,
     if method == 'era' and len(data.episodes) > 1 and s.era.get('episode') is None and notes:
         print(f'note: ERA/OKID fits one episode; using {data.episodes[0].name!r} '
               '(choose with --era-episode).', file=sys.stderr)
+    held_out = s.held_out and (reducer is None or isinstance(reducer, InMemoryPOD))
     return fit_models(data, learner, r_values, reducer, progress=progress, layout=layout,
-                      extra=extra)
+                      extra=extra, held_out=held_out)
 
 
 def _say_choices(method: str, learner: Any, coords: str, s: FitSettings) -> None:

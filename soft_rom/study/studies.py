@@ -57,7 +57,8 @@ def sweep(method: str, rs: Sequence[int], episodes: Sequence[Episode], ts: Any, 
         era['episode'] = episodes[0].name
     cubic = method == 'lopinf_cubic'
     settings = FitSettings(forces='cubic' if cubic else 'linear',
-                           cubic_options=cubic_options if cubic else None, era=era)
+                           cubic_options=cubic_options if cubic else None, era=era,
+                           held_out=False)         # recorded for the chosen models only
     provenance = {'training_set': str(getattr(ts, 'path', '')),
                   'time_ranges': [[float(ep.t[0]), float(ep.t[-1])] for ep in episodes]}
     reducer = None
