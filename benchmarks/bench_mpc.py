@@ -10,14 +10,17 @@ in order and warm-started, by each candidate:
 * OSQP, condensed and sparse (states kept as variables), warm-started;
 * proxsuite (ProxQP dense), warm-started, if installed;
 * Clarabel, condensed (interior point: no warm start);
-* cvxpy on the same condensed QP (a Parameter problem, solved by its default solver).
+* cvxpy on the same condensed QP (a Parameter problem, solved by its default solver);
+* DAQP on the same recorded states posed with the Riccati terminal cost (another Hessian of
+  the same size).
 
 Printed: per solver the solve-time p50 / p99 / max (ms), the largest deviation of its
 solutions from DAQP's (objective-scaled), the ratio of its p99 to DAQP's, and the machine
 load. A whole control step (estimate, solve) is timed by the closed loop itself.
 
 Run: ``python benchmarks/bench_mpc.py`` (``--model FILE`` for a fitted LOpInf file, default
-the eel's modal ROM with r = 16; ``--repeat N`` to repeat the replay).
+the eel's modal ROM with r = 16; ``--repeat N`` to repeat the replay; ``--skip
+osqp-sparse,clarabel`` to leave the slowest candidates out).
 """
 
 from __future__ import annotations
@@ -235,7 +238,16 @@ def main() -> int:
     parser.add_argument('--model', default=None, help='LOpInf model file (default: modal r=16)')
     parser.add_argument('--duration', type=float, default=1.0)
     parser.add_argument('--repeat', type=int, default=3)
+    optional = ('osqp', 'osqp-sparse', 'proxsuite', 'clarabel')
+    parser.add_argument('--skip', default='',
+                        help=f'comma-separated solvers to leave out, of {", ".join(optional)} '
+                             '(DAQP and cvxpy always run: they give the printed ratio); '
+                             'osqp-sparse alone takes minutes')
     args = parser.parse_args()
+    skip = {s for s in args.skip.split(',') if s}
+    if skip - set(optional):
+        parser.error(f'--skip: unknown solver(s) {", ".join(sorted(skip - set(optional)))}; '
+                     f'choose from {", ".join(optional)}')
     from soft_rom.models import load_model
     if args.model:
         model = load_model(args.model)
@@ -258,15 +270,22 @@ def main() -> int:
               f'CPU p50/p99 {s["control_step_cpu"]["p50_ms"]:.3f}/'
               f'{s["control_step_cpu"]["p99_ms"]:.3f} ms = p99 '
               f'{10 * s["control_step_cpu"]["p99_ms"]:.1f} % of the period')
-    runners = [('daqp (condensed, warm)', run_daqp), ('osqp (condensed, warm)', run_osqp_dense),
-               ('osqp (sparse, warm)', lambda mpc, problems: run_osqp_sparse(mpc, problems,
-                                                                             calls)),
-               ('clarabel (condensed, cold)', run_clarabel)]
-    try:
-        import proxsuite  # noqa: F401
-        runners.insert(2, ('proxsuite dense (warm)', run_proxsuite))
-    except ImportError:
-        print('  (proxsuite not installed: pip install proxsuite to include it)')
+    runners = [('daqp (condensed, warm)', run_daqp)]
+    if 'osqp' not in skip:
+        runners.append(('osqp (condensed, warm)', run_osqp_dense))
+    if 'proxsuite' not in skip:
+        try:
+            import proxsuite  # noqa: F401
+            runners.append(('proxsuite dense (warm)', run_proxsuite))
+        except ImportError:
+            print('  (proxsuite not installed: pip install proxsuite to include it)')
+    if 'osqp-sparse' not in skip:
+        runners.append(('osqp (sparse, warm)',
+                        lambda mpc, problems: run_osqp_sparse(mpc, problems, calls)))
+    if 'clarabel' not in skip:
+        runners.append(('clarabel (condensed, cold)', run_clarabel))
+    if skip:
+        print(f'  (left out: {", ".join(sorted(skip))})')
     runners.append(('cvxpy (same QP, default solver)', run_cvxpy))
     results = {}
     ref_x = None
@@ -304,6 +323,21 @@ def main() -> int:
     for name, ((p50, p99, mx), (gap, viol), fails, (c50, c99, _cm)) in results.items():
         print(f'{name:34s} {p50:7.3f} {p99:7.3f} {mx:7.3f} {c50:8.3f} {c99:8.3f} '
               f'{p50 / base50:8.1f} {p99 / base:8.1f} {gap:8.1e} {viol:8.1e} {fails}')
+    # the same recorded states, references and last inputs posed with the Riccati terminal
+    # cost (MPCConfig(terminal='riccati'): another Hessian, same size), DAQP warm-started
+    from dataclasses import replace
+
+    from soft_rom.control import MPC
+    mpc_t = MPC(mpc.model, replace(mpc.config, terminal='riccati'))
+    problems_t = [mpc_t.qp_data(*c) for c in calls]
+    best_t = None
+    for _ in range(args.repeat):
+        _xs, ts_t = run_daqp(mpc_t, problems_t)
+        if best_t is None or np.percentile(ts_t, 99) < np.percentile(best_t[0], 99):
+            best_t = (ts_t, list(CPU))
+    (t50, t99, tmax), (tc50, tc99, _tcm) = pct(best_t[0]), pct(best_t[1])
+    print(f'{"daqp, riccati terminal cost":34s} {t50:7.3f} {t99:7.3f} {tmax:7.3f} {tc50:8.3f} '
+          f'{tc99:8.3f}   (terminal: {mpc_t.terminal})')
     cv = results['cvxpy (same QP, default solver)']
     dq = results['daqp (condensed, warm)']
     print(f'DAQP solve p50 {base50:.3f} ms, p99 {base:.3f} ms wall, p99 {dq[3][1]:.3f} ms CPU '

@@ -10,7 +10,9 @@ The plant (``ros2 run soft_rom plant``) steps the embedded FOM and publishes ``/
 the measured centerline and nothing else; the predictor runs the model on the controller's
 pressure commands (open loop: it is the controller's internal model) and publishes
 ``~/state``; the controller (``ros2 run soft_rom controller``) tracks ``reference`` (time 0
-= sim time 0) and publishes the commands. ``duration_s`` (0: no end) stops the plant after
+= sim time 0) and publishes the commands. ``input_mode:=array`` carries the commands in one
+``Float64MultiArray`` (``/soft_robot/pressures``) instead of one ``FluidPressure`` topic per
+chamber, for all three nodes. ``duration_s`` (0: no end) stops the plant after
 that much sim time; ``record_path`` then gets its ``t``, ``U``, ``Y``. ``rviz:=true`` also
 starts ``rviz2`` with ``share/soft_rom/config/predictor.rviz`` (predicted and measured
 centerlines).
@@ -32,20 +34,23 @@ _ENV = {'OPENBLAS_NUM_THREADS': '1', 'OMP_NUM_THREADS': '1'}
 
 def _actions(context, *args, **kwargs):
     value = {name: LaunchConfiguration(name).perform(context).strip()
-             for name in ('model_path', 'reference', 'duration_s', 'record_path', 'rviz')}
+             for name in ('model_path', 'reference', 'duration_s', 'record_path', 'rviz',
+                          'input_mode')}
     model = value['model_path']
+    mode = {'input_mode': value['input_mode'] or 'per_chamber'}
     plant = {'duration_s': float(value['duration_s'] or 0.0),
-             'record_path': value['record_path']}
+             'record_path': value['record_path'], **mode}
     actions = [
         Node(package='soft_rom', executable='plant', name='soft_rom_plant',
              parameters=[plant], output='screen', emulate_tty=True, additional_env=_ENV),
         Node(package='soft_rom', executable='predictor', name='soft_rom_predictor',
-             parameters=[{'model_path': model, 'use_sim_time': True, 'kalman': False}],
+             parameters=[{'model_path': model, 'use_sim_time': True, 'kalman': False,
+                          **mode}],
              output='screen', emulate_tty=True, additional_env=_ENV),
         Node(package='soft_rom', executable='controller', name='soft_rom_controller',
              parameters=[{'model_path': model, 'use_sim_time': True,
                           'reference': value['reference'], 'reference_t0_s': 0.0,
-                          'state_topic': '/soft_rom_predictor/state'}],
+                          'state_topic': '/soft_rom_predictor/state', **mode}],
              output='screen', emulate_tty=True, additional_env=_ENV),
     ]
     if value['rviz'].lower() in _TRUE:
@@ -69,5 +74,8 @@ def generate_launch_description() -> LaunchDescription:
                               description='.npz the plant writes at the end (t, U, Y)'),
         DeclareLaunchArgument('rviz', default_value='false',
                               description='also start rviz2 (not a dependency)'),
+        DeclareLaunchArgument('input_mode', default_value='per_chamber',
+                              description='pressure commands: per_chamber (FluidPressure '
+                              'topics) or array (one Float64MultiArray)'),
         OpaqueFunction(function=_actions),
     ])

@@ -11,6 +11,7 @@ estimator settings, same sensor rate and noise level), and every node exits 0 on
 from __future__ import annotations
 
 from pathlib import Path
+import re
 import signal
 import time
 
@@ -49,20 +50,25 @@ def setup(tmp_path_factory):
     return tmp, model, model_path, ref_path, ref, inproc
 
 
-def test_ros_loop_tracks_like_the_in_process_loop(setup) -> None:
+@pytest.mark.parametrize('input_mode', ['per_chamber', 'array'])
+def test_ros_loop_tracks_like_the_in_process_loop(setup, input_mode) -> None:
+    """Commands per chamber (FluidPressure topics) or in one Float64MultiArray."""
     tmp, model, model_path, ref_path, ref, inproc = setup
+    tmp = tmp / input_mode
+    tmp.mkdir()
     record = tmp / 'plant_record.npz'
+    mode = {'input_mode': input_mode}
     nodes = [
         # lockstep: the plant waits for each command (up to 60 s of wall time: a loaded
         # CI machine must not change the loop)
         NodeProcess(tmp, {'duration_s': DURATION, 'record_path': str(record),
-                          'command_timeout_s': 60.0},
+                          'command_timeout_s': 60.0, **mode},
                     name='soft_rom_plant', exe='plant'),
-        NodeProcess(tmp, {'model_path': str(model_path), 'use_sim_time': True},
+        NodeProcess(tmp, {'model_path': str(model_path), 'use_sim_time': True, **mode},
                     name='soft_rom_predictor'),
         NodeProcess(tmp, {'model_path': str(model_path), 'use_sim_time': True,
                           'reference': str(ref_path), 'reference_t0_s': 0.0,
-                          'state_topic': '/soft_rom_predictor/state'},
+                          'state_topic': '/soft_rom_predictor/state', **mode},
                     name='soft_rom_controller', exe='controller'),
     ]
     try:
@@ -76,6 +82,10 @@ def test_ros_loop_tracks_like_the_in_process_loop(setup) -> None:
         assert codes == [0, 0, 0], [n.log()[-2000:] for n in nodes]
         for n in nodes:
             assert not no_noise(n.log()), n.log()
+        # the controller's whole-tick timing, logged on shutdown (figures, not asserted)
+        tick = re.search(r'(\d+) control ticks \(estimate, solve, publish\).*', nodes[2].log())
+        assert tick and int(tick.group(1)) >= 150, nodes[2].log()[-2000:]
+        print(tick.group(0))
     finally:
         for n in nodes:
             n.kill()
@@ -86,7 +96,7 @@ def test_ros_loop_tracks_like_the_in_process_loop(setup) -> None:
     e_in = inproc.tracking_error()
     open_loop = relative_deviation_error(ref.at(t), model.simulate(np.zeros_like(U)),
                                          model.y_ref)
-    print(f'tracking deviation error: ROS {e_ros:.4f}, in-process {e_in:.4f} '
+    print(f'{input_mode}: tracking deviation error: ROS {e_ros:.4f}, in-process {e_in:.4f} '
           f'(ratio {e_ros / e_in:.2f}); doing nothing: {open_loop:.3f}')
     assert e_ros <= 1.5 * e_in
     assert e_ros < 0.5 * open_loop

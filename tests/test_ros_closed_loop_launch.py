@@ -58,18 +58,22 @@ def test_starts_plant_predictor_controller_in_sim_time(launch_module) -> None:
     py_compile.compile(str(LAUNCH), doraise=True)
     desc = launch_module.generate_launch_description()
     names = [a.args[0] for a in desc.args[0] if a.args and isinstance(a.args[0], str)]
-    assert names == ['model_path', 'reference', 'duration_s', 'record_path', 'rviz']
+    assert names == ['model_path', 'reference', 'duration_s', 'record_path', 'rviz',
+                     'input_mode']
     ctx = {'model_path': '/m.npz', 'reference': 'wave:f=1', 'duration_s': '2',
-           'record_path': '/r.npz', 'rviz': 'false'}
+           'record_path': '/r.npz', 'rviz': 'false', 'input_mode': 'per_chamber'}
     plant, predictor, controller = launch_module._actions(ctx)
     assert [n.kwargs['executable'] for n in (plant, predictor, controller)] == [
         'plant', 'predictor', 'controller']
-    assert plant.kwargs['parameters'] == [{'duration_s': 2.0, 'record_path': '/r.npz'}]
+    assert plant.kwargs['parameters'] == [{'duration_s': 2.0, 'record_path': '/r.npz',
+                                           'input_mode': 'per_chamber'}]
     assert predictor.kwargs['parameters'][0]['use_sim_time'] is True
     assert predictor.kwargs['parameters'][0]['kalman'] is False
     c = controller.kwargs['parameters'][0]
     assert c['use_sim_time'] and c['reference'] == 'wave:f=1' and c['model_path'] == '/m.npz'
     assert c['state_topic'] == '/soft_rom_predictor/state'
+    array = launch_module._actions(dict(ctx, input_mode='array'))
+    assert [n.kwargs['parameters'][0]['input_mode'] for n in array] == ['array'] * 3
     rviz = launch_module._actions(dict(ctx, rviz='true'))[-1]
     assert rviz.kwargs['executable'] == 'rviz2'
     assert rviz.kwargs['arguments'][1] == '/share/soft_rom/config/predictor.rviz'

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import signal
 
 from _eel_rom import modal_rom
@@ -15,6 +16,7 @@ from builtin_interfaces.msg import Time  # noqa: E402
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
 from geometry_msgs.msg import Pose, PoseArray  # noqa: E402
 from sensor_msgs.msg import FluidPressure, JointState  # noqa: E402
+from std_msgs.msg import Float64MultiArray  # noqa: E402
 
 client = client_fixture('controller_test_client')
 
@@ -88,6 +90,8 @@ def test_bad_messages_are_dropped_and_commands_stay_safe(tmp_path, model_path, c
                 pub_ref.publish(_poses(target, t + 0.5))
             client.spin_for(0.02)
         assert any(d['status'] == 'ok' for d in diags[-20:]), diags[-3:]
+        ticks = [float(d['tick_ms']) for d in diags[-20:]]     # the previous whole tick
+        assert all(math.isfinite(v) and v > 0 for v in ticks), diags[-3:]
         # silence: the state goes stale and the command is held
         assert client.spin_until(lambda: diags and diags[-1]['status'] == 'stale', 10)
         assert node.proc.poll() is None
@@ -96,5 +100,62 @@ def test_bad_messages_are_dropped_and_commands_stay_safe(tmp_path, model_path, c
         assert np.all(values >= -50e3) and np.all(values <= 50e3)
         assert node.stop(signal.SIGINT) == 0
         assert not no_noise(node.log()), node.log()
+    finally:
+        node.kill()
+
+
+def test_array_mode_publishes_one_scaled_float64multiarray(tmp_path, model_path,
+                                                           client) -> None:
+    """``input_mode: array``: all chambers in one message, as the predictor reads them.
+
+    Written as ``(u - input_offset) / input_scale``, so the predictor reads back ``u``.
+    """
+    model = modal_rom(4)
+    rest = np.stack([model.y_ref[:20], np.zeros(20), model.y_ref[20:]], axis=1)
+    node = NodeProcess(tmp_path, {'model_path': str(model_path), 'reference': '',
+                                  'reference_topic': '/a/ref', 'measured_topic': '/a/meas',
+                                  'state_topic': '', 'input_mode': 'array',
+                                  'array_topic': '/a/pressures', 'input_scale': 1000.0},
+                       name='ctl_array', exe='controller')
+    try:
+        arrays: list[np.ndarray] = []
+        chambers: list[float] = []
+        client.node.create_subscription(Float64MultiArray, '/a/pressures',
+                                        lambda m: arrays.append(np.array(m.data)), 100)
+        for i in range(6):
+            client.node.create_subscription(
+                FluidPressure, f'/soft_robot/pressure/chamber_{i + 1}',
+                lambda m: chambers.append(m.fluid_pressure), 100)
+        pub_meas = client.node.create_publisher(PoseArray, '/a/meas', 100)
+        pub_ref = client.node.create_publisher(PoseArray, '/a/ref', 100)
+        assert client.spin_until(lambda: len(arrays) >= 5, 60), node.log()    # it is up
+        target = rest.copy()
+        target[10:, 2] += 0.01                                   # bend the tail up 10 mm
+        for k in range(80):
+            t = client.node.get_clock().now().nanoseconds * 1e-9
+            pub_meas.publish(_poses(rest, t))
+            if k % 10 == 0:
+                pub_ref.publish(_poses(target, t + 0.5))
+            client.spin_for(0.02)
+        values = np.stack(arrays)
+        assert values.shape[1] == 6 and np.all(np.isfinite(values))
+        # kPa on the wire: within the model's training range (+-50 kPa), and moving
+        assert np.all(np.abs(values) <= 50.0 + 1e-9)
+        assert np.abs(values[-1]).max() > 0.5
+        assert chambers == []
+        assert node.stop(signal.SIGINT) == 0
+        assert not no_noise(node.log()), node.log()
+    finally:
+        node.kill()
+
+
+def test_bad_input_mode_is_one_line_and_exit_1(tmp_path, model_path) -> None:
+    node = NodeProcess(tmp_path, {'model_path': str(model_path), 'input_mode': 'bus'},
+                       name='ctl_bad', exe='controller')
+    try:
+        assert node.wait(60) == 1
+        log = node.log()
+        assert "input_mode 'bus' is not one of per_chamber, array" in log, log
+        assert 'Traceback' not in log
     finally:
         node.kill()

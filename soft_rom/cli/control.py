@@ -15,7 +15,13 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from soft_rom.cli._common import add_quiet, check_writable_folder, dumps_strict, finite_float
+from soft_rom.cli._common import (
+    add_quiet,
+    check_writable_folder,
+    dumps_strict,
+    finite_float,
+    int_range,
+)
 from soft_rom.errors import ConfigError
 
 __all__ = ['add_parser', 'run']
@@ -69,6 +75,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         help='largest pressure change, Pa/s (default: the range in 50 ms)')
     parser.add_argument('--solver', choices=('daqp', 'osqp'), default='daqp',
                         help='QP solver (default daqp)')
+    parser.add_argument('--terminal', choices=('none', 'riccati'), default='none',
+                        help='terminal cost: none (default) or riccati (the infinite-horizon '
+                             'cost-to-go of the ROM, docs/control.md)')
     parser.add_argument('--sensor-rate', type=finite_float(0.0, 1e5, lo_open=True),
                         default=120.0, help='measured centerline rate, Hz (default 120)')
     parser.add_argument('--sensor-noise', type=finite_float(0.0, 1.0), default=5e-4,
@@ -93,14 +102,14 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                        help='replace an OUT that soft-rom control-study wrote before')
     study.add_argument('--duration', type=finite_float(0.0, 60.0, lo_open=True), default=2.0,
                        help='seconds per closed loop (default 2)')
-    study.add_argument('--references', type=int, choices=range(1, 21), default=4,
+    study.add_argument('--references', type=int_range(1, 20), default=4,
                        metavar='{1..20}', help='feasible references (default 4)')
     study.add_argument('--seed', type=int, default=100,
                        help="seed of the references' random pressures (default 100; not a "
                             'training seed)')
-    study.add_argument('--wave', default='wave:f=2,wavelength=0.8,reach=0.25',
+    study.add_argument('--wave', default='wave:f=2,wavelength=0.8,reach=0.1',
                        help='the travelling wave (default %(default)s)')
-    study.add_argument('--jobs', type=int, choices=range(1, 65), default=1, metavar='N',
+    study.add_argument('--jobs', type=int_range(1, 64), default=1, metavar='N',
                        help='closed loops run at once (default 1)')
     add_quiet(study)
     study.set_defaults(func=run_study)
@@ -157,7 +166,7 @@ def run(args: argparse.Namespace) -> int:
                           'Fit a linear one (soft-rom fit --forces linear).')
     mpc = MPCConfig(step=args.step, horizon=args.horizon, rate_weight=args.rate_weight,
                     u_min=args.u_min, u_max=args.u_max, rate_max=args.rate_max,
-                    solver=args.solver)
+                    solver=args.solver, terminal=args.terminal)
     sensor = Sensor(rate=args.sensor_rate, noise=args.sensor_noise, seed=args.seed)
     eel = EelModel(resolution=args.resolution)
     ref = parse_reference(args.reference, model, duration=args.duration, plant=eel)

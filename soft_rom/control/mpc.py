@@ -42,9 +42,11 @@ from numpy.typing import ArrayLike, NDArray
 from soft_rom.control.qp import make_solver, QPResult
 from soft_rom.errors import ConfigError, DimensionError
 
-__all__ = ['MPC', 'MPCConfig', 'MPCStep', 'input_bounds']
+__all__ = ['MPC', 'MPCConfig', 'MPCStep', 'TERMINAL_COSTS', 'input_bounds']
 
 Array = NDArray[np.float64]
+
+TERMINAL_COSTS = ('riccati', 'none')
 
 
 @dataclass(frozen=True)
@@ -72,6 +74,11 @@ class MPCConfig:
         default: the full range ``u_max - u_min`` in 50 ms.
     solver : str
         ``'daqp'`` (default) or ``'osqp'``.
+    terminal : str
+        ``'none'`` (default): the horizon's stage costs only; ``'riccati'``: a terminal cost
+        on the state at the end of the horizon, the cost-to-go of the same stage cost over an
+        infinite horizon (the discrete algebraic Riccati equation of the ROM), about the
+        steady state that best reaches the reference.
     """
 
     step: float = 0.01
@@ -83,6 +90,7 @@ class MPCConfig:
     u_max: tuple[float, ...] | None = None
     rate_max: float | None = None
     solver: str = 'daqp'
+    terminal: str = 'none'
 
     def __post_init__(self) -> None:
         for name in ('step', 'horizon'):
@@ -98,6 +106,9 @@ class MPCConfig:
         if self.rate_max is not None and not (math.isfinite(self.rate_max)
                                               and self.rate_max > 0):
             raise ConfigError(f'MPC rate_max must be > 0; got {self.rate_max!r}.')
+        if self.terminal not in TERMINAL_COSTS:
+            raise ConfigError(f'MPC terminal cost {self.terminal!r} is not one of '
+                              f'{", ".join(TERMINAL_COSTS)}.')
         if self.horizon < self.step * (1 - 1e-9):
             raise ConfigError(f'MPC horizon {self.horizon:g} s is shorter than one step '
                               f'({self.step:g} s).')
@@ -262,15 +273,81 @@ class MPC:
         w0 = self.config.null_weight / m
         Dlt = np.eye(N * m) - np.eye(N * m, k=-m)       # v_j - v_{j-1}
         H = wy * Gs.T @ Gs + wd * Dlt.T @ Dlt + w0 * np.kron(np.eye(N), P0)
-        H += 1e-10 * np.trace(H) / (N * m) * np.eye(N * m)   # strictly convex
-        self.H = 0.5 * (H + H.T)
         self._Fx = wy * Gs.T @ Phi                      # linear term per unit state
         self._Fe = wy * Gs.T                            # per unit output offset (stacked)
         self._Fc = G @ np.tile(self.centre, N)          # outputs of the centre input
         self._Fv = wd * Dlt.T[:, :m]                    # from v_{-1}
+        self.H_inputs = wd * Dlt.T @ Dlt + w0 * np.kron(np.eye(N), P0)   # (benchmarks)
+        self.terminal = 'none'
+        self._term: tuple[Array, ...] | None = None
+        if self.config.terminal == 'riccati':
+            H = H + self._terminal_cost(wy, wd, w0, P0, S)
+        H += 1e-10 * np.trace(H) / (N * m) * np.eye(N * m)   # strictly convex
+        self.H = 0.5 * (H + H.T)
         self.A_rate = Dlt
-        self.H_inputs = self.H - wy * Gs.T @ Gs         # the input-only terms (benchmarks)
         self.weak_inputs = int(weak.sum())
+
+    def _terminal_cost(self, wy: float, wd: float, w0: float, P0: Array, S: Array) -> Array:
+        """The Riccati terminal cost's Hessian block; keeps what :meth:`qp_data` needs.
+
+        The stage cost continued past the horizon, in deviations from a steady state
+        ``(x_s, v_s)``: state ``z = (x - x_s, v_{j-1} - v_s)``, decision the increment
+        ``δ = v_j - v_{j-1}``,
+
+            z⁺ = [[A, B S], [0, I]] z + [[B S], [I]] δ,
+            ℓ = w_y ‖C (x - x_s) + D S (v - v_s)‖² + w_Δ ‖δ‖² + w_0 ‖P₀ (v - v_s)‖²,
+
+        whose infinite-horizon optimal cost is ``zᵀ P z`` (``scipy.linalg.solve_discrete_are``
+        with the cross term). At the end of the horizon, ``zᵀ P z`` less the output term the
+        horizon already counts is the terminal cost: a 0.2 s horizon then weighs what the
+        inputs do to the seconds after it (the eel's lightly damped first mode), and
+        without active bounds the first move is that of the infinite-horizon optimum
+        (exactly, for a model without feedthrough). ``v_s`` is the steady input whose
+        outputs best reach the reference at the horizon's end (least squares with the same
+        weights), ``x_s`` its steady state; both are linear in the reference and the
+        disturbance, so the QP stays a QP with a fixed Hessian. A model with no stabilizing
+        solution (an unstable mode the inputs cannot reach) keeps no terminal cost
+        (:attr:`terminal` says why).
+        """
+        import scipy.linalg as sla
+        A, B, C, D, _ = self.system
+        n, m, N = self.n, self.m, self.N
+        BS, DS = B @ S, D @ S
+        Aa = np.block([[A, BS], [np.zeros((m, n)), np.eye(m)]])
+        Ba = np.vstack([BS, np.eye(m)])
+        Ca = np.hstack([C, DS])                         # outputs of z (with v_{j-1})
+        Qa = wy * Ca.T @ Ca
+        Qa[n:, n:] += w0 * P0
+        Ra = wy * DS.T @ DS + (wd + w0 * 1e-6) * np.eye(m) + w0 * P0
+        Sa = wy * Ca.T @ DS
+        Sa[n:] += w0 * P0
+        try:
+            P = sla.solve_discrete_are(Aa, Ba, Qa, Ra, s=Sa)
+            if not np.all(np.isfinite(P)):
+                raise np.linalg.LinAlgError('non-finite solution')
+        except (np.linalg.LinAlgError, ValueError) as err:
+            self.terminal = f'none (no stabilizing Riccati solution: {err})'
+            return np.zeros((N * m, N * m))
+        # the horizon already counts the output at its end: the terminal weight is the rest
+        # of the cost-to-go (positive semi-definite: every other stage term is a square)
+        P = 0.5 * (P + P.T) - wy * Ca.T @ Ca
+        # end state x_N = A^N x_0 + sum_i A^(N-1-i) B (c + S v_i); z_N = E v + (free part)
+        Gam = np.zeros((n, N * m))
+        M = B.copy()
+        for i in range(N - 1, -1, -1):
+            Gam[:, i * m:(i + 1) * m] = M
+            M = A @ M
+        E = np.zeros((n + m, N * m))
+        E[:n] = Gam @ np.kron(np.eye(N), S)
+        E[n:, (N - 1) * m:] = np.eye(m)
+        # steady state: v_s = K (r - d - y_ref - G c), x_s = X (c + S v_s)
+        X = np.linalg.lstsq(np.eye(n) - A, B, rcond=None)[0]
+        gain = (C @ X + D) @ S
+        K = np.linalg.solve(wy * gain.T @ gain + w0 * P0 + 1e-12 * np.eye(m), wy * gain.T)
+        self._term = (np.linalg.matrix_power(A, N), Gam @ np.tile(self.centre, N), X,
+                      K, (C @ X + D) @ self.centre, E.T @ P)
+        self.terminal = 'riccati'
+        return E.T @ P @ E
 
     def _steady_gain(self) -> Array:
         A, B, C, D, _ = self.system
@@ -343,6 +420,11 @@ class MPC:
         offset = (self._Fc + np.tile(d + self.model.y_ref, N)
                   - (R.T.reshape(-1)))                   # stacked over j = 1..N
         f = self._Fx @ x + self._Fe @ offset - self._Fv @ v_last
+        if self._term is not None:
+            AN, free_c, X, K, y_c, EP = self._term
+            v_s = K @ (R[:, -1] - d - self.model.y_ref - y_c)
+            x_s = X @ (self.centre + self.half * v_s)
+            f = f + EP[:, :self.n] @ (AN @ x + free_c - x_s) - EP[:, self.n:] @ v_s
         dv = self.rate / self.half
         lbA = np.tile(-dv, N)
         ubA = np.tile(dv, N)

@@ -10,7 +10,7 @@ Built-ins (``--reference`` on the command line):
   ``s = x / L`` is ``a(s) sin(2 pi (s / wavelength - f t))`` with an amplitude that grows
   towards the tail, ``a(s) = amplitude * s^2`` (clamped head: zero there); ``wavelength``
   in body lengths. ``amplitude=auto`` scales it into the robot's reach measured from the
-  training data: ``reach`` (default 0.25) times the largest output deviation recorded in the
+  training data: ``reach`` (default 0.1) times the largest output deviation recorded in the
   model file (``metadata['envelope']['y_dev_max']``). ``ramp`` (s, default 0.2) fades it in.
 * ``step:u=P1/P2/P3/P4/P5/P6,at=0.1`` -- a static bend: the embedded FOM's own steady
   state under the constant pressures ``u`` (Pa; simulated for ``settle`` seconds, default
@@ -134,7 +134,7 @@ def _layout(model: Any) -> tuple[Array, Array, Array]:
 
 
 def wave_reference(model: Any, duration: float, *, f: float = 2.0, wavelength: float = 0.8,
-                   amplitude: float | None = None, reach: float = 0.25, ramp: float = 0.2,
+                   amplitude: float | None = None, reach: float = 0.1, ramp: float = 0.2,
                    dt: float = 1e-3) -> Reference:
     """The biological travelling wave (see the module docstring) in ``model``'s layout."""
     xs, zs, s = _layout(model)
@@ -250,7 +250,7 @@ def parse_reference(spec: str, model: Any, *, duration: float | None = None,
         return load_reference(rest, model)
     if sep and kind == 'wave':
         o = _options(rest, {'f': '2', 'wavelength': '0.8', 'amplitude': 'auto',
-                            'reach': '0.25', 'ramp': '0.2'}, 'wave')
+                            'reach': '0.1', 'ramp': '0.2'}, 'wave')
         amp = None if o['amplitude'] == 'auto' else _number(o['amplitude'], 'amplitude',
                                                             'wave', lo=0.0, hi=1e3)
         return wave_reference(model, duration or 2.0,

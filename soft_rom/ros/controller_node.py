@@ -13,9 +13,16 @@ in-process loop (``soft-rom control``) runs. The node:
   disturbance with the measured centerline (``measured_topic``); with ``state_topic: ''``
   it estimates the state itself from the measured centerline, as ``soft-rom control`` does;
 * every ``step_s`` (sim time with ``use_sim_time``) publishes the pressure commands on the
-  predictor's input topics (one ``sensor_msgs/FluidPressure`` per chamber, stamped with the
-  control time), the reference shape on ``~/reference`` (``PoseArray``) and
-  ``/diagnostics`` (status, solve and step time, tracking error, saturation, counters).
+  predictor's inputs, configured with the predictor's own parameters (``input_mode``,
+  ``input_topics``, ``array_topic``, ``input_scale``, ``input_offset``): one
+  ``sensor_msgs/FluidPressure`` per chamber stamped with the control time
+  (``per_chamber``), or all chambers in one ``std_msgs/Float64MultiArray`` on
+  ``array_topic`` (``array``; no header: the receiver stamps it on arrival), as
+  ``(u - input_offset) / input_scale`` so that the predictor reads back ``u``; and the
+  reference shape on ``~/reference`` (``PoseArray``) and ``/diagnostics`` (status, solve and
+  step time, the whole previous tick's time, tracking error, saturation, counters);
+* on shutdown logs the whole control tick's time (estimate, solve, publish), p50 / p99 /
+  max in wall and thread CPU time, and p99 as a fraction of the control step.
 
 Bad input never stops it: a measurement, state or reference of the wrong size, with NaN, or
 stamped in the past is dropped and counted; without a fresh state or measurement, or when
@@ -25,9 +32,12 @@ the QP is infeasible or fails, the last command is held, clipped into the bounds
 
 from __future__ import annotations
 
+from collections import deque
+import math
 import signal
 import sys
 import threading
+import time
 from typing import Any
 
 from builtin_interfaces.msg import Time as TimeMsg
@@ -41,15 +51,22 @@ from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import FluidPressure, JointState
-from std_msgs.msg import Header
+from std_msgs.msg import Float64MultiArray, Header
 
 from soft_rom.control import Controller, EstimatorConfig, MPCConfig, parse_reference, Reference
 from soft_rom.control.reference import _model_outputs
-from soft_rom.predictor.conversions import ns_to_stamp, poses_to_points, set_points, stamp_to_ns
+from soft_rom.predictor.conversions import (
+    array_to_data,
+    ns_to_stamp,
+    poses_to_points,
+    set_points,
+    stamp_to_ns,
+)
 
 __all__ = ['ControllerNode', 'main']
 
 DEFAULT_TOPICS = [f'/soft_robot/pressure/chamber_{i}' for i in range(1, 7)]
+INPUT_MODES = ('per_chamber', 'array')
 
 
 class StartupError(Exception):
@@ -74,7 +91,14 @@ class ControllerNode(Node):
                                           'measured centerline (PoseArray)'))
         self.state_topic = str(declare('state_topic', '/soft_rom_predictor/state',
                                        "the predictor's ~/state ('' : estimate it here)"))
+        self.input_mode = str(declare('input_mode', 'per_chamber',
+                                      "the predictor's input_mode: per_chamber or array"))
         self.topics = list(declare('input_topics', DEFAULT_TOPICS, 'pressure command topics'))
+        self.array_topic = str(declare('array_topic', '/soft_robot/pressures',
+                                       'Float64MultiArray command topic (input_mode array)'))
+        self.input_scale = float(declare('input_scale', 1.0, 'published value = (u - '
+                                          'input_offset) / input_scale, as the predictor reads'))
+        self.input_offset = float(declare('input_offset', 0.0, 'see input_scale'))
         step = float(declare('step_s', 0.01, 'control step, s'))
         horizon = float(declare('horizon_s', 0.2, 'prediction horizon, s'))
         rate_weight = float(declare('rate_weight', 1e-3, 'weight of input increments'))
@@ -87,7 +111,17 @@ class ControllerNode(Node):
                                     't = 0 (< 0: the first control tick)'))
         from soft_rom.models import load_model
         try:
+            if self.input_mode not in INPUT_MODES:
+                raise ValueError(f'input_mode {self.input_mode!r} is not one of '
+                                 f'{", ".join(INPUT_MODES)}')
+            if not (math.isfinite(self.input_scale) and self.input_scale != 0
+                    and math.isfinite(self.input_offset)):
+                raise ValueError(f'input_scale ({self.input_scale!r}) must be finite and not 0 '
+                                 f'and input_offset ({self.input_offset!r}) finite')
             self.model = load_model(model_path)
+            if self.input_mode == 'per_chamber' and len(self.topics) != self.model.n_inputs:
+                raise ValueError(f'the model has {self.model.n_inputs} inputs but input_topics '
+                                 f'lists {len(self.topics)} topics')
             external = bool(self.state_topic)
             est = EstimatorConfig(measurement_noise=max(noise, 1e-5), sensor_rate=sensor_rate,
                                   **({'process_noise': 0.0} if external else {}))
@@ -102,7 +136,13 @@ class ControllerNode(Node):
         self.t0: float | None = None
         self.samples: list[tuple[float, np.ndarray]] = []
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        self.pubs = [self.create_publisher(FluidPressure, t, qos) for t in self.topics]
+        if self.input_mode == 'array':
+            self.pubs = []
+            self.pub_array = self.create_publisher(Float64MultiArray, self.array_topic, qos)
+            self.array_msg = Float64MultiArray()
+        else:
+            self.pubs = [self.create_publisher(FluidPressure, t, qos) for t in self.topics]
+        self.cmd_msgs = [FluidPressure() for _ in self.pubs]    # reused: a tick builds none
         self.pub_ref = self.create_publisher(PoseArray, '~/reference', 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         self.create_subscription(PoseArray, self.measured_topic, self._on_measured, qos)
@@ -113,10 +153,21 @@ class ControllerNode(Node):
         self.create_timer(self.core.h, self._on_tick)
         self.last: Any = None
         self.callback_errors = 0
+        # the whole tick (estimate, solve, publish), wall and thread CPU seconds
+        self.ticks: deque[tuple[float, float]] = deque(maxlen=100_000)
         n = len([nm for nm in self.model.output_names if nm.startswith('x')])
         self.ref_msg = PoseArray()
         self.ref_msg.header.frame_id = self.frame_id
         self.ref_msg.poses = [Pose() for _ in range(n)]
+        self.ref_positions = [p.position for p in self.ref_msg.poses]
+        # the model outputs named x<i> / z<i> (i <= n): their rows and (point, coordinate)
+        rows, where = [], []
+        for row, nm in enumerate(self.model.output_names):
+            if nm[:1] in 'xz' and nm[1:].isdigit() and 1 <= int(nm[1:]) <= n:
+                rows.append(row)
+                where.append((int(nm[1:]) - 1, 'xyz'.index(nm[0])))
+        self.ref_rows = np.array(rows, dtype=int)
+        self.ref_where = tuple(np.array(where, dtype=int).reshape(-1, 2).T)
 
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
@@ -175,6 +226,7 @@ class ControllerNode(Node):
             self._guard('reference', err)
 
     def _on_tick(self) -> None:
+        w0, c0 = time.perf_counter(), time.thread_time()
         try:
             now = self._now()
             if self.t0 is None:
@@ -185,31 +237,50 @@ class ControllerNode(Node):
             cmd = self.core.step(now)
             sec, nsec = ns_to_stamp(int(round(now * 1e9)))
             stamp = TimeMsg(sec=sec, nanosec=nsec)
-            for pub, value in zip(self.pubs, cmd.u.tolist()):
-                pub.publish(FluidPressure(header=_header(stamp), fluid_pressure=value))
+            wire = (cmd.u - self.input_offset) / self.input_scale
+            if self.input_mode == 'array':
+                self.array_msg.data = array_to_data(wire)
+                self.pub_array.publish(self.array_msg)
+            for pub, msg, value in zip(self.pubs, self.cmd_msgs, wire.tolist()):
+                msg.header.stamp = stamp
+                msg.fluid_pressure = value
+                pub.publish(msg)
             ref = self.core.reference
             if ref is not None:
                 y = ref.at([now])[:, 0]
-                names = self.model.output_names
-                pts = np.zeros((len(self.ref_msg.poses), 3))
-                for row, nm in enumerate(names):
-                    if nm[:1] in 'xz' and nm[1:].isdigit() and int(nm[1:]) <= len(pts):
-                        pts[int(nm[1:]) - 1, 'xyz'.index(nm[0])] = y[row]
+                pts = np.zeros((len(self.ref_positions), 3))
+                pts[self.ref_where] = y[self.ref_rows]
                 self.ref_msg.header.stamp = stamp
-                set_points([p.position for p in self.ref_msg.poses], pts)
+                set_points(self.ref_positions, pts)
                 self.pub_ref.publish(self.ref_msg)
             self._diagnostics(stamp, cmd)
         except Exception as err:  # noqa: BLE001
             self._guard('control step', err)
+        self.ticks.append((time.perf_counter() - w0, time.thread_time() - c0))
+
+    def tick_summary(self) -> str:
+        """One line: the whole control tick's time, p50 / p99 / max, wall and CPU."""
+        if not self.ticks:
+            return 'no control tick ran'
+        wall, cpu = (np.array(v) * 1e3 for v in zip(*self.ticks))
+        w50, w99, c50, c99 = (float(np.percentile(a, q)) for a in (wall, cpu)
+                              for q in (50, 99))
+        period = self.core.h * 1e3
+        return (f'{len(wall)} control ticks (estimate, solve, publish): p50/p99/max '
+                f'{w50:.3f}/{w99:.3f}/{wall.max():.3f} ms wall, CPU p50/p99 {c50:.3f}/'
+                f'{c99:.3f} ms; p99 = {100 * w99 / period:.1f} % (wall), '
+                f'{100 * c99 / period:.1f} % (CPU) of the {period:g} ms step')
 
     def _diagnostics(self, stamp: TimeMsg, cmd: Any) -> None:
         c = self.core.counters
         level = DiagnosticStatus.OK if cmd.status == 'ok' else DiagnosticStatus.WARN
         if cmd.status in ('failed', 'infeasible'):
             level = DiagnosticStatus.ERROR
+        last_tick = self.ticks[-1][0] * 1e3 if self.ticks else float('nan')
         values = {
             'status': cmd.status, 'solve_ms': f'{cmd.solve_s * 1e3:.3f}',
-            'step_ms': f'{cmd.step_s * 1e3:.3f}', 'tracking_error_m': f'{cmd.tracking_error:.6g}',
+            'step_ms': f'{cmd.step_s * 1e3:.3f}', 'tick_ms': f'{last_tick:.3f}',
+            'tracking_error_m': f'{cmd.tracking_error:.6g}',
             'saturated_inputs': str(cmd.saturated), 'qp_infeasible': str(c.qp_infeasible),
             'qp_failed': str(c.qp_failed), 'held': str(c.held),
             'measurements': str(c.measurements),
@@ -250,6 +321,7 @@ def main(args: list[str] | None = None) -> int:
     finally:
         executor.shutdown(timeout_sec=1.0)
         if node is not None:
+            node.get_logger().info(node.tick_summary())
             node.destroy_node()
         rclpy.try_shutdown()
         for s, h in previous.items():

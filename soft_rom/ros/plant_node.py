@@ -1,7 +1,9 @@
 """``ros2 run soft_rom plant``: the embedded eel FOM as a ROS 2 node (the closed loop's plant).
 
-A thin shell over :class:`soft_rom.sim.EelStepper`: it takes chamber pressures (one
-``sensor_msgs/FluidPressure`` per chamber, the predictor's input topics), steps the FOM at
+A thin shell over :class:`soft_rom.sim.EelStepper`: it takes chamber pressures on the
+predictor's inputs (``input_mode``: one ``sensor_msgs/FluidPressure`` per chamber on
+``input_topics``, or all chambers in one ``std_msgs/Float64MultiArray`` on ``array_topic``,
+applied from the plant time at which it arrives), steps the FOM at
 ``dt`` and publishes ``/clock`` at every step, so that the closed loop runs in sim time at
 the plant's pace, and the measured centerline (``geometry_msgs/PoseArray``, with Gaussian
 noise ``sensor_noise`` at ``sensor_rate_hz``, stamped with the plant time).
@@ -36,8 +38,9 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import FluidPressure
+from std_msgs.msg import Float64MultiArray
 
-from soft_rom.predictor.conversions import ns_to_stamp, set_points, stamp_to_ns
+from soft_rom.predictor.conversions import data_to_array, ns_to_stamp, set_points, stamp_to_ns
 
 __all__ = ['PlantNode', 'main']
 
@@ -59,7 +62,11 @@ class PlantNode(Node):
         self.sensor_rate = float(declare('sensor_rate_hz', 120.0, 'measured centerline rate'))
         self.noise = float(declare('sensor_noise', 5e-4, 'measurement noise std, m'))
         self.seed = int(declare('seed', 0, 'noise seed'))
+        self.input_mode = str(declare('input_mode', 'per_chamber',
+                                      'per_chamber (FluidPressure topics) or array'))
         self.topics = list(declare('input_topics', DEFAULT_TOPICS, 'chamber pressure topics'))
+        self.array_topic = str(declare('array_topic', '/soft_robot/pressures',
+                                       'Float64MultiArray pressures (input_mode array)'))
         self.measured_topic = str(declare('measured_topic', '/soft_robot/centerline',
                                           'measured centerline topic'))
         self.frame_id = str(declare('frame_id', 'world', 'frame of the centerline'))
@@ -77,9 +84,18 @@ class PlantNode(Node):
         self.pending: list[list[tuple[int, float]]] = [[] for _ in range(m)]
         self.newest = np.full(m, -1, dtype=np.int64)
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-        for i, topic in enumerate(self.topics[:m]):
-            self.create_subscription(FluidPressure, topic,
-                                     functools.partial(self._on_pressure, i), qos)
+        if self.input_mode not in ('per_chamber', 'array'):
+            raise ValueError(f'input_mode {self.input_mode!r} is not per_chamber or array')
+        self.t_ns = 0
+        self.bad_arrays = 0
+        if self.input_mode == 'array':
+            self.create_subscription(Float64MultiArray, self.array_topic, self._on_array, qos)
+            self.command_topics = [self.array_topic]
+        else:
+            for i, topic in enumerate(self.topics[:m]):
+                self.create_subscription(FluidPressure, topic,
+                                         functools.partial(self._on_pressure, i), qos)
+            self.command_topics = list(self.topics[:m])
         self.pub_clock = self.create_publisher(Clock, '/clock', 10)
         self.pub_measured = self.create_publisher(PoseArray, self.measured_topic, 10)
         n = self.eel.centerline_map.shape[0]
@@ -101,6 +117,15 @@ class PlantNode(Node):
         self.pending[i].append((t, v))
         self.newest[i] = max(self.newest[i], t)
 
+    def _on_array(self, msg: Float64MultiArray) -> None:
+        v = data_to_array(msg.data)
+        if v.shape != (self.eel.n_chambers,) or not np.all(np.isfinite(v)):
+            self.bad_arrays += 1
+            return
+        for i, value in enumerate(v.tolist()):
+            self.pending[i].append((self.t_ns, value))
+            self.newest[i] = max(self.newest[i], self.t_ns)
+
     def _apply(self, t_ns: int) -> None:
         for i, queue in enumerate(self.pending):
             keep = []
@@ -118,6 +143,7 @@ class PlantNode(Node):
         if self.duration > 0 and t >= self.duration - 1e-9:
             return False
         t_ns = int(round(t * 1e9))
+        self.t_ns = t_ns
         sec, nsec = ns_to_stamp(t_ns)
         self.pub_clock.publish(Clock(clock=TimeMsg(sec=sec, nanosec=nsec)))
         points = self.stepper.centerline()
@@ -161,7 +187,7 @@ class PlantNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """Run the plant until SIGINT/SIGTERM (or ``duration_s``); exit status 0."""
+    """Run the plant until SIGINT/SIGTERM (or ``duration_s``); exit status 0 (1: bad parameter)."""
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT,
                                                                        signal.SIGTERM)}
@@ -169,7 +195,11 @@ def main(args: list[str] | None = None) -> int:
     node = None
     executor = SingleThreadedExecutor()
     try:
-        node = PlantNode(parameter_overrides=[Parameter('use_sim_time', value=False)])
+        try:
+            node = PlantNode(parameter_overrides=[Parameter('use_sim_time', value=False)])
+        except ValueError as err:
+            print(f'soft_rom plant: cannot start: {err}', file=sys.stderr)
+            return 1
         executor.add_node(node)
 
         def spin(timeout: float) -> None:
@@ -177,7 +207,7 @@ def main(args: list[str] | None = None) -> int:
 
         # start when a commander (the controller) publishes on every pressure topic
         while not stop.is_set() and rclpy.ok() and not all(
-                node.count_publishers(topic) for topic in node.topics):
+                node.count_publishers(topic) for topic in node.command_topics):
             spin(0.05)
 
         while not stop.is_set() and rclpy.ok():

@@ -105,3 +105,47 @@ def test_bounds_come_from_the_training_envelope_or_are_asked_for() -> None:
         MPC(bare)
     with pytest.raises(ConfigError, match='u_min >= u_max'):
         MPC(model, MPCConfig(u_min=(1.0,), u_max=(0.0,)))
+
+
+def test_riccati_terminal_cost_makes_the_horizon_infinite() -> None:
+    """Without active bounds the first move is the infinite-horizon LQ optimum's."""
+    import scipy.linalg as sla
+    model = modal_rom(4)
+    big = dict(u_min=(-1e6,), u_max=(1e6,), rate_max=1e12, rate_weight=1e-2, horizon=0.03)
+    mpc = MPC(model, MPCConfig(terminal='riccati', **big))
+    assert mpc.terminal == 'riccati'
+    A, B, C, D, _ = mpc.system
+    n, m = mpc.n, mpc.m
+    S = np.diag(mpc.half)
+    wy = 1.0 / (mpc.p * mpc.y_scale ** 2)
+    wd = 1e-2 / m
+    w0 = 1e-2 / m
+    gain = C @ np.linalg.solve(np.eye(n) - A, B) @ S
+    _u, sv, vt = np.linalg.svd(gain)
+    weak = np.ones(m, dtype=bool)
+    weak[:sv.size] = sv < 1e-3 * sv[0]
+    P0 = vt.T[:, weak] @ vt.T[:, weak].T
+    # the LQ problem in (x, v_prev) with the increment as input, solved independently
+    Aa = np.block([[A, B @ S], [np.zeros((m, n)), np.eye(m)]])
+    Ba = np.vstack([B @ S, np.eye(m)])
+    Ca = np.hstack([C, D @ S])
+    Q = wy * Ca.T @ Ca
+    Q[n:, n:] += w0 * P0
+    R = (wd + w0 * 1e-6) * np.eye(m) + w0 * P0
+    Sx = np.zeros((n + m, m))
+    Sx[n:] = w0 * P0
+    P = sla.solve_discrete_are(Aa, Ba, Q, R, s=Sx)
+    K = np.linalg.solve(R + Ba.T @ P @ Ba, Ba.T @ P @ Aa + Sx.T)
+    rng = np.random.default_rng(3)
+    x0 = 1e-3 * rng.standard_normal(n)
+    R_ref = np.repeat(model.y_ref[:, None], mpc.N, axis=1)
+    step = mpc.solve(x0, np.zeros(mpc.p), R_ref, mpc.centre)
+    assert step.qp.ok
+    z0 = np.concatenate([x0, np.zeros(m)])
+    v_lq = -K @ z0                                   # v_0 = v_{-1} + delta_0, v_{-1} = 0
+    np.testing.assert_allclose(mpc.scale(step.u), v_lq, rtol=1e-5,
+                               atol=1e-7 * np.abs(v_lq).max())
+    # and without it the 3-step horizon moves differently
+    short = MPC(model, MPCConfig(terminal='none', **big))
+    v_short = short.scale(short.solve(x0, np.zeros(mpc.p), R_ref, short.centre).u)
+    assert np.abs(v_short - v_lq).max() > 0.05 * np.abs(v_lq).max()
