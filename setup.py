@@ -54,7 +54,7 @@ setup(
     ],
     extras_require={
         'test': ['pytest>=7', 'ruff>=0.5', 'mypy>=1.8', 'colcon-common-extensions>=0.3',
-                 'hypothesis>=6.0', 'markdown-it-py>=2.2'],
+                 'hypothesis>=6.0', 'markdown-it-py>=2.2', 'import-linter>=2.7'],
         'dask': ['dask[array]>=2024.1', 'distributed>=2024.1'],
         # The paper-size FOM about 3x faster per step (soft_rom.sim): the element loop compiled
         # by numba, the rest system factored by CHOLMOD. scikit-sparse builds against the

@@ -11,7 +11,7 @@ them. The noisy least-squares quartic is not positive, so the fit takes the coni
   objective ``|Lᵀθ - c|²`` over the Cholesky factor of the full normal matrix and ``H`` an
   expression of the Gram matrix (what the first version of the fit did; minutes at
   ``r = 10``, so only up to ``--baseline-max-r``, default 6);
-* :func:`soft_rom.learners.lopinf_cubic.fit_cubic` end to end (least squares, linear
+* :func:`soft_rom.learners.lopinf.cubic.fit_cubic` end to end (least squares, linear
   start, compressed conic problem, certificate), and its conic part alone,
 
 and prints the seconds, the ratio of the two conic solves and the relative difference of the
@@ -35,8 +35,8 @@ import numpy as np
 import scipy.linalg as sla
 
 from soft_rom.ddt import FiniteDifference
-from soft_rom.learners import lopinf_cubic as lc
-from soft_rom.models_cubic import symmetric_entries
+from soft_rom.learners.lopinf import cubic as lc
+from soft_rom.models.tensors import symmetric_entries
 
 
 def _chain_module() -> object:

@@ -79,10 +79,12 @@ import numpy as np
 import scipy.sparse as sp
 
 from soft_rom.ddt import FiniteDifference
-from soft_rom.learners import lopinf_cubic as lc
+from soft_rom.learners.lopinf import cubic as lc
 from soft_rom.learners.lopinf import LOpInf
 from soft_rom.metrics import relative_deviation_error
-from soft_rom.models_cubic import CubicSecondOrderModel, symmetric_entries
+from soft_rom.models.cubic import CubicSecondOrderModel
+from soft_rom.models.tensors import symmetric_entries
+from soft_rom.reduce import ReducedData
 
 TRAIN, TESTS = (1, 2), (3, 4, 5, 6)
 VARIANTS = ('library', 'correction', 'oe', 'oe-lin', 'oe-joint', 'oe-structured', 'ms-oe',
@@ -95,7 +97,8 @@ def build_data(path: Path) -> None:
     """Simulate the study's default eel, convert, reduce as study 2 does; save ``path``."""
     from soft_rom.basis import POD, project
     from soft_rom.convert import convert
-    from soft_rom.study.run import _in_memory, simulate_bags, StudyConfig
+    from soft_rom.study.run import simulate_bags, StudyConfig
+    from soft_rom.study.studies import _in_memory
     cfg = StudyConfig()
     work = Path(tempfile.mkdtemp(prefix='cubic_eel_', dir=path.parent))
     t0 = time.perf_counter()
@@ -123,8 +126,9 @@ class Data:
         self.Y = {i: np.asarray(d[f'Y{i}']) for i in range(1, 7)}
 
     def linear(self, eps: tuple[int, ...] = TRAIN) -> LOpInf:
-        return LOpInf(r=self.r).fit_reduced([self.Q[i] for i in eps], [self.U[i] for i in eps],
-                                            [self.Y[i] for i in eps], self.dt, self.y_ref)
+        return LOpInf(r=self.r).fit(ReducedData.from_arrays(
+            [self.Q[i] for i in eps], [self.U[i] for i in eps], [self.Y[i] for i in eps],
+            self.dt, self.y_ref))
 
     def dev_errors(self, model: Any) -> dict[int, float]:
         out = {}
@@ -685,7 +689,7 @@ def main() -> None:
     variants = list(args.variants) + (['capacity', 'capacity-joint', 'capacity-structured',
                                        'capacity-lin'] if args.capacity else [])
     from soft_rom.dataset import TrainingSet  # noqa: F401  (the study's reader; import check)
-    from soft_rom.study.run import CUBIC_EEL_OPTIONS
+    from soft_rom.study.presets import CUBIC_EEL_OPTIONS
     for r in args.r:
         data = Data(args.data, r)
         lin = data.linear()
@@ -714,9 +718,9 @@ def main() -> None:
                 warnings.simplefilter('ignore', UserWarning)
                 if v == 'library':
                     model: Any = LOpInf(r=r, forces='cubic', cubic_options=dict(
-                        CUBIC_EEL_OPTIONS)).fit_reduced(
-                        [data.Q[i] for i in TRAIN], [data.U[i] for i in TRAIN],
-                        [data.Y[i] for i in TRAIN], data.dt, data.y_ref).model_
+                        CUBIC_EEL_OPTIONS)).fit(ReducedData.from_arrays(
+                            [data.Q[i] for i in TRAIN], [data.U[i] for i in TRAIN],
+                            [data.Y[i] for i in TRAIN], data.dt, data.y_ref)).model_
                     how = f'forces=cubic, {CUBIC_EEL_OPTIONS}'
                 elif v == 'correction':
                     model, how = correction(data, lin)

@@ -20,7 +20,7 @@ Printed figures:
    of the OKID Markov parameters (in data units, :meth:`ERAOKID.markov_parameters`) between
    1 and 2 BLAS threads and under ``--seeds`` output perturbations ``Y (1 + 1e-9 ε)``
    (ε standard normal per sample), with the test error of each fit.
-3. **The eel preset** (``ERAOKID.from_preset('eel', r=26)``, the study's hand-tuned setting)
+3. **The eel preset** (``ERAOKID(r=26, **ERA_EEL_OPTIONS)``, the study's hand-tuned setting)
    under the same perturbations (``--preset-seeds``) and thread counts: median and range of
    its test error, beside the defaults'.
 4. **A sweep on the generic system** (hand settings, best of it) and the defaults' ratio to
@@ -75,6 +75,7 @@ from soft_rom.data import Episode  # noqa: E402
 from soft_rom.evaluation import predict  # noqa: E402
 from soft_rom.learners.era import ERAOKID  # noqa: E402
 from soft_rom.metrics import relative_error  # noqa: E402
+from soft_rom.study.presets import ERA_EEL_OPTIONS  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 T_TRAIN = 1.5
@@ -408,7 +409,7 @@ def main() -> None:
     print("== 3. the eel preset ('eel', r = 26: the study's hand-tuned setting)")
     pseeds = list(range(200, 200 + args.preset_seeds))
     pre = reproducibility('eel preset',
-                          lambda: ERAOKID.from_preset('eel', r=26, blas_threads=None), eel,
+                          lambda: ERAOKID(r=26, blas_threads=None, **ERA_EEL_OPTIONS), eel,
                           eel.Y, pseeds)
     d_med = float(np.median(rep['eel']['tests']))
     p_med = float(np.median(pre['pert_tests']))

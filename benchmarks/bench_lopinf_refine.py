@@ -13,7 +13,7 @@ For each r the script prints
 * the unconstrained least-squares second-order fit on the same derivatives, for reference;
 
 and, for the sensitivities, the time of all ``r (2r + m)`` Fréchet derivatives of the
-held-input discretization by the quadrature of :mod:`soft_rom.learners.lopinf_refine`
+held-input discretization by the quadrature of :mod:`soft_rom.learners.lopinf.refine`
 against one :func:`scipy.linalg.expm_frechet` per direction (the baseline), with their
 largest difference. Test errors are relative deviation errors against the *clean* test
 outputs. Run::
@@ -39,9 +39,10 @@ import scipy.linalg as sla  # noqa: E402
 from soft_rom.basis import POD, project  # noqa: E402
 from soft_rom.ddt import SavitzkyGolay  # noqa: E402
 from soft_rom.learners.lopinf import LOpInf  # noqa: E402
-from soft_rom.learners.lopinf_refine import _frechet_rows, _frechet_rows_direct  # noqa: E402
+from soft_rom.learners.lopinf.refine import _frechet_rows, _frechet_rows_direct  # noqa: E402
 from soft_rom.metrics import relative_deviation_error  # noqa: E402
 from soft_rom.models import SecondOrderModel  # noqa: E402
+from soft_rom.reduce import ReducedData  # noqa: E402
 
 DT = 1 / 120
 K_SAMPLES = 1200
@@ -121,8 +122,8 @@ def main() -> None:
         out = {}
         for refine in ('none', 'output-error'):
             t0 = time.perf_counter()
-            lrn = LOpInf(r=r, ddt=SavitzkyGolay(), mass='learned', refine=refine).fit_reduced(
-                Qhat, U, Y, DT, y_ref)
+            lrn = LOpInf(r=r, ddt=SavitzkyGolay(), mass='learned', refine=refine).fit(
+                ReducedData.from_arrays(Qhat, U, Y, DT, y_ref))
             sec = time.perf_counter() - t0
             err = relative_deviation_error(test_Y, lrn.model_.simulate(test_U), y_ref)
             out[refine] = (sec, err, lrn.diagnostics_['refinement'])

@@ -61,7 +61,12 @@ def _best(fn, n: int, repeat: int = 5) -> float:
     return best
 
 
+#: Every timed figure (seconds) by name, for ``--json-out`` (benchmarks/ab.py reads it).
+FIGURES: dict[str, float] = {}
+
+
 def _row(name: str, ours: float, naive: float, unit: str = 'us', target: str = '') -> None:
+    FIGURES[name.strip()] = ours
     scale = 1e6 if unit == 'us' else 1e3 if unit == 'ms' else 1.0
     print(f'{name:<44s} {ours * scale:10.2f} {unit:<2s} {naive * scale:10.2f} {unit:<2s} '
           f'{naive / ours:8.1f}x  {target}')
@@ -73,6 +78,8 @@ def main() -> None:
     ap.add_argument('--r', type=int, default=16)
     ap.add_argument('--k', type=int, default=2000)
     ap.add_argument('--epoch-minutes', type=float, default=10.0)
+    ap.add_argument('--json-out', default=None, metavar='FILE',
+                    help='also write the timings (s) as JSON (benchmarks/ab.py reads them)')
     args = ap.parse_args()
     model = _model(args.r)
     rng = np.random.default_rng(1)
@@ -250,6 +257,7 @@ def main() -> None:
             replay_to_bag(Predictor(model), epb, f'{tmp}/b{every}', publish_every=every,
                           t0_ns=T0)
             dt = time.perf_counter() - t0
+            FIGURES[f'replay to bag, publish every {every}'] = dt
             print(f'replay -> MCAP bag, {kb} steps, publish every {every:>2d}: '
                   f'{dt * 1e3:8.1f} ms ({dt / kb * 1e6:.0f} us/step)')
         t0 = time.perf_counter()
@@ -259,6 +267,12 @@ def main() -> None:
               f'{dt * 1e3:8.1f} ms ({dt / kb * 1e6:.0f} us/step)')
     if args.epoch_minutes > 0:
         epoch_figure(args.epoch_minutes)
+    kalman_figures()
+    cubic_figures()
+    if args.json_out:
+        import json
+        with open(args.json_out, 'w', encoding='utf-8') as fh:
+            json.dump(FIGURES, fh)
 
 
 def epoch_figure(minutes: float) -> None:
@@ -315,7 +329,11 @@ def kalman_figures() -> None:
 
 def cubic_figures(r: int = 10) -> None:
     """Nonlinear (cubic LOpInf) predictor step beside the linear step of its linear part."""
-    from soft_rom.models_cubic import CubicSecondOrderModel, symmetrize
+    try:                                # this tree
+        from soft_rom.models.cubic import CubicSecondOrderModel
+        from soft_rom.models.tensors import symmetrize
+    except ImportError:                 # a revision before models was a package (ab.py)
+        from soft_rom.models_cubic import CubicSecondOrderModel, symmetrize
 
     lin = _model(r)
     rng = np.random.default_rng(7)
@@ -333,6 +351,7 @@ def cubic_figures(r: int = 10) -> None:
         preds[name] = p
     t_lin = _best(preds['linear'].step, 5000)
     t_cub = _best(preds['cubic'].step, 5000)
+    FIGURES[f'cubic r={r} predictor step'] = t_cub
     print(f'cubic LOpInf r={r}: predictor step {t_cub * 1e6:.1f} us (target <= 50 us), linear '
           f'step {t_lin * 1e6:.1f} us, ratio {t_cub / t_lin:.1f}x')
     t0 = time.perf_counter()
@@ -343,5 +362,3 @@ def cubic_figures(r: int = 10) -> None:
 
 if __name__ == '__main__':
     main()
-    kalman_figures()
-    cubic_figures()

@@ -198,6 +198,71 @@ class ColdArray:
         return out
 
 
+# -- fits on reduced data ---------------------------------------------------------------
+def reduced_data(td, pod, seconds):
+    """The ReducedData of a fitted StreamingPOD (what StreamingReducer.reduce builds)."""
+    from soft_rom.reduce import ReducedData
+    last = 0.0
+    for ep in td.episodes:
+        kk = ep.Q.shape[1]
+        x = np.asarray(ep.Q[:, kk - 1:kk], dtype=np.float64)[:, 0] - pod.q_ref_
+        last += float(x @ x)
+    eps = td.episodes
+    return ReducedData(coordinates=tuple(pod.coords_), U=tuple(ep.U for ep in eps),
+                       Y=tuple(ep.Y for ep in eps), t=tuple(ep.t for ep in eps),
+                       y_ref=td.y_ref, names=tuple(ep.name for ep in eps), basis='pod',
+                       energy=pod.energy_, singular_values=pod.singular_values_,
+                       n_states=int(pod.q_ref_.size), pairs_sq_norm=pod.total_energy_ - last,
+                       q_ref=pod.q_ref_, channels=dict(td.names),
+                       metadata={'scale': {'pod_method': pod.method, 'seconds': seconds}})
+
+
+def fit_one(method, red, r, k):
+    """One model of ``method`` on reduced data (ERA/OKID: its first episode)."""
+    from soft_rom.learners import DMDc, ERAOKID, LOpInf
+    if method == 'lopinf':
+        return LOpInf(r=r).fit(red).model_
+    if method == 'dmdc':
+        return DMDc(r=r).fit(red).model_
+    # OKID needs ~104 samples for m=6, p=40 after decimation
+    return ERAOKID(decimation=int(max(1, min(5, k // 120)))).fit(red).model_
+
+
+def compare_memory(ts, red, r, r_cubic):
+    """The streamed models against the in-memory ones (same learners, exact SVD in memory).
+
+    Prints, for LOpInf (linear, learned mass, cubic at ``r_cubic``) and DMDc, the largest
+    difference of the two models' predicted outputs over the first episode, relative to its
+    output deviations; DMDc in memory on every POD coordinate (equivalent to the centred
+    snapshots, which at this size would need some 20 GB).
+    """
+    from soft_rom.evaluation import predict
+    from soft_rom.learners import DMDc, LOpInf
+    from soft_rom.pipeline import open_training_data
+    from soft_rom.reduce import InMemoryPOD
+    t0, c0 = time.perf_counter(), cpu_seconds()
+    td = open_training_data(ts)
+    mem = InMemoryPOD().reduce(td, basis='pod', r=sum(ep.n_samples for ep in td.episodes))
+    print(f'in-memory POD (all {mem.n_coordinates} modes): {time.perf_counter() - t0:.1f} s, '
+          f'CPU {cpu_seconds() - c0:.1f} s, peak RSS {rss_peak_mb():.0f} MiB')
+    ep = td.episodes[0]
+    dev = float(np.linalg.norm(ep.Y - td.y_ref[:, None]))
+    out = {}
+    cubic = {'reg': 1e-3, 'eps4': 1e-2}
+    for name, make in (('lopinf linear', lambda: LOpInf(r=r)),
+                       ('lopinf learned mass', lambda: LOpInf(r=r, mass='learned')),
+                       (f'lopinf cubic r={r_cubic}',
+                        lambda: LOpInf(r=r_cubic, forces='cubic', cubic_options=cubic)),
+                       ('dmdc', lambda: DMDc(r=r))):
+        t1 = time.perf_counter()
+        a, b = make().fit(mem).model_, make().fit(red).model_
+        diff = float(np.linalg.norm(predict(a, ep) - predict(b, ep))) / dev
+        print(f'  {name:<22} streamed vs in memory: {diff:.2e} (relative to the output '
+              f'deviations; {time.perf_counter() - t1:.1f} s)')
+        out[name] = diff
+    return out
+
+
 def strip_checksums(src: Path, dst: Path) -> None:
     """Copy the training set ``src`` to ``dst`` as format version 2 stored it: no checksums.
 
@@ -240,9 +305,9 @@ def strip_checksums(src: Path, dst: Path) -> None:
 def checksum_ab(path: Path, args: argparse.Namespace) -> dict:
     """POD with and without checksums, alternately (A B A B); returns the figures."""
     from soft_rom.dataset import TrainingSet
+    from soft_rom.pipeline import open_training_data
     from soft_rom.scale.blocks import LocalExecutor, SnapshotSet
     from soft_rom.scale.pod import StreamingPOD
-    from soft_rom.scale.streaming import open_training_data
 
     plain = path.with_name(path.stem + '_nocrc.zarr')
     t0 = time.perf_counter()
@@ -301,6 +366,11 @@ def main(argv: list[str] | None = None) -> int:
                     help='also run the POD on a LocalCluster with this many workers and '
                          'compare with the local result')
     ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--compare-memory', action='store_true',
+                    help='also fit in memory (the snapshots loaded, an exact SVD) and print '
+                         'how far each streamed model is from it (use --pod gram: exact)')
+    ap.add_argument('--cubic-r', type=int, default=8,
+                    help='reduced dimension of the cubic LOpInf of --compare-memory')
     ap.add_argument('--checksum-ab', action='store_true',
                     help='only time the POD with and without chunk checksums (A/B)')
     args = ap.parse_args(argv)
@@ -334,9 +404,9 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
     from soft_rom.dataset import TrainingSet
+    from soft_rom.pipeline import open_training_data
     from soft_rom.scale.blocks import LocalExecutor, SnapshotSet
     from soft_rom.scale.pod import StreamingPOD
-    from soft_rom.scale.streaming import fit_reduced_model, open_training_data, ReducedData
 
     files = chunk_files(path)
     if not args.warm:
@@ -362,8 +432,11 @@ def main(argv: list[str] | None = None) -> int:
         ex = LocalExecutor()
         snaps = SnapshotSet([ep.Q for ep in td.episodes], td.q_ref,
                             [ep.name for ep in td.episodes])
-        pod = StreamingPOD(r=args.r, method=method, n_coords=max(2 * args.r, args.r + 20),
-                           power_iters=args.power_iters, executor=ex, seed=args.seed)
+        # 'gram' keeps every coordinate (as soft_rom.reduce.StreamingReducer does): exact.
+        n_coords = E * k if method == 'gram' else max(2 * args.r, args.r + 20)
+        pod = StreamingPOD(r=args.r, method=method, n_coords=n_coords,
+                           power_iters=args.power_iters, executor=ex, seed=args.seed,
+                           compute_basis=method != 'gram')
         t0, c0 = time.perf_counter(), cpu_seconds()
         try:
             pod.fit(snaps)
@@ -383,27 +456,19 @@ def main(argv: list[str] | None = None) -> int:
                                     'MBps': tp / 1e6, 'ratio_to_raw': tp_disk / raw_tp,
                                     'sv': pod.singular_values_[:args.r].tolist()}
         if red is None:
-            last = 0.0
-            for ep in td.episodes:
-                kk = ep.Q.shape[1]
-                x = np.asarray(ep.Q[:, kk - 1:kk], dtype=np.float64)[:, 0] - pod.q_ref_
-                last += float(x @ x)
-            red = ReducedData(pod=pod, data=td, state_sq_norm_pairs=pod.total_energy_ - last,
-                              seconds=t_pod)
+            red = reduced_data(td, pod, t_pod)
         else:
             s0 = np.asarray(results[f'pod_{methods[0]}']['sv'])
             print(f'  singular values {methods[0]} vs {method}: max rel diff '
                   f'{np.max(np.abs(pod.singular_values_[:args.r] / s0 - 1)):.2e}')
     if red is None:
         return 1
-    t_total = red.seconds
+    t_total = t_pod
+    fitted = {}
     for method in ('lopinf', 'dmdc', 'era'):
         t0, c0 = time.perf_counter(), cpu_seconds()
-        if method == 'era':  # OKID needs ~104 samples for m=6, p=40 after decimation
-            kw = {'decimation': int(max(1, min(5, k // 120)))}
-        else:
-            kw = {}
-        model = fit_reduced_model(red, method, args.r if method != 'era' else None, **kw)
+        model = fit_one(method, red, args.r, k)
+        fitted[method] = model
         dt_fit, c_fit = time.perf_counter() - t0, cpu_seconds() - c0
         t_total += dt_fit
         ep = td.episodes[0]
@@ -417,6 +482,8 @@ def main(argv: list[str] | None = None) -> int:
     results['total_seconds'] = t_total
     results['load_average'] = os.getloadavg()
     results['peak_rss_MiB'] = rss_peak_mb()
+    if args.compare_memory:
+        results['memory_vs_streaming'] = compare_memory(ts, red, args.r, args.cubic_r)
     print(f'TOTAL POD + LOpInf + DMDc + ERA/OKID: {t_total:.1f} s; peak RSS '
           f'{rss_peak_mb():.0f} MiB; load average {os.getloadavg()[0]:.1f} on '
           f'{os.cpu_count()} cpus (other jobs inflate wall times; see the CPU seconds)')

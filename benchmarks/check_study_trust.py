@@ -42,7 +42,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from soft_rom.cli import main as cli
-    import soft_rom.study.run as run
+    import soft_rom.study.studies as run
 
     original = run.sweep
     rows: list[tuple[str, int, float, list[str]]] = []

@@ -27,11 +27,9 @@ well the local polynomial resolves each mode.
 Defaults: ``window = 31``, ``polyorder = 5``. The window (0.26 s at 120 Hz) is set by the
 noise: its gain on ``q''`` falls as ``window^-2.5``. The degree is set by the bias: noise on
 ``q''`` (the regressand of the fit) averages out in the least-squares problem, while a
-too-low degree flattens the modes that are kept; on the lab-rig test (spring chain with
-modes 0.6-2.8 Hz seen by a 120 Hz camera with 0.5 mm noise) degree 5 halved LOpInf's
-prediction error against degree 3 at the same window (0.087 vs 0.131 relative deviation
-error at r = 4), and windows 31-41 were best. Scale the window with the sample rate (the same
-time span) and lengthen it for noisier data. The same trimming rule holds: ``window // 2``
+too-low degree flattens the modes that are kept (the lab-rig measurements behind these
+defaults are in ``docs/methods.md``). Scale the window with the sample rate (the same time
+span) and lengthen it for noisier data. The same trimming rule holds: ``window // 2``
 samples are lost at each end of an episode.
 
 Names for command lines (:func:`parse_estimator`): ``fd2``, ``fd4``, ``fd6``, ``fd8``,
@@ -127,6 +125,9 @@ class FiniteDifference:
     def __repr__(self) -> str:
         return f'FiniteDifference(order={self.order})'
 
+    def __str__(self) -> str:
+        return f'fd{self.order}'                # as --ddt spells it
+
     @property
     def half_width(self) -> int:
         """Samples lost at each end of an episode (``order // 2``)."""
@@ -218,6 +219,9 @@ class SavitzkyGolay:
 
     def __repr__(self) -> str:
         return f'SavitzkyGolay(window={self.window}, polyorder={self.polyorder})'
+
+    def __str__(self) -> str:
+        return f'savgol:{self.window}:{self.polyorder}'     # as --ddt spells it
 
     @property
     def half_width(self) -> int:

@@ -7,6 +7,8 @@ was expected, what came, and what to do.
 
 from __future__ import annotations
 
+import sys
+
 __all__ = [
     'BagError',
     'ClusterError',
@@ -19,6 +21,8 @@ __all__ = [
     'ResourceError',
     'SoftRomError',
     'SolverError',
+    'dask_worker',
+    'one_line',
     'show_value',
 ]
 
@@ -80,3 +84,22 @@ def show_value(value: object) -> str:
         text = repr(value)
     text = text.removesuffix('\n...').removesuffix(' ...').strip()
     return text if len(text) <= 80 else text[:77] + '...'
+
+
+def one_line(err: BaseException, limit: int = 300) -> str:
+    """``'Type: message'`` of ``err`` on one line, at most ``limit`` characters."""
+    text = ' '.join(str(err).split())
+    if len(text) > limit:
+        text = text[:limit - 3] + '...'
+    return f'{type(err).__name__}: {text}' if text else type(err).__name__
+
+
+def dask_worker() -> str | None:
+    """Address of the ``dask.distributed`` worker running this code, or ``None``."""
+    mod = sys.modules.get('distributed')
+    if mod is None:
+        return None
+    try:
+        return str(mod.get_worker().address)
+    except Exception:  # noqa: BLE001 - ValueError outside a worker; anything else: not one
+        return None

@@ -12,7 +12,7 @@ from soft_rom.data import Episode
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError, ResourceError
 from soft_rom.evaluation import evaluate, predict
 from soft_rom.learners.era import decimate, era, ERAOKID, hankel_rank, okid_markov
-from soft_rom.learners.era_select import RIDGE_FLOOR
+from soft_rom.learners.era.okid import RIDGE_FLOOR
 
 
 def _lti(n=6, m=2, p=2, seed=1, rho=0.95):
@@ -114,7 +114,7 @@ def test_output_rank_identifies_on_principal_outputs():
     assert est.model_.C.shape == (12, 6)
     assert np.max(np.abs(est.model_.simulate(U) - Y)) <= 1e-8 * np.max(np.abs(Y))
     np.testing.assert_allclose(est.model_for(6).C, est.model_.C, atol=1e-12)
-    with pytest.raises(ConfigError, match='output_rank'):
+    with pytest.raises(ConfigError, match='--output-rank'):
         ERAOKID(output_rank=13, decimation=1).fit(ep)
 
 
@@ -144,7 +144,7 @@ def test_decimated_fit_and_prediction_at_model_times():
 
 
 def test_resampling_to_the_data_step_is_exact_for_held_inputs():
-    from soft_rom.learners.era_select import to_data_rate
+    from soft_rom.learners.era.realization import to_data_rate
     A, B, _, rng = _sampled(n=5, seed=9)
     res = to_data_rate(A @ A @ A, (np.eye(5) + A + A @ A) @ B, 3)
     assert res is not None
@@ -170,10 +170,9 @@ def test_ridge_okid_is_well_posed_and_presets():
     assert np.linalg.norm(m2 - m1) <= 1e-7 * np.linalg.norm(m1)
     true = _markov(A, B, C, D, 60)
     assert np.linalg.norm(m1[:30] - true[:30]) <= 0.05 * np.linalg.norm(true[:30])
-    est = ERAOKID.from_preset('eel', r=4)
+    from soft_rom.study.presets import ERA_EEL_OPTIONS
+    est = ERAOKID(r=4, **ERA_EEL_OPTIONS)
     assert est.selection == 'none' and est.observer_order == 36 and est.r == 4
-    with pytest.raises(ConfigError, match='preset'):
-        ERAOKID.from_preset('fast')
 
 
 def test_defaults_on_realistic_lightly_damped_data():
@@ -211,7 +210,7 @@ def test_errors():
     A, B, C, D, rng = _lti()
     U = rng.standard_normal((2, 30))
     Y = _response(A, B, C, D, U, np.zeros(6))
-    with pytest.raises(ConfigError, match='observer_order'):
+    with pytest.raises(ConfigError, match='observer.order'):
         okid_markov(U, Y, observer_order=8, n_markov=10)
     ep = Episode(t=np.arange(30) * 1e-3, U=U, Y=Y, name='a')
     with pytest.raises(DimensionError, match='one episode'):
@@ -225,7 +224,7 @@ def test_errors():
 
 
 def test_choose_ties_are_broken_by_a_fixed_preference():
-    from soft_rom.learners.era_select import choose
+    from soft_rom.learners.era.select import choose
     rows = [{'observer_order': 32, 'ridge': 1e-6, 'r': 20, 'tail_error': 0.100},
             {'observer_order': 16, 'ridge': 1e-4, 'r': 12, 'tail_error': 0.102},
             {'observer_order': 8, 'ridge': 1e-4, 'r': 10, 'tail_error': 0.1029},
@@ -245,7 +244,7 @@ def test_choose_ties_are_broken_by_a_fixed_preference():
 
 
 def test_stabilize_and_output_refit_known_truth():
-    from soft_rom.learners.era_select import fit_output_map, simulate_states, stabilize
+    from soft_rom.learners.era.realization import fit_output_map, simulate_states, stabilize
     rng = np.random.default_rng(3)
     T = rng.standard_normal((4, 4))
     lam = np.array([1.02, 0.5, 0.9, -0.3])
@@ -340,7 +339,8 @@ def test_input_compression_zeroes_the_responses_the_data_do_not_determine():
     mk2 = ERAOKID(**kw).fit(pert, np.zeros(3)).markov_parameters()
     # Measured 8e-10 (all three input directions: 1.9e-6, from the undetermined one).
     assert np.linalg.norm(mk2 - mk) <= 1e-8 * np.linalg.norm(mk)
-    assert ERAOKID.from_preset('eel').input_rank is None            # presets as they were
+    from soft_rom.study.presets import ERA_EEL_OPTIONS
+    assert ERAOKID(**ERA_EEL_OPTIONS).input_rank == 'auto'   # the study fits the excited inputs
     full = ERAOKID(**kw, input_rank=None).fit(ep, np.zeros(3))
     assert full.input_basis_ is None and full.model_.metadata['input_rank'] == 3
     with pytest.raises(ConfigError, match='input_rank'):
@@ -348,7 +348,7 @@ def test_input_compression_zeroes_the_responses_the_data_do_not_determine():
 
 
 def test_blocked_cross_validation_folds_and_order():
-    from soft_rom.learners.era_select import cv_folds, select_okid
+    from soft_rom.learners.era.select import cv_folds, select_okid
     folds = cv_folds(100, 3, 0.2)
     assert len(folds) == 5
     tests = np.array([t for _, t in folds])
@@ -401,34 +401,35 @@ def test_markov_horizon_longer_than_the_episode_is_refused_before_any_work(monke
 
     era_module = sys.modules[ERAOKID.__module__]
     monkeypatch.setattr(era_module, 'okid_markov', no_work)
-    monkeypatch.setattr(era_module.era_select, 'select_okid', no_work)
+    monkeypatch.setattr(sys.modules['soft_rom.learners.era.steps'].era_select, 'select_okid',
+                        no_work)
     monkeypatch.setattr(ERAOKID, '_prepare', no_work)
     for options in ({'selection': 'none', 'decimation': 1}, {'selection': 'holdout'},
                     {'decimation': 'auto'}):
         for nm in (100_000, 5000, 300):
-            with pytest.raises(ConfigError, match=f"n_markov={nm} exceeds .*'short'.* 299"):
+            with pytest.raises(ConfigError, match=f"--n-markov {nm} exceeds .*'short'.* 299"):
                 ERAOKID(r=3, n_markov=nm, **options).fit(ep)
     with pytest.raises(ConfigError, match='at most 59'):          # 60 samples at d = 5
         ERAOKID(r=3, n_markov=60, decimation=5, selection='none').fit(ep)
     for bad in (0, 2.5, True, '10'):
-        with pytest.raises(ConfigError, match='n_markov must be an integer'):
+        with pytest.raises(ConfigError, match='--n-markov must be an integer'):
             ERAOKID(r=3, n_markov=bad).fit(ep)
 
 
 def test_hankel_matrices_larger_than_memory_are_refused_before_they_are_built(monkeypatch):
     """A long horizon within the episode can still ask for more memory than there is."""
-    from soft_rom.learners.era_select import era_truncated
+    from soft_rom.learners.era.realization import era_truncated
     import soft_rom.resources as resources
     monkeypatch.setattr(resources, 'available_memory', lambda: 64e6)       # 64 MB left
     markov = np.random.default_rng(0).standard_normal((1201, 40, 6))
     era_module = sys.modules[era.__module__]
-    hankel, built = era_module._hankel, []
-    monkeypatch.setattr(era_module, '_hankel', lambda *a: built.append(a))
+    hankel, built = era_module.hankel, []
+    monkeypatch.setattr(era_module, 'hankel', lambda *a: built.append(a))
     for fn in (era, era_truncated):
         with pytest.raises(ResourceError, match=r'GiB of memory; 0.0596 GiB are available'):
             fn(markov, 4)
     assert not built
-    monkeypatch.setattr(era_module, '_hankel', hankel)
+    monkeypatch.setattr(era_module, 'hankel', hankel)
     assert era(markov[:41], 2)[0].shape == (2, 2)          # a short horizon fits in 64 MB
 
 
@@ -446,7 +447,7 @@ def test_observer_order_too_large_is_refused_not_replaced():
     U = rng.standard_normal((2, 300))
     ep = Episode(t=np.arange(300) * 1e-3, U=U, Y=_response(A, B, C, D, U, np.zeros(6)))
     for selection in ('holdout', 'none'):
-        with pytest.raises((ConfigError, DimensionError), match='observer_order'):
+        with pytest.raises((ConfigError, DimensionError), match='observer.order'):
             ERAOKID(r=3, observer_order=100_000, decimation=1, selection=selection).fit(ep)
-    with pytest.raises(ConfigError, match='observer_order must be an integer'):
+    with pytest.raises(ConfigError, match='--observer-order must be an integer'):
         ERAOKID(r=3, observer_order=0).fit(ep)

@@ -117,7 +117,8 @@ def test_just_below_the_limit_is_not_flagged(fitted):
 
 
 def test_a_stiffening_cubic_model_is_judged_by_its_equilibria():
-    from soft_rom.models_cubic import CubicSecondOrderModel, symmetrize
+    from soft_rom.models import CubicSecondOrderModel
+    from soft_rom.models.tensors import symmetrize
     r = 2
     I2 = np.eye(r)
     H = 6e6 * symmetrize(np.einsum('ij,kl->ijkl', I2, I2))     # V = 1e6 |q|^4 / 4 + ...

@@ -8,9 +8,9 @@ import pytest
 from soft_rom.bags import EpisodeBagWriter
 from soft_rom.convert import BagMapping, convert, read_episode
 from soft_rom.errors import ConfigError, DatasetError
-from soft_rom.fitting import fit_models, select_episodes
 from soft_rom.layout import layout_of, OutputLayout, replay_components
 from soft_rom.models import load_model
+from soft_rom.pipeline import fit_method, FitSettings, open_training_data
 
 
 def test_names_and_round_trip_for_both_orders() -> None:
@@ -62,9 +62,9 @@ def test_converter_stores_the_layout_and_fitted_models_carry_it(tmp_path) -> Non
     assert ts.output_names == want.names() == ['x3', 'y3', 'x6', 'y6', 'x8', 'y8']
     ep, _ = read_episode(bag, mapping)
     assert layout_of(ep.metadata) == want
-    eps = select_episodes(ts, None)
-    (model, _), = fit_models(ts, 'dmdc', r_values=(3,), energy=None, episodes=eps,
-                             provenance={}, progress=False, coordinates='outputs')
+    fitted, = fit_method(open_training_data(ts), 'dmdc', (3,),
+                         FitSettings(coordinates='outputs'), layout=ts.output_layout.to_dict())
+    model = fitted.model
     assert layout_of(model.metadata) == want
     path = model.save(tmp_path / 'm.npz')
     assert layout_of(load_model(path).metadata) == want

@@ -11,7 +11,7 @@ from soft_rom.data import Episode
 from soft_rom.ddt import FiniteDifference
 from soft_rom.errors import DimensionError, NotFittedError
 from soft_rom.learners.lopinf import LOpInf
-from soft_rom.learners.lopinf_solvers import (
+from soft_rom.learners.lopinf.solvers import (
     CvxpySolver,
     DEFAULT_EPS,
     FastSPDSolver,
@@ -101,7 +101,7 @@ def test_lopinf_recovers_operators_from_exact_derivative_data():
         Qf = q_ref[:, None] + Phi @ q
         episodes.append(Episode(t=t, U=U, Y=Qf[:4], Q=Qf, name=f'p{j}'))
     est = LOpInf(r=r).fit(episodes, q_ref=q_ref, y_ref=q_ref[:4])
-    R = est.basis_.basis_.T @ Phi                    # q̂ = R q, R orthogonal
+    R = est.basis_.T @ Phi                    # q̂ = R q, R orthogonal
     assert _rel(est.K_, R @ K @ R.T) < 1e-8
     assert _rel(est.C_, R @ C @ R.T) < 1e-8
     assert _rel(est.B_, R @ B) < 1e-8
@@ -238,7 +238,7 @@ def test_fast_solver_on_ill_conditioned_pod_data_matches_clarabel():
     # ill-conditioned, antagonistic inputs (rank-deficient U), constraints active.
     episodes = _chain_episodes(noise=3e-2, seeds=(6, 7))
     est = LOpInf(r=8).fit(episodes)
-    V, q_ref = est.basis_.basis_, est.q_ref_
+    V, q_ref = est.basis_, est.q_ref_
     Qhat = [V.T @ (e.Q - q_ref[:, None]) for e in episodes]
     Q, Qd, Qdd, (U,) = FiniteDifference(8).episodes(Qhat, 1e-3, [[e.U for e in episodes]])
     assert np.linalg.cond(np.vstack([Qd, Q])) > 1e2
@@ -281,7 +281,7 @@ def test_interior_point_matches_clarabel_with_separate_margins(eps):
 
 
 def test_symmetric_kronecker_hessian_matches_the_quadratic_form():
-    from soft_rom.learners.lopinf_ipm import SymIndex
+    from soft_rom.learners.lopinf.ipm import SymIndex
     rng = np.random.default_rng(0)
     for r in (1, 3, 7):
         idx = SymIndex(r)
@@ -300,7 +300,7 @@ def test_symmetric_kronecker_hessian_matches_the_quadratic_form():
 
 
 def test_modal_table_of_known_oscillators():
-    from soft_rom.learners.lopinf_margins import least_damped_mode, modal_table
+    from soft_rom.learners.lopinf.margins import least_damped_mode, modal_table
     w = np.array([2.0, 30.0])
     z = np.array([0.05, 0.3])
     modes = modal_table(np.diag(w ** 2), np.diag(2 * z * w))
@@ -317,7 +317,7 @@ def test_damping_margin_holds_for_every_mode():
     # though K and C do not commute; with ζ_min = 0 the absolute margin alone is used.
     episodes = _chain_episodes(noise=3e-2, seeds=(6, 7))
     est = LOpInf(r=8, min_damping_ratio=0.3).fit(episodes)
-    from soft_rom.learners.lopinf_margins import modal_table
+    from soft_rom.learners.lopinf.margins import modal_table
     zetas = [m['damping_ratio'] for m in modal_table(est.K_, est.C_)]
     assert min(zetas) >= 0.3 * (1 - 1e-7)
     diag = est.diagnostics_
@@ -330,7 +330,7 @@ def test_damping_margin_holds_for_every_mode():
 
 
 def test_tikhonov_columns_add_the_penalty_and_selection_is_reported():
-    from soft_rom.learners.lopinf_margins import augment_tikhonov
+    from soft_rom.learners.lopinf.margins import augment_tikhonov
     Q, Qd, Qdd, U = _random_problem(3)
     Qa, Qda, Qdda, Ua, lam = augment_tikhonov(Q, Qd, Qdd, U, 1e-3)
     rng = np.random.default_rng(1)

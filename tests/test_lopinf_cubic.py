@@ -9,11 +9,11 @@ from scipy.integrate import solve_ivp
 from soft_rom.data import Episode
 from soft_rom.errors import ConfigError, DimensionError, ModelFileError
 from soft_rom.learners.lopinf import LOpInf
-from soft_rom.learners.lopinf_cubic import fit_cubic, quartic_lower_bound
+from soft_rom.learners.lopinf.cubic import fit_cubic
 from soft_rom.metrics import relative_error
-from soft_rom.models import load_model
-from soft_rom.models_cubic import (
-    CubicSecondOrderModel,
+from soft_rom.models import CubicSecondOrderModel, load_model
+from soft_rom.models.tensors import (
+    quartic_lower_bound,
     symmetric_entries,
     symmetric_from_entries,
     symmetric_index,
@@ -277,15 +277,22 @@ def test_cli_fit_forces_cubic_then_info(tmp_path, capsys) -> None:
     assert main(['info', str(out / 'chain_lopinf_cubic_r4.npz')]) == 0
     text = capsys.readouterr().out
     assert 'forces: cubic' in text and 'H 35' in text
+    # Streamed (the exact Gram POD at this size): the same settings chosen, the same model to
+    # the conic solver's tolerance (its constraints are active on these data).
     rc = main(['fit', str(ts), '--forces', 'cubic', '--r', '4', '--streaming', '-o',
-               str(tmp_path / 'm2')])
-    assert rc != 0
-    assert '--forces cubic' in capsys.readouterr().err
+               str(tmp_path / 'm2'), '--quiet'])
+    assert rc == 0
+    streamed = load_model(tmp_path / 'm2' / 'chain_lopinf_cubic_r4.npz')
+    for key in ('forces', 'options', 'scheme'):
+        assert streamed.metadata['cubic_selection'][key] == \
+            model.metadata['cubic_selection'][key]
+    Y1, Y2 = model.simulate(U[:, :500]), streamed.simulate(U[:, :500])
+    assert np.linalg.norm(Y1 - Y2) <= 1e-4 * np.linalg.norm(Y1 - model.y_ref[:, None])
 
 
 def test_quartic_certificate_known_values() -> None:
     """|q|⁴: canonical Gram bound 2/3, sum-of-squares bound 1 (the exact minimum on |q| = 1)."""
-    from soft_rom.learners.lopinf_cubic import isotropic_quartic
+    from soft_rom.learners.lopinf.cubic import isotropic_quartic
     S = isotropic_quartic(3)
     t, how = quartic_lower_bound(S, target=None)
     assert how == 'gram' and abs(t - 2.0 / 3.0) < 1e-12

@@ -1,4 +1,4 @@
-"""LOpInf with a learned mass matrix (:mod:`soft_rom.learners.lopinf_mass`), on known truth.
+"""LOpInf with a learned mass matrix (:mod:`soft_rom.learners.lopinf.mass`), on known truth.
 
 A random mechanical system ``M q'' + C q' + K q = B u`` (M, C, K SPD, M far from the
 identity, non-proportional damping) observed in random non-orthogonal coordinates
@@ -15,8 +15,9 @@ import scipy.linalg as sla
 
 from soft_rom.errors import ConfigError
 from soft_rom.learners.lopinf import LOpInf
-from soft_rom.learners.lopinf_mass import mass_candidates, solve_learned_mass
+from soft_rom.learners.lopinf.mass import mass_candidates, solve_learned_mass
 from soft_rom.models import SecondOrderModel
+from soft_rom.reduce import ReducedData
 
 R, M_IN, DT = 4, 3, 1e-3
 
@@ -61,9 +62,9 @@ def system():
 def _fit(episodes, mass: str) -> LOpInf:
     # min_damping_ratio=0: the paper's margins only (the default damping-ratio bound is a
     # sufficient condition that binds for this lightly damped truth)
-    return LOpInf(r=R, ddt=8, mass=mass, min_damping_ratio=0.0).fit_reduced(
+    return LOpInf(r=R, ddt=8, mass=mass, min_damping_ratio=0.0).fit(ReducedData.from_arrays(
         [y for _, _, y in episodes], [u for _, u, _ in episodes],
-        [y for _, _, y in episodes], DT, np.zeros(R))
+        [y for _, _, y in episodes], DT, np.zeros(R)))
 
 
 def test_learned_mass_recovers_a_mechanical_system_in_oblique_coordinates(system):
@@ -114,6 +115,6 @@ def test_bad_mass_choice_is_refused(system):
     with pytest.raises(ConfigError, match='mass'):
         _fit(episodes, 'heavy')
     with pytest.raises(ConfigError, match='mass'):
-        LOpInf(r=R, mass='learned', forces='cubic').fit_reduced(
+        LOpInf(r=R, mass='learned', forces='cubic').fit(ReducedData.from_arrays(
             [y for _, _, y in episodes], [u for _, u, _ in episodes],
-            [y for _, _, y in episodes], DT, np.zeros(R))
+            [y for _, _, y in episodes], DT, np.zeros(R)))

@@ -1,4 +1,4 @@
-"""Output-error refinement of LOpInf (:mod:`soft_rom.learners.lopinf_refine`).
+"""Output-error refinement of LOpInf (:mod:`soft_rom.learners.lopinf.refine`).
 
 Known truth: a 3-DOF damped chain simulated exactly with held inputs. The gradient and the
 Fréchet derivatives are checked against finite differences and scipy; the refinement
@@ -16,13 +16,14 @@ from soft_rom.data import Episode
 from soft_rom.ddt import SavitzkyGolay
 from soft_rom.errors import ConfigError
 from soft_rom.learners.lopinf import LOpInf
-from soft_rom.learners.lopinf_refine import (
+from soft_rom.learners.lopinf.refine import (
     _frechet_rows,
     _Problem,
     initial_states,
     refine_output_error,
 )
 from soft_rom.metrics import relative_deviation_error
+from soft_rom.reduce import ReducedData
 
 R, M_IN, DT = 3, 2, 0.01
 K_TRUE = np.array([[40.0, -20.0, 0.0], [-20.0, 40.0, -20.0], [0.0, -20.0, 20.0]])
@@ -117,9 +118,9 @@ def test_lopinf_refine_removes_the_noise_bias_of_the_equation_error_fit():
     eps_list = [Episode(t=np.arange(q.shape[1]) * DT, U=u, Y=q) for q, u in data]
     errors = {}
     for refine in ('none', 'output-error'):
-        lrn = LOpInf(r=R, ddt=SavitzkyGolay(), refine=refine).fit_reduced(
+        lrn = LOpInf(r=R, ddt=SavitzkyGolay(), refine=refine).fit(ReducedData.from_arrays(
             [e.Y for e in eps_list], [e.U for e in eps_list], [e.Y for e in eps_list], DT,
-            y_ref=np.zeros(R))
+            y_ref=np.zeros(R)))
         Y = lrn.model_.simulate(test_U)
         errors[refine] = relative_deviation_error(test_Q, Y, np.zeros(R))
         assert lrn.model_.stability_margin() > 0
@@ -130,9 +131,9 @@ def test_lopinf_refine_removes_the_noise_bias_of_the_equation_error_fit():
 
 def test_refine_is_refused_with_cubic_forces_and_unknown_names():
     with pytest.raises(ConfigError, match='refine'):
-        LOpInf(r=2, refine='simulation').fit_reduced(
+        LOpInf(r=2, refine='simulation').fit(ReducedData.from_arrays(
             [np.ones((2, 50)) * np.linspace(0, 1, 50)], [np.ones((1, 50))],
-            [np.ones((2, 50))], 0.01)
+            [np.ones((2, 50))], 0.01))
 
 
 def test_a_refinement_that_predicts_the_held_out_tails_worse_is_rejected():
@@ -158,7 +159,7 @@ def test_a_refinement_that_predicts_the_held_out_tails_worse_is_rejected():
 
 
 def test_a_problem_too_large_to_refine_here_is_skipped_and_said(monkeypatch):
-    import soft_rom.learners.lopinf_refine as lr
+    import soft_rom.learners.lopinf.refine as lr
     data = episodes(8, k=300)
     monkeypatch.setattr(lr, 'MAX_WORK', 1e3)
     K, C, B, info = lr.refine_output_error(1.2 * K_TRUE, C_TRUE, B_TRUE, data, DT)

@@ -446,7 +446,8 @@ def replay_stream_to_bag(predictor: Predictor, bag: str | os.PathLike[str],
     with its own header stamp (bag time for un-stamped arrays and zero stamps) and the bag
     time as the reception clock, as the node sees ``ros2 bag play --clock`` with
     ``use_sim_time``; the loop's timer (``'fixed'`` stepping: the publish period, else the
-    diagnostics period) is emulated on the bag clock. Parameters mirror the node's.
+    diagnostics period) is emulated on the bag clock. Parameters mirror the node's. About 85
+    lines: the message loop and the node's emulated timer share their state.
 
     Returns
     -------

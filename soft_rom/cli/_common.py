@@ -50,6 +50,7 @@ __all__ = [
 
 def parse_r_list(text: str) -> tuple[int, ...]:
     """Parse ``'16'``, ``'4,8,16'`` or ``'2:22:2'`` (inclusive stop) into a tuple of ints."""
+    usage = 'give --r as N, N,M,... or START:STOP[:STEP] (stop included), e.g. --r 4:12:4'
     try:
         if ':' in text:
             parts = [int(p) for p in text.split(':')]
@@ -57,18 +58,27 @@ def parse_r_list(text: str) -> tuple[int, ...]:
                 raise ValueError
             start, stop = parts[0], parts[1]
             step = parts[2] if len(parts) == 3 else 1
-            if step < 1 or stop - start > 100_000:
-                raise ValueError
-            values = tuple(range(start, stop + 1, step))
         else:
             values = tuple(int(p) for p in text.split(',') if p.strip())
     except ValueError as err:
-        raise argparse.ArgumentTypeError(
-            f'expected r as N, N,M,... or START:STOP[:STEP]; got {text!r}') from err
-    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a list of r values: {usage}') from err
+    if ':' in text:
+        if step < 1:
+            raise argparse.ArgumentTypeError(f'range {text}: the step must be at least 1')
+        if stop < start:
+            raise argparse.ArgumentTypeError(f'range {text} is empty: start must be below '
+                                             f'stop (e.g. --r {stop}:{start}:{step})')
+        if stop - start > 100_000:
+            raise argparse.ArgumentTypeError(f'range {text} is too long: r is at most 10000')
+        values = tuple(range(start, stop + 1, step))
+    if not values:
+        raise argparse.ArgumentTypeError(f'no r value in {text!r}: {usage}')
+    if min(values) < 1:
         raise argparse.ArgumentTypeError(f'r values must be positive integers; got {text!r}')
     if max(values) > 10_000:
         raise argparse.ArgumentTypeError(f'r values must be at most 10000; got {text!r}')
+    if len(set(values)) != len(values):
+        raise argparse.ArgumentTypeError(f'r values repeat in {text!r}: give each once')
     return values
 
 

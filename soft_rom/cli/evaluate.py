@@ -28,8 +28,9 @@ from soft_rom.data import Episode
 from soft_rom.dataset import TrainingSet
 from soft_rom.errors import DimensionError
 from soft_rom.evaluation import evaluate
-from soft_rom.fitting import select_episodes
 from soft_rom.models import LinearROM, load_model
+from soft_rom.models.labels import model_label
+from soft_rom.pipeline import select_episodes
 
 __all__ = ['add_parser', 'plot_outputs', 'run']
 
@@ -104,13 +105,13 @@ def run(args: argparse.Namespace) -> int:
         _check_layout(model, path, ts)
     rows: list[dict[str, Any]] = []
     predictions: list[tuple[str, LinearROM, dict[str, np.ndarray]]] = []
-    labels = _labels([path for path, _ in models])
+    labels = _labels(models)
     for path, model in models:
         ev = evaluate(model, episodes, t_split=args.t_split, initial=args.initial,
                       return_predictions=args.plots is not None)
         for row in ev.rows:
             rows.append({'model': labels[path][0], 'method': model.method, 'r': model.r,
-                         'trusted': model.trusted, **row})
+                         'label': model_label(model), 'trusted': model.trusted, **row})
         if args.plots is not None:
             predictions.append((path, model, ev.predictions))
     if args.plots is not None:
@@ -135,13 +136,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _labels(paths: list[str]) -> dict[str, tuple[str, str]]:
+def _labels(models: list[tuple[str, LinearROM]]) -> dict[str, tuple[str, str]]:
     """Table label and plot file stem of each model file.
 
     Its name when the names are distinct; else (models of the same name from different
     folders, e.g. two fits compared) the path as given and a stem made of its folders, so
     that neither the rows nor the plots of one model can pass for the other's.
     """
+    paths = [p for p, _ in models]
     names = [Path(p).name for p in paths]
     if len(set(names)) == len(set(paths)):
         return {p: (Path(p).name, Path(p).stem) for p in paths}
@@ -154,14 +156,15 @@ def _labels(paths: list[str]) -> dict[str, tuple[str, str]]:
 
 
 def format_table(rows: list[dict[str, Any]]) -> str:
-    """Text table of the evaluation rows."""
+    """Text table of the evaluation rows: each model by its file and what it is."""
     w = max([len(r['model']) for r in rows] + [5])
-    head = (f'{"model":<{w}} {"episode":<10} {"segment":<7} {"samples":>7} '
+    wl = max([len(r.get('label', '')) for r in rows] + [4])
+    head = (f'{"model":<{w}} {"what":<{wl}} {"episode":<10} {"segment":<7} {"samples":>7} '
             f'{"err":>10} {"dev err":>10}')
     lines = [head, '-' * len(head)]
     for r in rows:
-        lines.append(f'{r["model"]:<{w}} {r["episode"]:<10} {r["segment"]:<7} '
-                     f'{r["n_samples"]:>7d} {r["relative_error"]:>10.3e} '
+        lines.append(f'{r["model"]:<{w}} {r.get("label", ""):<{wl}} {r["episode"]:<10} '
+                     f'{r["segment"]:<7} {r["n_samples"]:>7d} {r["relative_error"]:>10.3e} '
                      f'{r["relative_deviation_error"]:>10.3e}')
     return '\n'.join(lines)
 
@@ -196,7 +199,7 @@ def plot_outputs(ep: Episode, Y_hat: np.ndarray, model: LinearROM, path: str | P
     a prediction that leaves the axis range cut at the edge and marked
     (:func:`soft_rom.study.figures.output_traces`).
     """
-    from soft_rom.study.figures import model_label, output_traces
+    from soft_rom.study.figures import output_traces
 
     idx = _output_indices(outputs, model)
     path = Path(path)
@@ -204,8 +207,9 @@ def plot_outputs(ep: Episode, Y_hat: np.ndarray, model: LinearROM, path: str | P
     units = {model.output_units[i] for i in idx}
     scale, unit = (1e3, 'mm') if units == {'m'} else (1.0, units.pop() if len(units) == 1
                                                         else '')
-    label = model_label(model)
-    prov = model.metadata.get('provenance', {}) if isinstance(model.metadata, dict) else {}
+    label = model_label(model, data_dt=ep.dt)
+    meta = model.metadata if isinstance(model.metadata, dict) else {}
+    prov = meta.get('training') or meta.get('provenance') or {}
     trained = prov.get('episodes') if isinstance(prov, dict) else None
     on = (f'; trained on {", ".join(str(e) for e in trained)}'
           if isinstance(trained, list) and trained else '')

@@ -34,13 +34,13 @@ from soft_rom.cli._common import (
     is_summary_json,
     parse_r_list,
 )
-from soft_rom.dataset import TrainingSet
 from soft_rom.errors import ConfigError
-from soft_rom.fitting import fit_models, fit_models_streaming, select_episodes
+from soft_rom.learners.registry import LEARNERS
+from soft_rom.pipeline import fit_method, FitSettings, FittedModel, open_training_data
 
 __all__ = ['add_parser', 'run']
 
-METHODS = ('lopinf', 'dmdc', 'era')
+METHODS = tuple(LEARNERS)
 
 
 def _methods(text: str) -> tuple[str, ...]:
@@ -54,14 +54,18 @@ def _methods(text: str) -> tuple[str, ...]:
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register ``fit``."""
+    """Register ``fit``.
+
+    Long (about 115 lines) because it only declares the verb's options, one after the other.
+    """
     parser = subparsers.add_parser(
         'fit', help='fit LOpInf / DMDc / ERA-OKID ROMs on a training set',
         description='Fit reduced-order models on a training set and write one model file per '
                     '(method, r), named PREFIX_METHOD_rR.npz. Prints a summary table '
                     '(r, training errors, stability margin, time).')
     parser.add_argument('training_set', metavar='TRAINING_SET',
-                        help='training set directory (.zarr) written by soft-rom convert')
+                        help='training set directory (.zarr) written by soft-rom convert (a bag '
+                             'is converted first: soft-rom convert BAG -o SET.zarr)')
     parser.add_argument('--method', type=_methods, default=('lopinf',),
                         help='lopinf, dmdc, era, or several comma-separated (default lopinf)')
     size = parser.add_mutually_exclusive_group()
@@ -73,11 +77,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument('--solver', choices=('fast', 'cvxpy'), default='fast',
                         help='LOpInf operator solver (default fast)')
     parser.add_argument('--forces', choices=('linear', 'cubic', 'auto'), default='linear',
-                        help='LOpInf restoring force: linear (K q), cubic (gradient of a '
-                             'quartic potential, energy-consistent integrator), or auto; cubic '
-                             'and auto compare both on held-out training episodes, and auto '
-                             'keeps the cubic model only when it is at least 10 %% better '
-                             '(default linear)')
+                        help='LOpInf restoring force: linear (K q), cubic (quartic potential, '
+                             'energy-consistent integrator; --cubic-reg/--cubic-eps4 chosen on '
+                             'held-out training data, linear kept when cubic does not pay), or '
+                             'auto (the learning-curve rule: cubic only when 10 %% better on '
+                             'held-out episodes; in memory); default linear')
+    parser.add_argument('--cubic-reg', type=finite_float(0.0, lo_open=True), default=None,
+                        help='cubic forces: Tikhonov weight of the nonlinear tensors, fixed '
+                             '(with --cubic-eps4; default chosen on held-out data)')
+    parser.add_argument('--cubic-eps4', type=finite_float(0.0, lo_open=True), default=None,
+                        help='cubic forces: relative floor of the quartic potential, fixed '
+                             '(with --cubic-reg; default chosen on held-out data)')
     parser.add_argument('--mass', choices=('identity', 'learned'), default=None,
                         help='LOpInf mass matrix: identity, or learned (SPD, exact in any '
                              'coordinates); default learned on outputs, identity on states')
@@ -105,7 +115,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     era.add_argument('--era-episode', default=None,
                      help='the one episode ERA/OKID is fitted on (default the first selected)')
     era.add_argument('--decimation', type=int_range(1, 100_000), default=None,
-                     help='fit at DECIMATION x the data sample time (default: selected, 1 or 5)')
+                     help='fit at DECIMATION x the data sample time (default: selected, 1 or '
+                          '5, one that serves every --r at the data sample time)')
     era.add_argument('--n-markov', type=int_range(1, 1_000_000), default=None,
                      help='number of Markov parameters in the Hankel matrices (default: a '
                           'third of the samples, at most 500); at most the samples of the ERA '
@@ -123,10 +134,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     era.add_argument('--hsv-tol', type=finite_float(0.0, 1.0, lo_open=True, hi_open=True),
                      default=None,
                      help='relative Hankel singular value threshold when r is automatic')
-    era.add_argument('--era-preset', default=None, choices=('auto', 'eel', 'legacy'),
+    era.add_argument('--era-preset', default=None, choices=('auto', 'eel'),
                      help='named ERA/OKID settings (auto: data-driven defaults; eel: the '
-                          "study's hand-tuned settings; legacy: the former defaults); the "
-                          'options above override it')
+                          "study's hand-tuned settings); the options above override it")
     era.add_argument('--okid-ridge', type=finite_float(0.0), default=None,
                      help='relative ridge weight of OKID (default: selected on a held-out '
                           'tail)')
@@ -139,10 +149,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                                '0.01; 0 for the absolute margin only)')
     variants.add_argument('--dmdc-variant', choices=('paper', 'stable'), default=None,
                           help='DMDc formulation: paper (default) or stable (one lag, '
-                               'spectral radius <= 1)')
+                               'spectral radius <= 1; files named PREFIX_dmdc-stable_rR.npz, '
+                               'flagged when their training error is worse than the paper '
+                               "variant's)")
     parser.add_argument('--streaming', action='store_true',
-                        help='stream the snapshots from disk with bounded memory (streamed '
-                             'randomized POD; for training sets larger than RAM)')
+                        help='stream the snapshots from disk with bounded memory (for training '
+                             'sets larger than RAM; the exact Gram POD while it fits in 1 GiB, '
+                             'else the randomized one)')
     parser.add_argument('--dask', metavar='ADDRESS', default=None,
                         help='fit on a dask.distributed cluster (scheduler address, e.g. '
                              'tcp://host:8786); implies --streaming')
@@ -163,6 +176,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 _MODEL_FILE = is_model_file
 _FIT_JSON = is_summary_json(('method', 'r', 'path'))
+
+
+def _basis_r(model: Any) -> int:
+    """The ``r`` asked for: the basis size (a stable DMDc model has ``2r + m`` states)."""
+    r = model.metadata.get('r') if model.method == 'dmdc' else None
+    return int(r) if isinstance(r, int) and not isinstance(r, bool) else int(model.r)
+
+
+def _stems(method: str, args: argparse.Namespace) -> list[str]:
+    """The file-name stems a fit of ``method`` is expected to write (before fitting)."""
+    name = method
+    if method == 'lopinf' and args.forces == 'cubic':
+        name = 'lopinf_cubic'
+    if method == 'lopinf' and args.forces == 'auto':        # either, as the verdict keeps
+        return [f'{n}_r{r}' for n in ('lopinf', 'lopinf_cubic') for r in args.r]
+    if method == 'dmdc' and args.dmdc_variant not in (None, 'paper'):
+        name = f'dmdc-{args.dmdc_variant}'
+    return [f'{name}_r{r}' for r in args.r]
 
 
 def _check_outputs_early(args: argparse.Namespace, outdir: Path, prefix: str) -> None:
@@ -191,31 +222,63 @@ def _check_outputs_early(args: argparse.Namespace, outdir: Path, prefix: str) ->
                      is_ours=_FIT_JSON)
     if args.r is not None:
         for method in args.method:
-            labels = (('lopinf', 'lopinf_cubic') if method == 'lopinf' and args.forces == 'auto'
-                      else (_label(method, args),))
-            for r in args.r:
-                for label in labels:
-                    check_output(outdir / f'{prefix}_{label}_r{r}.npz',
-                                 overwrite=args.overwrite,
-                                 what='model file', is_ours=_MODEL_FILE)
+            for stem in _stems(method, args):
+                check_output(outdir / f'{prefix}_{stem}.npz', overwrite=args.overwrite,
+                             what='model file', is_ours=_MODEL_FILE)
 
 
-def _basis_r(model: Any) -> int:
-    """The ``r`` asked for: the basis size.
+def _settings(args: argparse.Namespace) -> FitSettings:
+    """The fit's settings from the command line (``None``: the pipeline's defaults)."""
+    era = {'episode': args.era_episode, 'decimation': args.decimation,
+           'n_markov': args.n_markov, 'observer_order': args.observer_order,
+           'hsv_tol': args.hsv_tol, 'output_rank': args.output_rank,
+           'okid_rcond': args.okid_rcond, 'okid_ridge': args.okid_ridge}
+    if args.era_preset:
+        from soft_rom.study.presets import ERA_PRESETS
+        era = {**ERA_PRESETS[args.era_preset], **{k: v for k, v in era.items() if v is not None}}
+    lopinf: dict[str, Any] = {}
+    if args.regularization is not None:
+        reg = args.regularization
+        if reg != 'auto':
+            try:
+                reg = float(reg)
+                if not (math.isfinite(reg) and reg >= 0):
+                    raise ValueError(reg)
+            except ValueError:
+                raise ConfigError(f"--regularization must be a number >= 0 or 'auto'; got "
+                                  f'{args.regularization!r}') from None
+        lopinf['regularization'] = reg
+    if args.min_damping_ratio is not None:
+        lopinf['min_damping_ratio'] = args.min_damping_ratio
+    cubic = None
+    if (args.cubic_reg is None) != (args.cubic_eps4 is None):
+        raise ConfigError('--cubic-reg and --cubic-eps4 go together (fixed cubic settings); '
+                          'give both, or neither to choose them on held-out data')
+    if args.cubic_reg is not None:
+        if args.forces != 'cubic':
+            raise ConfigError('--cubic-reg and --cubic-eps4 need --forces cubic')
+        cubic = {'reg': args.cubic_reg, 'eps4': args.cubic_eps4}
+    return FitSettings(energy=args.energy, solver=args.solver, ddt=args.ddt,
+                       ddt_order=args.ddt_order, coordinates=args.coordinates,
+                       forces=args.forces, mass=args.mass, refine=args.refine,
+                       cubic_options=cubic, lopinf=lopinf, dmdc_p=args.dmdc_p,
+                       dmdc_variant=args.dmdc_variant or 'paper', era=era)
 
-    A ``--dmdc-variant stable`` model has ``2r + m`` states (``model.r``); its
-    ``metadata['r']`` is the basis size.
-    """
-    r = model.metadata.get('r') if model.method == 'dmdc' else None
-    return int(r) if isinstance(r, int) and not isinstance(r, bool) else int(model.r)
 
-
-def _label(method: str, args: argparse.Namespace, model: Any = None) -> str:
-    """File-name label: ``lopinf_cubic`` for the cubic LOpInf models (``auto``: as kept)."""
-    forces = args.forces
-    if model is not None and forces == 'auto':
-        forces = model.metadata.get('forces_selection', {}).get('kept', 'linear')
-    return 'lopinf_cubic' if method == 'lopinf' and forces == 'cubic' else method
+def _reducer(args: argparse.Namespace, clients: list[Any]) -> Any:
+    """The streaming reducer (``--streaming``, ``--dask``: connected here), or ``None``."""
+    if not (args.streaming or args.dask is not None):
+        return None
+    from soft_rom.reduce import StreamingReducer
+    client = None
+    if args.dask is not None:
+        if not (math.isfinite(args.dask_timeout) and args.dask_timeout > 0):
+            raise ConfigError(f'--dask-timeout must be a number of seconds > 0; got '
+                              f'{args.dask_timeout!r}')
+        from soft_rom.scale.dask_backend import connect
+        client = connect(args.dask, args.dask_timeout)
+        clients.append(client)
+    return StreamingReducer(0.95 if args.energy is None else args.energy, client=client)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -229,7 +292,6 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _run(args: argparse.Namespace, clients: list[Any]) -> int:
-    from soft_rom.evaluation import evaluate
     from soft_rom.outputs import atomic_files
 
     outdir = Path(args.output)
@@ -237,99 +299,29 @@ def _run(args: argparse.Namespace, clients: list[Any]) -> int:
     if '/' in prefix or prefix in ('.', '..'):
         raise ConfigError(f'--prefix must be a file-name prefix, not a path; got {prefix!r}')
     _check_outputs_early(args, outdir, prefix)
-    ts = TrainingSet.open(args.training_set)
-    episodes = select_episodes(ts, args.episodes, args.t_max)
-    streaming = args.streaming or args.dask is not None
-    if streaming and args.forces != 'linear':
-        raise ConfigError(f'--forces {args.forces} is fitted in memory; drop --streaming/--dask')
-    provenance = {'training_set': str(Path(args.training_set).resolve()),
-                  'episodes': [ep.name for ep in episodes], 't_max': args.t_max,
+    ts = open_training_set(args.training_set)
+    settings = _settings(args)
+    provenance = {'training_set': str(Path(args.training_set).resolve()), 't_max': args.t_max,
                   'source': ts.provenance if hasattr(ts, 'provenance') else {}}
     try:
         json.dumps(provenance)
     except TypeError:
         provenance['source'] = str(provenance['source'])
-    era_options = {'episode': args.era_episode, 'decimation': args.decimation,
-                   'n_markov': args.n_markov, 'observer_order': args.observer_order,
-                   'hsv_tol': args.hsv_tol, 'output_rank': args.output_rank,
-                   'okid_rcond': args.okid_rcond, 'okid_ridge': args.okid_ridge}
-    if args.era_preset:
-        from soft_rom.learners.era import ERA_PRESETS
-        era_options = {**ERA_PRESETS[args.era_preset],
-                       **{k: v for k, v in era_options.items() if v is not None}}
-    lopinf_options: dict[str, Any] = {}
-    if args.regularization is not None:
-        reg = args.regularization
-        if reg != 'auto':
-            try:
-                reg = float(reg)
-                if not (math.isfinite(reg) and reg >= 0):
-                    raise ValueError(reg)
-            except ValueError:
-                raise ConfigError(f"--regularization must be a number >= 0 or 'auto'; got "
-                                  f'{args.regularization!r}.') from None
-        lopinf_options['regularization'] = reg
-    if args.min_damping_ratio is not None:
-        lopinf_options['min_damping_ratio'] = args.min_damping_ratio
-    dmdc_options = {} if args.dmdc_variant is None else {'variant': args.dmdc_variant}
-    rows: list[dict[str, Any]] = []
+    data = open_training_data(ts, episodes=args.episodes, t_max=args.t_max,
+                              provenance=provenance)
+    layout = ts.output_layout.to_dict() if getattr(ts, 'output_layout', None) else None
+    reducer = _reducer(args, clients)
+    fitted: list[FittedModel] = []
     verdict_lines: list[str] = []
-    models: dict[Path, Any] = {}
-    client = None
-    if args.dask is not None:
-        if not (math.isfinite(args.dask_timeout) and args.dask_timeout > 0):
-            raise ConfigError(f'--dask-timeout must be a number of seconds > 0; got '
-                              f'{args.dask_timeout!r}')
-        from soft_rom.scale.dask_backend import connect
-        client = connect(args.dask, args.dask_timeout)
-        clients.append(client)
     for method in args.method:
-        if streaming:
-            fitted = fit_models_streaming(
-                ts, method, r_values=args.r, energy=args.energy,
-                episodes=[ep.name for ep in episodes], t_max=args.t_max,
-                provenance=provenance, dmdc_p=args.dmdc_p, era_options=era_options,
-                client=client, progress=not args.quiet, mass=args.mass,
-                refine=args.refine)
-        else:
-            def fit(r_values: Any, forces: str, cubic_options: Any = None,
-                    method: str = method) -> list[tuple[Any, float]]:
-                return fit_models(ts, method, r_values=r_values, energy=args.energy,
-                                  episodes=episodes, provenance=provenance, solver=args.solver,
-                                  ddt_order=args.ddt_order, dmdc_p=args.dmdc_p,
-                                  forces=forces, cubic_options=cubic_options,
-                                  era_options=era_options, progress=not args.quiet,
-                                  coordinates=args.coordinates, ddt=args.ddt, mass=args.mass,
-                                  refine=args.refine,
-                                  lopinf_options=lopinf_options, dmdc_options=dmdc_options)
-            if method == 'lopinf' and args.forces != 'linear':
-                # The held-out verdict of the learning-curve study (soft_rom.study.curve).
-                from soft_rom.fitting import choose_coordinates
-                from soft_rom.study.curve.select import fit_with_verdict
-                fitted, lines = fit_with_verdict(
-                    fit, episodes, getattr(ts, 'q_ref', None), ts.y_ref, args.r,
-                    asked=args.forces, energy=args.energy,
-                    coordinates=choose_coordinates(episodes, args.coordinates))
-                verdict_lines += lines
-            else:
-                fitted = fit(args.r, 'linear' if args.forces == 'auto' else args.forces)
-        for model, seconds in fitted:
-            path = outdir / f'{prefix}_{_label(method, args, model)}_r{_basis_r(model)}.npz'
-            models[path] = model
-            train_eps = episodes
-            if method == 'era':
-                train_eps = [e for e in episodes
-                             if e.name in model.metadata['training']['episodes']]
-            ev = evaluate(model, train_eps).get()
-            rows.append({'method': _label(method, args, model), 'r': _basis_r(model),
-                         'dt': model.dt,
-                         'train_relative_error': ev['relative_error'],
-                         'train_relative_deviation_error': ev['relative_deviation_error'],
-                         'stability_margin': model.stability_margin(),
-                         'trust': model.trust_issues(),
-                         'seconds': seconds, 'path': str(path),
-                         **({'forces_selection': model.metadata['forces_selection']}
-                            if 'forces_selection' in model.metadata else {})})
+        if method == 'lopinf' and args.forces == 'auto':
+            got, lines = _fit_auto(args, data, settings, reducer, layout)
+            fitted += got
+            verdict_lines += lines
+            continue
+        fitted += fit_method(data, method, args.r, settings, reducer, layout=layout,
+                             progress=not args.quiet)
+    rows, models = _rows(fitted, data, outdir, prefix)
     outputs: list[Path] = list(models)
     if args.json is not None:
         outputs.append(args.json)
@@ -346,23 +338,95 @@ def _run(args: argparse.Namespace, clients: list[Any]) -> int:
             staged[args.json].write_text(dumps_strict(rows, indent=2) + '\n',
                                          encoding='utf-8')
     print(format_table(rows))
+    for row in rows:
+        for note in row['notes']:
+            print(f'  {Path(row["path"]).name}: {note}')
     for line in verdict_lines:
         print(line)
-    untrusted = [r for r in rows if r['trust']]
-    for r in untrusted:
-        print(f'  {Path(r["path"]).name}: NOT TRUSTED: {"; ".join(r["trust"])}')
     return 0
 
 
+def _fit_auto(args: argparse.Namespace, data: Any, settings: FitSettings, reducer: Any,
+              layout: dict[str, Any] | None) -> tuple[list[FittedModel], list[str]]:
+    """``--forces auto``: the learning-curve study's verdict (linear or cubic per ``r``)."""
+    import dataclasses
+
+    from soft_rom.pipeline.data import choose_coordinates
+    from soft_rom.study.curve.select import fit_with_verdict
+    if reducer is not None:
+        raise ConfigError('--forces auto is fitted in memory; drop --streaming/--dask')
+    data_dt: dict[int, float | None] = {}
+
+    def fit(r_values: Any, forces: str, cubic_options: Any = None) -> list[tuple[Any, float]]:
+        s = dataclasses.replace(settings, forces=forces, cubic_options=cubic_options)
+        got = fit_method(data, 'lopinf', r_values, s, None, layout=layout,
+                         progress=not args.quiet)
+        for f in got:
+            data_dt[id(f.model)] = f.data_dt
+        return [(f.model, f.seconds) for f in got]
+
+    pairs, lines = fit_with_verdict(
+        fit, data.episodes, getattr(data, 'q_ref', None), data.y_ref, args.r, asked='auto',
+        energy=args.energy, coordinates=choose_coordinates(data.episodes, args.coordinates))
+    return [FittedModel(m, sec, data_dt=data_dt.get(id(m))) for m, sec in pairs], lines
+
+
+def _rows(fitted: list[FittedModel], data: Any, outdir: Path, prefix: str
+          ) -> tuple[list[dict[str, Any]], dict[Path, Any]]:
+    """The fit table's rows (training errors, trust, notes) and the files to write."""
+    from soft_rom.evaluation import evaluate
+    from soft_rom.pipeline.review import review_rows
+    rows: list[dict[str, Any]] = []
+    models: dict[Path, Any] = {}
+    for fit in fitted:
+        model = fit.model
+        path = outdir / f'{prefix}_{fit.stem}.npz'
+        if path in models:
+            raise ConfigError(f'two models would be written to {path.name}; fit one method '
+                              'per call or give distinct --r values')
+        models[path] = model
+        train_eps = data.episodes
+        if model.method == 'era':
+            train_eps = [e for e in data.episodes
+                         if e.name in model.metadata['training']['episodes']]
+        ev = evaluate(model, train_eps).get()
+        rows.append({'model': fit.label, 'method': model.method, 'r': _basis_r(model),
+                     'dt': model.dt, 'train_relative_error': ev['relative_error'],
+                     'train_relative_deviation_error': ev['relative_deviation_error'],
+                     'stability_margin': model.stability_margin(),
+                     'trust': model.trust_issues(), 'seconds': fit.seconds,
+                     'path': str(path), 'notes': list(fit.notes),
+                     **({'forces_selection': model.metadata['forces_selection']}
+                        if 'forces_selection' in model.metadata else {})})
+    review_rows(rows, fitted, data)
+    return rows, models
+
+
+def open_training_set(path: str | Path) -> Any:
+    """The training set at ``path``; a bag is refused with the command that converts it."""
+    from soft_rom.bags.reader import is_bag
+    from soft_rom.dataset import TrainingSet
+    p = Path(path)
+    if p.exists() and is_bag(p):
+        out = p.with_name((p.stem if p.is_file() else p.name) + '.zarr')
+        raise ConfigError(f'{p} is a rosbag2 bag, not a training set: convert it first with '
+                          f'`soft-rom convert {p} -o {out}`, then fit {out}')
+    return TrainingSet.open(p)
+
+
 def format_table(rows: list[dict[str, Any]]) -> str:
-    """Summary table of :func:`run`."""
-    head = f'{"method":<12} {"r":>4} {"dt [s]":>8} {"err":>10} {"dev err":>10} ' \
+    """Summary table of :func:`run`: the model named exactly (method, variant, forces, r)."""
+    width = max([len('model')] + [len(r['model']) for r in rows])
+    head = f'{"model":<{width}} {"dt [s]":>8} {"err":>10} {"dev err":>10} ' \
            f'{"margin":>10} {"time [s]":>9}  file'
     lines = [head, '-' * len(head)]
     for r in rows:
-        lines.append(f'{r["method"]:<12} {r["r"]:>4d} {r["dt"]:>8.4g} '
+        flag = ' *' if r['notes'] else ''
+        lines.append(f'{r["model"]:<{width}} {r["dt"]:>8.4g} '
                      f'{r["train_relative_error"]:>10.3e} '
                      f'{r["train_relative_deviation_error"]:>10.3e} '
                      f'{r["stability_margin"]:>10.3e} {r["seconds"]:>9.2f}  '
-                     f'{Path(r["path"]).name}')
+                     f'{Path(r["path"]).name}{flag}')
+    if any(r['notes'] for r in rows):
+        lines.append('* see the notes below')
     return '\n'.join(lines)

@@ -33,14 +33,13 @@ import itertools
 import json
 import os
 from pathlib import Path
-import sys
 from typing import Any
 
 import numpy as np
 from numpy.typing import DTypeLike, NDArray
 
 from soft_rom.dataset.checksum import chunk_crc_problem, CODEC_ID, CRC_BYTES, register
-from soft_rom.errors import DatasetError, SoftRomError
+from soft_rom.errors import dask_worker, DatasetError, one_line, SoftRomError
 
 __all__ = ['BadMetadata', 'StoredArray', 'chunk_problem', 'dask_worker', 'one_line',
            'translated']
@@ -54,28 +53,9 @@ SHOWN = 4
 BLOSC_HEADER = 16
 
 
-def dask_worker() -> str | None:
-    """Address of the ``dask.distributed`` worker running this code, or ``None``."""
-    mod = sys.modules.get('distributed')
-    if mod is None:
-        return None
-    try:
-        return str(mod.get_worker().address)
-    except Exception:  # noqa: BLE001 - ValueError outside a worker; anything else: not one
-        return None
-
-
 def _on_worker() -> str:
     worker = dask_worker()
     return f' on Dask worker {worker}' if worker else ''
-
-
-def one_line(err: BaseException, limit: int = 300) -> str:
-    """``'Type: message'`` of ``err`` on one line, at most ``limit`` characters."""
-    text = ' '.join(str(err).split())
-    if len(text) > limit:
-        text = text[:limit - 3] + '...'
-    return f'{type(err).__name__}: {text}' if text else type(err).__name__
 
 
 @contextlib.contextmanager

@@ -41,28 +41,32 @@ Choices made here (each documented where it is made):
   asks for them (antagonistic chambers make ``U`` rank-deficient; inverting a zero singular
   value would blow up ``B̃``). The number kept is recorded in ``metadata['p']``.
 
-Plugging in other SVDs (out-of-core data, :mod:`soft_rom.scale`): the operators depend on the
-data only through a few small factors. :func:`dmdc_reduced_operators` builds ``Ã, B̃`` from
-them, and :func:`dmdc_from_gram` computes every factor from Gram matrices of the (scaled,
-centred) snapshots, which a streaming/Dask code can accumulate block by block.
+Reduced data: the learner fits on the coordinates of the centred snapshots in any
+orthonormal basis ``W`` (:class:`~soft_rom.reduce.data.ReducedData`): with ``X = W Z`` the SVDs
+of ``Ω = diag(W, I) [Z; U]`` and of ``Q' = W Z'`` are those of ``[Z; U]`` and ``Z'`` with left
+factors multiplied by ``W``, and every operator is unchanged by that orthonormal factor. In
+memory the coordinates are the centred snapshots themselves (``W = I``); streamed, the POD
+coordinates (:mod:`soft_rom.reduce.streaming`). The operators come from the small factors
+(:func:`dmdc_reduced_operators`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from soft_rom.data import as_signal, check_finite, Episode
+from soft_rom.data import as_signal, Episode
 from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
+from soft_rom.learners.dmdc_stable import clip_spectral_radius, lag_model, select_lag_ridge
 from soft_rom.models import DiscreteModel
+from soft_rom.reduce import InMemoryPOD, ReducedData, training_data
 
-__all__ = ['DMDc', 'channel_scale', 'clip_spectral_radius', 'dmdc_from_gram',
-           'dmdc_reduced_operators']
+__all__ = ['DMDc', 'channel_scale', 'clip_spectral_radius', 'dmdc_reduced_operators']
 
 Array = NDArray[np.float64]
 
@@ -117,165 +121,6 @@ def dmdc_reduced_operators(G: ArrayLike, s_omega: ArrayLike, U1_Uhat: ArrayLike,
     return GS @ np.asarray(U1_Uhat, dtype=np.float64), GS @ np.asarray(U2, dtype=np.float64).T
 
 
-def clip_spectral_radius(A: ArrayLike, rho: float = 1.0) -> tuple[Array, int]:
-    """``A`` with every eigenvalue of modulus ``> rho`` moved radially onto ``|z| = rho``.
-
-    Works on the real Schur form ``A = Z T Zᵀ``: each 1×1 or 2×2 diagonal block of ``T``
-    whose eigenvalue modulus exceeds ``rho`` is scaled by ``rho / |λ|`` (a 2×2 block scaled by
-    ``s`` has eigenvalues ``s λ``); the coupling above the diagonal is kept, so the other
-    eigenvalues do not move.
-
-    Returns
-    -------
-    A_clipped : ndarray, shape (r, r)
-    n_clipped : int
-        Number of eigenvalues moved.
-    """
-    import scipy.linalg as sla
-    A = np.asarray(A, dtype=np.float64)
-    if A.size == 0 or float(np.max(np.abs(np.linalg.eigvals(A)))) <= rho:
-        return A, 0
-    T, Z = sla.schur(A, output='real')
-    n = T.shape[0]
-    i = moved = 0
-    target = rho * (1.0 - 1e-12)
-    while i < n:
-        size = 2 if i + 1 < n and abs(T[i + 1, i]) > 0 else 1
-        blk = T[i:i + size, i:i + size]
-        mod = float(np.max(np.abs(np.linalg.eigvals(blk))))
-        if mod > target:
-            T[i:i + size, i:i + size] = blk * (target / mod)
-            moved += size
-        i += size
-    return Z @ T @ Z.T, moved
-
-
-def _lag_model(data: Sequence[tuple[Array, Array]], r: int, s_q: float, s_u: Array, rho: float,
-               rcond: float) -> tuple[Array, Array, int]:
-    """The ``'stable'`` variant: one lag of states and inputs, spectral radius ``<= rho``.
-
-    Least squares ``x̃_{k+1} = A₁ x̃_k + A₂ x̃_{k-1} + B₀ u_k + B₁ u_{k-1}`` (the exact form of a
-    sampled linear second-order system with held inputs), in the model
-    ``z = [x̃_k; x̃_{k-1}; u_{k-1}]``; eigenvalues outside ``|z| ≤ rho`` are then clipped
-    (:func:`clip_spectral_radius`) and ``B₀, B₁`` refitted for the clipped ``A₁, A₂``.
-    """
-    tgt, reg_x, reg_u = [], [], []
-    for Xr, U in data:
-        if Xr.shape[1] < 3:
-            continue
-        x = Xr[:r] / s_q
-        u = U / s_u[:, None]
-        tgt.append(x[:, 2:])
-        reg_x.append(np.vstack([x[:, 1:-1], x[:, :-2]]))
-        reg_u.append(np.vstack([u[:, 1:-1], u[:, :-2]]))
-    if not tgt:
-        raise DimensionError("DMDc variant 'stable' needs episodes of at least 3 samples.")
-    T, Rx, Ru = (np.concatenate(a, axis=1) for a in (tgt, reg_x, reg_u))
-    m = Ru.shape[0] // 2
-    theta = np.linalg.lstsq(np.vstack([Rx, Ru]).T, T.T, rcond=rcond)[0].T
-    A12, B01 = theta[:, :2 * r], theta[:, 2 * r:]
-    n = 2 * r + m
-    Az = np.zeros((n, n))
-    Az[r:2 * r, :r] = np.eye(r)
-    Az[:r, :2 * r] = A12
-    Ax = Az[:2 * r, :2 * r]
-    Ax_c, clipped = clip_spectral_radius(Ax, rho)
-    if clipped:
-        A12 = Ax_c[:r]
-        B01 = np.linalg.lstsq(Ru.T, (T - A12 @ Rx).T, rcond=rcond)[0].T
-        Az[:r, :2 * r] = A12
-        Az[r:2 * r, :2 * r] = Ax_c[r:]
-    Az[:r, 2 * r:] = B01[:, m:]
-    Bz = np.zeros((n, m))
-    Bz[:r] = B01[:, :m]
-    Bz[2 * r:] = np.eye(m)
-    # Back to physical units: z_phys = D z_scaled with D = diag(s_q, s_q, s_u).
-    dz = np.concatenate([np.full(2 * r, s_q), s_u])
-    A = Az * dz[:, None] / dz[None, :]
-    B = Bz * dz[:, None] / s_u[None, :]
-    return A, B, clipped
-
-
-def _eig_desc(G: Array) -> tuple[Array, Array]:
-    w, V = np.linalg.eigh((G + G.T) / 2)
-    order = np.argsort(w)[::-1]
-    return np.clip(w[order], 0.0, None), V[:, order]
-
-
-def dmdc_from_gram(gram: ArrayLike, U: ArrayLike, Y: ArrayLike, cur: ArrayLike,
-                   nxt: ArrayLike, *, r: int, p: int | None = None,
-                   rcond: float = 1e-7) -> dict[str, Array]:
-    """DMDc by the method of snapshots, from the Gram matrix of the (scaled, centred) states.
-
-    For out-of-core data: ``gram = Xᵀ X`` with ``X`` the ``(n, K)`` matrix of *all* centred
-    (and scaled) snapshots of all episodes side by side can be accumulated row block by row
-    block; ``cur``/``nxt`` index the columns forming the pairs ``(q_k, q_{k+1})``. Nothing of
-    size ``n`` is formed; the POD basis is returned as coefficients, :math:`\\hat U = X_{nxt}
-    W` with ``W = basis_coef``. Accuracy: the Gram squares the condition number, so singular
-    values below about ``sqrt(eps) σ_1`` are lost (``rcond`` defaults to 1e-7 for that reason).
-
-    Parameters
-    ----------
-    gram : ndarray, shape (K, K)
-        ``Xᵀ X`` of the scaled, centred snapshots.
-    U : ndarray, shape (m, K)
-        Scaled inputs, aligned with the columns of ``X``.
-    Y : ndarray, shape (q, K)
-        Output deviations ``Y - y_ref`` (any scaling), aligned with ``X``.
-    cur, nxt : ndarray of int, shape (K',)
-        Columns of the pairs: ``q_k = X[:, cur]``, ``q_{k+1} = X[:, nxt]``.
-    r, p : int
-        Truncations of ``Q'`` and ``Ω`` (``p`` defaults to ``r + m``).
-
-    Returns
-    -------
-    dict with ``A (r, r)``, ``B (r, m)`` (in the scaled input units), ``E (q, r)`` (reduced
-    output fit), ``basis_coef (K', r)``, ``s_omega (p,)``, ``s_qp (r,)``.
-    """
-    Gm = np.asarray(gram, dtype=np.float64)
-    U = np.asarray(U, dtype=np.float64)
-    Y = np.asarray(Y, dtype=np.float64)
-    cur = np.asarray(cur, dtype=np.intp)
-    nxt = np.asarray(nxt, dtype=np.intp)
-    m = U.shape[0]
-    Uc = U[:, cur]
-    w_om, V_om = _eig_desc(Gm[np.ix_(cur, cur)] + Uc.T @ Uc)
-    w_qp, V_qp = _eig_desc(Gm[np.ix_(nxt, nxt)])
-    s_om, s_qp = np.sqrt(w_om), np.sqrt(w_qp)
-    if s_qp[0] <= 0:
-        raise DimensionError('the shifted snapshots are all zero; nothing to reduce.')
-    if not 1 <= r <= int(np.sum(s_qp > rcond * s_qp[0])):
-        raise ConfigError(f'r={r} exceeds the numerical rank of the shifted snapshots.')
-    p = r + m if p is None else int(p)
-    p = min(p, int(np.sum(s_om > rcond * s_om[0])))
-    Vt_om, Vh = V_om[:, :p], V_qp[:, :r]
-    s_t, s_h = s_om[:p], s_qp[:r]
-    G = s_h[:, None] * (Vh.T @ Vt_om)                       # Ûᵀ Q' Ṽ = Σ̂ V̂ᵀ Ṽ
-    U1_Uhat = (Vt_om.T @ Gm[np.ix_(cur, nxt)] @ Vh) / np.outer(s_t, s_h)
-    U2 = (Uc @ Vt_om) / s_t[None, :]
-    A, B = dmdc_reduced_operators(G, s_t, U1_Uhat, U2)
-    W = Vh / s_h[None, :]
-    Xr = W.T @ Gm[nxt, :]                                   # Ûᵀ X, shape (r, K)
-    E = np.linalg.lstsq(Xr.T, Y.T, rcond=None)[0].T
-    return {'A': A, 'B': B, 'E': E, 'basis_coef': W, 's_omega': s_t, 's_qp': s_h}
-
-
-def _as_episodes(episodes: Episode | Sequence[Episode]) -> list[Episode]:
-    eps = [episodes] if isinstance(episodes, Episode) else list(episodes)
-    if not eps:
-        raise DimensionError('no episodes given: DMDc needs at least one episode with Q.')
-    for ep in eps:
-        if not isinstance(ep, Episode):
-            raise DimensionError(f'expected Episode objects; got {type(ep).__name__}.')
-        if ep.Q is None:
-            raise DimensionError(
-                f'episode {ep.name!r} has no state snapshots Q; DMDc needs full states '
-                '(use ERA/OKID for input/output data only).')
-        if ep.n_samples < 2:
-            raise DimensionError(f'episode {ep.name!r} has fewer than 2 samples: no pairs.')
-    return eps
-
-
 class DMDc:
     """Dynamic mode decomposition with control (learner).
 
@@ -298,16 +143,22 @@ class DMDc:
         states and inputs, ``x̃_{k+1} = A₁ x̃_k + A₂ x̃_{k-1} + B₀ u_k + B₁ u_{k-1}`` by least
         squares on the same POD coordinates (the exact form of a sampled linear second-order
         system with held inputs, which positions alone cannot represent: DMDc on positions
-        of a second-order body is marginally unstable at most ``r``), then every eigenvalue
-        of the companion matrix outside ``|z| ≤ max_spectral_radius`` pulled radially onto
-        that circle (:func:`clip_spectral_radius`) and ``B₀, B₁`` refitted. The model state
-        is ``[x̃_k; x̃_{k-1}; u_{k-1}]`` (``2 r + m`` states, ``C = [Ẽ, 0, 0]``);
-        ``metadata['r']`` is the basis size ``r``.
+        of a second-order body is marginally unstable at most ``r``), regularized by
+        ``lag_ridge``, then every eigenvalue of the companion matrix outside
+        ``|z| ≤ max_spectral_radius`` pulled radially onto that circle
+        (:func:`~soft_rom.learners.dmdc_stable.clip_spectral_radius`) and ``B₀, B₁``
+        refitted. The model state is ``[x̃_k; x̃_{k-1}; u_{k-1}]`` (``2 r + m`` states,
+        ``C = [Ẽ, 0, 0]``); ``metadata['r']`` is the basis size ``r``.
     max_spectral_radius : float, optional
         Bound of the ``'stable'`` variant; default ``exp(-dt / (10 T))`` with ``T`` the
         longest training episode: no mode of the ROM has a decay time longer than ten times
         the time the data cover (such a mode is not identified by the data; on a nonlinear
         body the lagged regression otherwise puts modes on or outside the unit circle).
+    lag_ridge : float or 'auto'
+        Relative Tikhonov weight of the ``'stable'`` variant's lag regression; ``'auto'``
+        (default): chosen for each ``r`` on held-out tails of the training episodes
+        (:func:`~soft_rom.learners.dmdc_stable.select_lag_ridge`; ``metadata['lag_ridge']``
+        and ``metadata['lag_ridge_table']``).
 
     Attributes
     ----------
@@ -335,8 +186,10 @@ class DMDc:
 
     def __init__(self, r: int | None = None, p: int | None = None, *, energy: float = 0.95,
                  output_fit: str = 'reduced', rcond: float = 1e-10, variant: str = 'paper',
-                 max_spectral_radius: float | None = None) -> None:
+                 max_spectral_radius: float | None = None,
+                 lag_ridge: float | str = 'auto') -> None:
         self.r = r
+        self.lag_ridge = lag_ridge
         self.variant = variant
         self.max_spectral_radius = max_spectral_radius
         self.p = p
@@ -344,24 +197,40 @@ class DMDc:
         self.output_fit = output_fit
         self.rcond = rcond
 
+    #: What the learner needs from a reducer: coordinates in any orthonormal basis of the
+    #: snapshots (in memory, the centred snapshots themselves: exactly the paper's SVDs).
+    reduction: ClassVar[str] = 'identity'
+    #: The method name of its models and of ``soft-rom fit --method``.
+    method: ClassVar[str] = 'dmdc'
+
+    def coordinates_needed(self, r_max: int | None, n_inputs: int) -> int | None:
+        """Coordinates a (streaming) reducer must keep for models up to ``r_max``."""
+        if r_max is None:
+            return None
+        return max(int(r_max), int(self.p) if self.p is not None else int(r_max) + n_inputs)
+
     # ---------------------------------------------------------------------------------
-    def fit(self, episodes: Episode | Sequence[Episode], q_ref: ArrayLike | None = None,
-            y_ref: ArrayLike | None = None, *, input_names: Sequence[str] | None = None,
+    def fit(self, data: ReducedData | Episode | Sequence[Episode],
+            q_ref: ArrayLike | None = None, y_ref: ArrayLike | None = None, *,
+            input_names: Sequence[str] | None = None,
             output_names: Sequence[str] | None = None,
             input_units: Sequence[str] | None = None,
             output_units: Sequence[str] | None = None,
             metadata: dict[str, Any] | None = None) -> DMDc:
-        """Learn the DMDc ROM from one or several episodes.
+        """Learn the DMDc ROM from reduced data, or from one or several episodes.
 
         Parameters
         ----------
-        episodes : Episode or sequence of Episode
-            Each with ``Q (n, k_i)``, ``U (m, k_i)``, ``Y (p, k_i)`` and uniform time steps
-            (the same ``dt`` for all). Pairs ``(q_j, q_{j+1})`` are formed inside each episode.
+        data : ReducedData, Episode or sequence of Episode
+            Coordinates of the centred snapshots in an orthonormal basis
+            (:class:`~soft_rom.reduce.data.ReducedData`, ``basis`` ``'identity'`` or
+            ``'pod'``), or episodes with ``Q (n, k_i)``, ``U (m, k_i)``, ``Y (p, k_i)`` and
+            uniform time steps (the same ``dt`` for all), used as they are (the identity
+            basis). Pairs ``(q_j, q_{j+1})`` are formed inside each episode.
         q_ref : ndarray, shape (n,), optional
-            Reference configuration; default the first snapshot of the first episode.
+            Episodes only: reference configuration; default the first snapshot.
         y_ref : ndarray, shape (p,), optional
-            Output reference; default the first output of the first episode.
+            Episodes only: output reference; default the first output of the first episode.
         input_names, output_names, input_units, output_units, metadata
             Passed to the model (``metadata`` is merged with the fit diagnostics).
 
@@ -370,48 +239,56 @@ class DMDc:
         self
         """
         t0 = time.perf_counter()
+        self._check_options()
+        if not isinstance(data, ReducedData):
+            td = training_data(data, q_ref, y_ref, names=dict(
+                input_names=input_names, output_names=output_names, input_units=input_units,
+                output_units=output_units))
+            for ep in td.episodes:
+                if ep.n_samples < 2:
+                    raise DimensionError(f'episode {ep.name!r} has fewer than 2 samples: no '
+                                         'pairs.')
+            data = InMemoryPOD().reduce(td, basis='identity', what='DMDc')
+        if data.basis not in ('identity', 'pod') or data.coordinates is None:
+            raise ConfigError(f'DMDc fits on snapshot coordinates; these reduced data have '
+                              f'basis {data.basis!r}.')
+        self._factorize(data)
+        self._model_kwargs = data.model_names()
+        self._metadata = {**data.metadata, **dict(metadata or {})}
+        self._metadata.setdefault('envelope', training_envelope(zip(data.U, data.Y),
+                                                                data.y_ref))
+        self._episodes = list(data.names)
+        self.fit_time_ = time.perf_counter() - t0
+        self.model_ = self.model_for(self.r, self.p)
+        self.fit_time_ = time.perf_counter() - t0
+        return self
+
+    def _check_options(self) -> None:
         if self.output_fit not in ('reduced', 'paper'):
             raise ConfigError(f"output_fit must be 'reduced' or 'paper'; got {self.output_fit!r}.")
         if self.variant not in ('paper', 'stable'):
-            raise ConfigError(f"variant must be 'paper' or 'stable'; got {self.variant!r}.")
+            raise ConfigError(f"--dmdc-variant must be 'paper' or 'stable'; got {self.variant!r}.")
         if self.max_spectral_radius is not None:
             rho = float(self.max_spectral_radius)
             if not (np.isfinite(rho) and rho > 0):
                 raise ConfigError(f'max_spectral_radius must be > 0; got '
                                   f'{self.max_spectral_radius!r}.')
-        eps = _as_episodes(episodes)
-        n = int(eps[0].Q.shape[0])
-        m = eps[0].U.shape[0]
-        p_out = eps[0].Y.shape[0]
-        dts = []
-        for ep in eps:
-            if ep.Q.shape[0] != n or ep.U.shape[0] != m or ep.Y.shape[0] != p_out:
-                raise DimensionError(
-                    f'episode {ep.name!r} has (n, m, p) = ({ep.Q.shape[0]}, {ep.U.shape[0]}, '
-                    f'{ep.Y.shape[0]}); the first episode has ({n}, {m}, {p_out}).')
-            if not ep.is_uniform():
-                raise DimensionError(f'episode {ep.name!r} is not uniformly sampled.')
-            dts.append(ep.dt)
-        dt = float(dts[0])
-        if any(abs(d - dt) > 1e-6 * dt for d in dts):
-            raise DimensionError(f'episodes have different sample times {dts}; resample first.')
-        qs = [np.asarray(ep.Q[:, :], dtype=np.float64) for ep in eps]
-        q_ref = qs[0][:, 0].copy() if q_ref is None else as_signal(
-            'q_ref', np.reshape(q_ref, (-1, 1)), rows=n)[:, 0]
-        y_ref = eps[0].Y[:, 0].copy() if y_ref is None else as_signal(
-            'y_ref', np.reshape(y_ref, (-1, 1)), rows=p_out)[:, 0]
-        Qc = [q - q_ref[:, None] for q in qs]
-        for ep, q in zip(eps, Qc):
-            check_finite(f'Q of episode {ep.name!r}', q)
-            check_finite(f'U of episode {ep.name!r}', ep.U)
-            check_finite(f'Y of episode {ep.name!r}', ep.Y)
-        X = np.concatenate([q[:, :-1] for q in Qc], axis=1)         # Q   (n, K')
-        Xp = np.concatenate([q[:, 1:] for q in Qc], axis=1)         # Q'  (n, K')
-        Uc = np.concatenate([ep.U[:, :-1] for ep in eps], axis=1)   # U   (m, K')
-        Q_all = np.concatenate(Qc, axis=1)
-        Y_all = np.concatenate([ep.Y for ep in eps], axis=1) - y_ref[:, None]
 
-        s_q = float(channel_scale(X, per_channel=False)[0])
+    def _factorize(self, data: ReducedData) -> None:
+        """The two SVDs (paper sec. 2.3) on the coordinates; every small factor is kept."""
+        dt = data.dt
+        Qc = list(data.coordinates or ())
+        l = Qc[0].shape[0]
+        X = np.concatenate([q[:, :-1] for q in Qc], axis=1)         # Q   (l, K')
+        Xp = np.concatenate([q[:, 1:] for q in Qc], axis=1)         # Q'  (l, K')
+        Uc = np.concatenate([u[:, :-1] for u in data.U], axis=1)    # U   (m, K')
+        Q_all = np.concatenate(Qc, axis=1)
+        Y_all = np.concatenate(data.Y, axis=1) - data.y_ref[:, None]
+        if data.pairs_sq_norm is None:                  # the states themselves: their RMS
+            s_q = float(channel_scale(X, per_channel=False)[0])
+        else:                                           # the RMS over the n full-order rows
+            s_q = float(np.sqrt(data.pairs_sq_norm / (int(data.n_states or l) * X.shape[1])))
+            s_q = s_q if s_q > 0 else 1.0
         s_u = channel_scale(Uc)
         Omega = np.concatenate([X / s_q, Uc / s_u[:, None]], axis=0)
         Ut, st, Vtt = np.linalg.svd(Omega, full_matrices=False)
@@ -422,9 +299,8 @@ class DMDc:
         rank_t = int(np.sum(st > self.rcond * st[0])) if st.size and st[0] > 0 else 0
         if rank_t == 0:
             raise DimensionError('Omega = [Q; U] is zero: no data to learn from.')
-
-        self.q_ref_ = q_ref
-        self.y_ref_ = y_ref
+        self.q_ref_ = data.q_ref
+        self.y_ref_ = data.y_ref
         self.state_scale_ = s_q
         self.input_scale_ = s_u
         self.singular_values_omega_ = st
@@ -433,59 +309,47 @@ class DMDc:
         self.dt_ = dt
         # Factors kept for model_for(): all small (at most rank x rank, or rank x K).
         self._Uh = Uh[:, :rank_h]
+        self._lift = data.lift
         self._st, self._sh = st[:rank_t], sh[:rank_h]
-        self._U1h = Ut[:n, :rank_t].T @ Uh[:, :rank_h]                  # Ũ1ᵀ Û   (pt, ph)
-        self._U2 = Ut[n:, :rank_t]                                      # Ũ2      (m, pt)
+        self._U1h = Ut[:l, :rank_t].T @ Uh[:, :rank_h]                  # Ũ1ᵀ Û   (pt, ph)
+        self._U2 = Ut[l:, :rank_t]                                      # Ũ2      (m, pt)
         self._G = sh[:rank_h, None] * (Vht[:rank_h] @ Vtt[:rank_t].T)    # ÛᵀQ'Ṽ  (ph, pt)
         self._Xr = Uh[:, :rank_h].T @ Q_all                             # ÛᵀQ    (ph, K)
         self._Yd = Y_all
         if self.variant == 'stable':
-            self._lagdata = [(Uh[:, :rank_h].T @ q, ep.U) for q, ep in zip(Qc, eps)]
+            self._lagdata = [(Uh[:, :rank_h].T @ q, u, y - data.y_ref[:, None])
+                             for q, u, y in zip(Qc, data.U, data.Y)]
             t_long = max(q.shape[1] for q in Qc) * dt
             self.rho_max_ = (float(np.exp(-dt / (10.0 * t_long)))
                              if self.max_spectral_radius is None
                              else float(self.max_spectral_radius))
         self._Q_all = Q_all if self.output_fit == 'paper' else None
-        self._model_kwargs = dict(input_names=input_names, output_names=output_names,
-                                  input_units=input_units, output_units=output_units)
-        self._metadata = dict(metadata or {})
-        self._metadata.setdefault('envelope', training_envelope(eps, y_ref))
-        self._episodes = [ep.name for ep in eps]
-        self.fit_time_ = time.perf_counter() - t0
-        self.model_ = self.model_for(self.r, self.p)
-        self.fit_time_ = time.perf_counter() - t0
-        return self
 
     def _check_fitted(self) -> None:
         if not hasattr(self, '_G'):
             raise NotFittedError('this DMDc is not fitted yet; call fit(episodes) first.')
 
-    def model_for(self, r: int | None = None, p: int | None = None) -> DiscreteModel:
+    def model_for(self, r: int | None = None, p: int | None = None, *,
+                  variant: str | None = None) -> DiscreteModel:
         """Build the ROM for truncations ``(r, p)`` from the stored factors.
 
         Parameters
         ----------
         r, p : int, optional
-            As in the constructor (``None``: by ``energy`` / ``r + m``).
+            As in the constructor (``None``: by ``energy`` / the learner's ``p``, else
+            ``r + m``).
+        variant : {'paper', 'stable'}, optional
+            Default the learner's; ``'paper'`` from a ``'stable'`` fit gives the paper's model
+            of the same SVDs (to compare the two).
         """
         self._check_fitted()
+        variant = self.variant if variant is None else variant
+        if variant not in ('paper', 'stable') or (variant == 'stable'
+                                                  and not hasattr(self, '_lagdata')):
+            raise ConfigError(f"a DMDc variant must be 'paper', or 'stable' for a learner fitted "
+                              f'as the stable variant; got {variant!r}.')
         t0 = time.perf_counter()
-        sh = self.singular_values_qp_
-        if r is None:
-            if not 0.0 < self.energy <= 1.0:
-                raise ConfigError(f'energy must be in (0, 1]; got {self.energy!r}.')
-            cum = np.cumsum(sh ** 2) / np.sum(sh ** 2)
-            r = int(min(np.searchsorted(cum, self.energy - 1e-12) + 1, self._sh.size))
-        r = int(r)
-        if not 1 <= r <= self._sh.size:
-            raise ConfigError(
-                f'r must be between 1 and {self._sh.size} (numerical rank of the shifted '
-                f"snapshots Q'); got {r}.")
-        m = self._U2.shape[0]
-        p_req = r + m if p is None else int(p)
-        if p_req < 1:
-            raise ConfigError(f'p must be positive; got {p_req}.')
-        p_used = min(p_req, self._st.size)
+        r, p_req, p_used = self._orders(r, self.p if p is None else p)
         A, Bs = dmdc_reduced_operators(self._G[:r, :p_used], self._st[:p_used],
                                        self._U1h[:p_used, :r], self._U2[:, :p_used])
         # Undo the scaling. The regression is Q' ≈ Q' Ω_s⁺ Ω_s with Ω_s = [Q/s_q; U/s_u], so
@@ -493,10 +357,6 @@ class DMDc:
         # A = A_s / s_q and B = B_s diag(1/s_u). The states stay in physical units.
         A = A / self.state_scale_
         B = Bs / self.input_scale_[None, :]
-        clipped = 0
-        if self.variant == 'stable':
-            A, B, clipped = _lag_model(self._lagdata, r, self.state_scale_, self.input_scale_,
-                                       self.rho_max_, self.rcond)
         if self.output_fit == 'paper':
             # E_approx Û = Yd Q⁺ Û with Q⁺Û the minimum-norm solution of Q Z = Û.
             assert self._Q_all is not None
@@ -504,16 +364,66 @@ class DMDc:
             E = self._Yd @ Z
         else:
             E = np.linalg.lstsq(self._Xr[:r].T, self._Yd.T, rcond=None)[0].T
+        clipped = 0
+        lag: dict[str, Any] = {}
+        if variant == 'stable':
+            A, B, clipped, lag = self._stable(r, E)
         Yhat = E @ self._Xr[:r]
         train_err = float(np.linalg.norm(self._Yd - Yhat) / max(np.linalg.norm(self._Yd), 1e-300))
+        meta = self._model_metadata(A, r, p_req, p_used, variant, clipped, train_err, t0)
+        meta.update(lag)
+        Cout = E if variant == 'paper' else np.hstack([E, np.zeros((E.shape[0],
+                                                                         A.shape[0] - r))])
+        model = DiscreteModel(A, B, Cout, None, dt=self.dt_, method='dmdc', y_ref=self.y_ref_,
+                              metadata=meta, **self._model_kwargs)
+        self.basis_ = self._lift(self._Uh[:, :r])
+        return model
+
+    def _stable(self, r: int, E: Array) -> tuple[Array, Array, int, dict[str, Any]]:
+        """The stable variant's ``A, B`` of order ``r``, its ridge chosen (or given)."""
+        args = (r, self.state_scale_, self.input_scale_, self.rho_max_, self.rcond)
+        table = None
+        if isinstance(self.lag_ridge, str):
+            if self.lag_ridge != 'auto':
+                raise ConfigError(f"the lag ridge must be a number >= 0 or 'auto'; got "
+                                  f'{self.lag_ridge!r}.')
+            ridge, table = select_lag_ridge(self._lagdata, *args, E)
+        else:
+            ridge = float(self.lag_ridge)
+        A, B, clipped = lag_model(self._lagdata, *args, ridge)
+        return A, B, clipped, {'lag_ridge': ridge, 'lag_ridge_table': table}
+
+    def _orders(self, r: int | None, p: int | None) -> tuple[int, int, int]:
+        """``(r, p asked, p used)``: ``r`` by energy when not given, ``p`` capped at the rank."""
+        sh = self.singular_values_qp_
+        if r is None:
+            if not 0.0 < self.energy <= 1.0:
+                raise ConfigError(f'--energy must be in (0, 1]; got {self.energy!r}.')
+            cum = np.cumsum(sh ** 2) / np.sum(sh ** 2)
+            r = int(min(np.searchsorted(cum, self.energy - 1e-12) + 1, self._sh.size))
+        r = int(r)
+        if not 1 <= r <= self._sh.size:
+            raise ConfigError(
+                f'--r must be between 1 and {self._sh.size} for DMDc here (the numerical rank '
+                f"of the shifted snapshots Q'); got {r}.")
+        m = self._U2.shape[0]
+        p_req = r + m if p is None else int(p)
+        if p_req < 1:
+            raise ConfigError(f'--p must be positive; got {p_req}.')
+        return r, p_req, min(p_req, self._st.size)
+
+    def _model_metadata(self, A: Array, r: int, p_req: int, p_used: int, variant: str,
+                        clipped: int, train_err: float, t0: float) -> dict[str, Any]:
+        """The fit diagnostics stored in the model of order ``r``."""
+        sh = self.singular_values_qp_
         ev = np.linalg.eigvals(A)
         meta = dict(self._metadata)
         meta.update({
             'learner': 'DMDc',
             'r': r, 'p': p_used, 'p_requested': p_req,
             'output_fit': self.output_fit,
-            'variant': self.variant,
-            'max_spectral_radius': self.rho_max_ if self.variant == 'stable' else None,
+            'variant': variant,
+            'max_spectral_radius': self.rho_max_ if variant == 'stable' else None,
             'eigenvalues_clipped': int(clipped),
             'rcond': self.rcond,
             'episodes': self._episodes,
@@ -529,15 +439,13 @@ class DMDc:
             'stability_margin': float(1.0 - np.max(np.abs(ev))),
             'fit_time_s': float(self.fit_time_ + time.perf_counter() - t0),
         })
-        Cout = E if self.variant == 'paper' else np.hstack([E, np.zeros((E.shape[0],
-                                                                         A.shape[0] - r))])
-        model = DiscreteModel(A, B, Cout, None, dt=self.dt_, method='dmdc', y_ref=self.y_ref_,
-                              metadata=meta, **self._model_kwargs)
-        self.basis_ = self._Uh[:, :r]
-        return model
+        return meta
 
     def reduce(self, Q: ArrayLike) -> Array:
         """Reduced state ``Ûᵀ (q - q_ref)`` of absolute snapshots ``Q (n, k)``."""
         self._check_fitted()
+        if self.basis_ is None or self.q_ref_ is None:
+            raise NotFittedError('this DMDc was fitted on coordinates whose modes were not '
+                                 'kept (streamed): it cannot reduce full states.')
         Q = as_signal('Q', Q, rows=self.q_ref_.size)
         return self.basis_.T @ (Q - self.q_ref_[:, None])

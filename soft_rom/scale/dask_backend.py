@@ -34,8 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from soft_rom.dataset.stored import dask_worker, one_line
-from soft_rom.errors import ClusterError, ConfigError, SoftRomError
+from soft_rom.errors import ClusterError, ConfigError, dask_worker, one_line, SoftRomError
 from soft_rom.scale.blocks import Block, centre_block, Kernel, SnapshotSet
 
 __all__ = ['DEFAULT_TIMEOUT', 'DaskExecutor', 'connect', 'route_logging']

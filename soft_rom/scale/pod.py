@@ -23,11 +23,11 @@ the *coordinates* of every snapshot in the leading ``l`` modes (so that the proj
     fewer than ``n`` rows), and a row block spans whole chunks: with the training set's
     ``(32768, 32)`` chunks that is ``32768 x K`` values (3.1 GB at K = 12,000).
 
-Choice (measured, ``benchmarks/bench_scale.py``): at K = 1,500 snapshots of 231,336 DOF
-the Gram method is cheaper (2 passes, 33 CPU-s vs 50 CPU-s for 3 randomized passes) and
-exact; at the paper's K = 12,000 it would need ~8 GB and :math:`1.7 \\cdot 10^{13}` flops,
-while the randomized passes stay I/O-bound in ~1.2 GB. Hence ``'randomized'`` is the
-default and ``'gram'`` the exact option for moderate K.
+Choice: for moderate ``K`` the Gram method is cheaper and exact; for many snapshots its
+``K^2`` memory and ``n K^2`` flops are out of reach while the randomized passes stay
+I/O-bound, so ``'randomized'`` is this class's default and the streaming reducer
+(:class:`soft_rom.reduce.StreamingReducer`) takes ``'gram'`` while it fits in memory. The
+measurements are in ``docs/methods.md`` (POD).
 
 Reference: Sharma et al., *Data-driven Model Reduction for Soft Robots via Lagrangian
 Operator Inference*, section 2.2 (POD of the centred snapshots; ``r`` for 95 % energy).
@@ -282,18 +282,19 @@ class StreamingPOD:
         if chunks is not None and chunks[0] >= snaps.n and snaps.n * snaps.n_total * 8 > (
                 4 * self.block_bytes):
             raise ConfigError(
-                'method="gram" reads row blocks, but these snapshots are stored in chunks of '
-                f'full height {chunks}: every chunk would be read once per row block. Use '
-                'method="randomized" (reads column blocks) or store Q in row-split chunks.')
+                'the Gram POD reads row blocks, but these snapshots are stored in chunks of '
+                f'full height {chunks}: every chunk would be read once per row block. Use the '
+                'randomized POD (reads column blocks) or store Q in row-split chunks.')
         K = snaps.n_total
         plan = row_plan(snaps, block_rows=self.block_rows, block_bytes=self.block_bytes)
         rows = max(b.rows[1] - b.rows[0] for b in plan)
         need = 8 * (2 * rows * K + 2 * K * K)  # two row blocks (read-ahead), G and a term
         if self.memory_limit is not None and need > self.memory_limit:
             raise ConfigError(
-                f'method="gram" would hold about {need / 2 ** 30:.1f} GiB ({K} snapshots, row '
-                f'blocks of {rows} rows), over memory_limit={self.memory_limit / 2 ** 30:.1f} '
-                'GiB; use method="randomized" (memory O(n l)) or raise memory_limit.')
+                f'the Gram POD would hold about {need / 2 ** 30:.1f} GiB ({K} snapshots, row '
+                f'blocks of {rows} rows), over its memory limit of '
+                f'{self.memory_limit / 2 ** 30:.1f} GiB; use the randomized POD (memory O(n l)) '
+                'or raise the limit.')
         G = ex.sum(snaps, plan, kernels.gram_rows)
         total = float(np.trace(G))
         lam, V = sla.eigh(G, subset_by_index=[K - l, K - 1])

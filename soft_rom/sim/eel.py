@@ -430,6 +430,9 @@ class EelModel:
                  linear_solver: str = 'auto') -> SimulationResult:
         """Integrate from rest (``q = q_ref``, ``v = 0``) for ``n_steps`` samples.
 
+        One method of about 115 lines: the implicit time loop (corotated forces, Newton
+        iterations with the CG solve, recording) keeps its work arrays across steps.
+
         Parameters
         ----------
         pressures : ndarray, shape (6, n_steps), or callable ``t -> (6,)``

@@ -134,13 +134,13 @@ def test_fit_streaming_and_dask_equal_in_memory(training_set, tmp_path, backend)
 
 
 @pytest.mark.parametrize('argv, words', [
-    (['--n-markov', '100000'], 'n_markov=100000 exceeds'),
-    (['--n-markov', '5000'], 'n_markov=5000 exceeds'),
+    (['--n-markov', '100000'], '--n-markov 100000 exceeds'),
+    (['--n-markov', '5000'], '--n-markov 5000 exceeds'),
     (['--n-markov', '500'], 'at most 499'),          # 500 samples per episode
     (['--n-markov', '100', '--decimation', '5'], 'at most 99'),
-    (['--observer-order', '100000'], 'observer_order 100000 is too large'),
+    (['--observer-order', '100000'], '--observer-order 100000 is too large'),
     (['--observer-order', '100000', '--era-preset', 'eel', '--n-markov', '100'],
-     'observer_order=100000'),
+     '--observer-order 100000'),
 ])
 def test_era_options_beyond_the_episode_exit_2_before_any_work(training_set, tmp_path,
                                                                 capsys, argv, words):
@@ -153,3 +153,30 @@ def test_era_options_beyond_the_episode_exit_2_before_any_work(training_set, tmp
     assert len(lines) == 1 and 'Traceback' not in err and 'Warning' not in err, err
     assert lines[0].startswith('soft-rom fit: error: ') and words in lines[0], err
     assert not (tmp_path / 'o').exists()
+
+
+def test_fit_records_the_held_out_error_the_monitor_uses(training_set, tmp_path):
+    """Each episode left out in turn, predicted by the same fit on the other: pooled error."""
+    from soft_rom.evaluation import predict
+    from soft_rom.predictor.thresholds import held_out_error
+    out = tmp_path / 'both'
+    assert main(['fit', str(training_set), '--method', 'lopinf,era', '--r', '4',
+                 '--decimation', '1', '--n-markov', '60', '-o', str(out), '--quiet']) == 0
+    model = load_model(out / 'chain_lopinf_r4.npz')
+    held = model.metadata['held_out']
+    assert 'ep1' in held['data'] and 'ep2' in held['data'] and held['samples'] == 1000
+    ts = TrainingSet.open(training_set)
+    se = sd = 0.0
+    for train, test in (('ep2', 'ep1'), ('ep1', 'ep2')):
+        assert main(['fit', str(training_set), '--method', 'lopinf', '--r', '4', '--episodes',
+                     train, '-o', str(tmp_path / train), '--quiet']) == 0
+        part = load_model(tmp_path / train / 'chain_lopinf_r4.npz')
+        ep = ts[test]
+        se += float(np.sum((ep.Y - predict(part, ep)) ** 2))
+        sd += float(np.sum((ep.Y - ts.y_ref[:, None]) ** 2))
+    assert held['deviation_error'] == pytest.approx(np.sqrt(se / sd), rel=1e-9)
+    assert held_out_error(model) == pytest.approx(held['deviation_error'], rel=1e-15)
+    # ERA/OKID fits one episode: its last fifth is held out
+    era = load_model(out / 'chain_era_r4.npz').metadata['held_out']
+    assert era['samples'] == 100 and 'last 20% of ep1' in era['data']
+    assert np.isfinite(era['deviation_error']) and era['deviation_error'] > 0

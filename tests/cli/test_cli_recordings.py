@@ -173,13 +173,16 @@ def test_fit_names_a_stable_dmdc_model_by_the_r_asked_for(lab, capsys) -> None:
     args = ['fit', str(root / 'lab.zarr'), '--method', 'dmdc', '--dmdc-variant', 'stable',
             '--r', '2,4', '--episodes', 'lab1', '-o', str(out), '--quiet']
     assert main(args) == 0
-    # (they were lab_dmdc_r10 / r14: the 2r + m states of the lagged model)
-    assert sorted(p.name for p in out.glob('*.npz')) == ['lab_dmdc_r2.npz', 'lab_dmdc_r4.npz']
-    rows = capsys.readouterr().out.splitlines()[2:]
-    assert [int(row.split()[1]) for row in rows] == [2, 4]
+    # (they were lab_dmdc_r10 / r14: the 2r + m states of the lagged model); the variant is
+    # named apart from the paper's
+    assert sorted(p.name for p in out.glob('*.npz')) == ['lab_dmdc-stable_r2.npz',
+                                                         'lab_dmdc-stable_r4.npz']
+    rows = [row for row in capsys.readouterr().out.splitlines() if row.startswith('DMDc')]
+    assert [row.split()[:3] for row in rows] == [['DMDc', 'stable', 'r=2'],
+                                                 ['DMDc', 'stable', 'r=4']]
     # a second run is refused before fitting, by the names it would write
     assert main(args) == 2
-    assert 'lab_dmdc_r2.npz exists already' in capsys.readouterr().err
+    assert 'lab_dmdc-stable_r2.npz exists already' in capsys.readouterr().err
 
 
 def test_evaluate_tells_apart_models_of_the_same_name(lab, capsys) -> None:

@@ -86,7 +86,7 @@ def test_dmdc_like_discrete_model_steps_by_multiples() -> None:
 
 
 def test_cubic_model_is_refused() -> None:
-    from soft_rom.models_cubic import CubicSecondOrderModel
+    from soft_rom.models import CubicSecondOrderModel
     model = modal_rom(2)
     r = model.r
     cubic = CubicSecondOrderModel(model.K, model.C, np.zeros((r, r, r)), np.zeros((r,) * 4),

@@ -30,6 +30,6 @@ def test_each_chunk_read_once_per_pass(tmp_path):
     snaps2 = SnapshotSet([ts2.q_array(n) for n in ts2.episode_names], ts2.q_ref)
     with pytest.raises(ConfigError, match='randomized'):
         StreamingPOD(r=5, method='gram', block_bytes=1000).fit(snaps2)
-    with pytest.raises(ConfigError, match='memory_limit'):
+    with pytest.raises(ConfigError, match='memory limit'):
         StreamingPOD(r=5, method='gram', memory_limit=2 ** 20).fit(snaps)
 

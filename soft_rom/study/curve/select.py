@@ -124,15 +124,20 @@ class Reduction:
         self.y_ref = np.asarray(y_ref, dtype=np.float64)
         self.dt = float(train[0].dt)
 
-    def _args(self, idx: Sequence[int], r: int) -> tuple[list[Any], list[Any], list[Any]]:
-        return ([self.Qhat[i][:r] for i in idx], [self.train[i].U for i in idx],
-                [self.train[i].Y for i in idx])
+    def _reduced(self, idx: Sequence[int], r: int) -> Any:
+        """The leading ``r`` coordinates of the episodes ``idx`` (:class:`ReducedData`)."""
+        from soft_rom.reduce import ReducedData
+        eps = [self.train[i] for i in idx]
+        return ReducedData(coordinates=tuple(self.Qhat[i][:r] for i in idx),
+                           U=tuple(ep.U for ep in eps), Y=tuple(ep.Y for ep in eps),
+                           t=tuple(ep.t for ep in eps), y_ref=self.y_ref,
+                           names=tuple(ep.name for ep in eps), basis='pod')
 
     def lopinf(self, idx: Sequence[int], r_values: Sequence[int]) -> dict[int, LinearROM]:
         """Linear LOpInf for every ``r`` (one fit at the largest, the others from it)."""
         from soft_rom.learners.lopinf import LOpInf
         r_max = max(r_values)
-        learner = LOpInf(r=r_max).fit_reduced(*self._args(idx, r_max), self.dt, self.y_ref)
+        learner = LOpInf(r=r_max).fit(self._reduced(idx, r_max))
         return {r: learner.model_for(r) for r in r_values}
 
     def cubic(self, idx: Sequence[int], r: int, grid: Sequence[tuple[float, float]]
@@ -143,8 +148,7 @@ class Reduction:
         for reg, eps4 in grid:
             try:
                 out[(reg, eps4)] = LOpInf(r=r, forces='cubic', cubic_options={
-                    'reg': reg, 'eps4': eps4}).fit_reduced(*self._args(idx, r), self.dt,
-                                                           self.y_ref).model_
+                    'reg': reg, 'eps4': eps4}).fit(self._reduced(idx, r)).model_
             except (SoftRomError, np.linalg.LinAlgError) as err:
                 LOG.info('cubic reg=%g eps4=%g failed: %s', reg, eps4, err)
         return out

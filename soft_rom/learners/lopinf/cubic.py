@@ -1,6 +1,6 @@
 """Least squares for the structure-preserving cubic LOpInf model (potential coefficients).
 
-The model (:class:`~soft_rom.models_cubic.CubicSecondOrderModel`) is
+The model (:class:`~soft_rom.models.cubic.CubicSecondOrderModel`) is
 
 .. math::
 
@@ -30,8 +30,8 @@ sum-of-squares Gram matrix found by a small SDP (:func:`quartic_lower_bound`). O
 conic problem is solved with cvxpy/Clarabel: the same objective, ``K, C ⪰ eps``, and
 ``H(q⁴) = wᵀ X w`` with ``X ⪰ t I`` over the scaled quadratic monomials ``w`` (``|w|² = |q|⁴``),
 with the free unknowns (``G``, ``B``) eliminated first and the objective compressed to a
-square factor (see :func:`_constrained`; about 20 s at ``r = 10`` on two busy cores, where the
-uncompressed problem took six minutes). The certificate of the result is the smallest
+square factor (see :func:`_constrained`: the uncompressed problem is many times slower;
+``docs/methods_variants.md``). The certificate of the result is the smallest
 eigenvalue of the solver's Gram matrix (``H`` is rebuilt from it exactly).
 
 When the data come from a model of this class with exact derivatives and the constraints
@@ -40,7 +40,6 @@ are inactive, the least-squares solution is the truth.
 
 from __future__ import annotations
 
-from itertools import combinations_with_replacement
 import math
 import time
 from typing import Any, NamedTuple
@@ -52,16 +51,22 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from soft_rom.errors import ConfigError, SolverError
-from soft_rom.learners.lopinf_solvers import (
+from soft_rom.learners.lopinf.solvers import (
     DEFAULT_EPS,
     FastSPDSolver,
     LOpInfSolution,
     OperatorSolver,
 )
-from soft_rom.models_cubic import symmetric_from_entries, symmetric_index
+from soft_rom.models.tensors import (
+    gram_map,
+    multiplicity,
+    quartic_lower_bound,
+    symmetric_from_entries,
+    symmetric_index,
+)
 
 __all__ = ['CubicSolution', 'DEFAULT_EPS4', 'DEFAULT_REG', 'fit_cubic', 'fit_scaled',
-           'quartic_lower_bound', 'isotropic_quartic']
+           'isotropic_quartic']
 
 Array = NDArray[np.float64]
 
@@ -71,8 +76,7 @@ DEFAULT_REG = 1e-4
 DEFAULT_EPS4 = 1e-6
 _VERBOSE = False
 #: Clarabel's KKT iterative refinement, tightened: the dense objective block is ill-conditioned
-#: and the default refinement stalls the interior point early (``r = 10`` eel data: objective
-#: 2.7e-5 relative lower, same time).
+#: and the default refinement stalls the interior point early.
 _CLARABEL_REFINE = {'iterative_refinement_reltol': 1e-14, 'iterative_refinement_abstol': 1e-14,
                     'iterative_refinement_max_iter': 30}
 
@@ -86,14 +90,6 @@ class CubicSolution(NamedTuple):
     H: Array
     B: Array
     info: dict[str, Any]
-
-
-def _mult(beta: tuple[int, ...]) -> int:
-    """Number of distinct permutations of a multiset of indices."""
-    out = math.factorial(len(beta))
-    for v in set(beta):
-        out //= math.factorial(beta.count(v))
-    return out
 
 
 def _monomials(Q: Array, degree: int) -> Array:
@@ -138,7 +134,7 @@ class _Layout:
                     beta.remove(i)
                     rest = tuple(beta)
                     put(i, self.z_off[zkey] + self.pos[deg - 1][rest], self.t_off[name] + j,
-                        scale * _mult(rest))
+                        scale * multiplicity(rest))
         for j, pair in enumerate(self.idx[2]):          # C, symmetric
             a, b = pair
             put(a, self.z_off['qd'] + b, self.t_off['C'] + j, 1.0)
@@ -156,7 +152,7 @@ class _Layout:
     def tensor_weights(self, name: str) -> Array:
         """``mult(α)``: ``||T||_F² = Σ mult(α) θ_α²``."""
         deg = {'K': 2, 'C': 2, 'G': 3, 'H': 4}[name]
-        return np.array([_mult(a) for a in self.idx[deg]], dtype=np.float64)
+        return np.array([multiplicity(a) for a in self.idx[deg]], dtype=np.float64)
 
     def unpack(self, theta: Array) -> tuple[Array, Array, Array, Array, Array]:
         r, m, o = self.r, self.m, self.t_off
@@ -181,54 +177,6 @@ def _nl_force(Q: Array, G: Array, H: Array) -> Array:
             + np.einsum('ijkl,jt,kt,lt->it', H, Q, Q, Q) / 6.0)
 
 
-def quartic_lower_bound(H: Array, *, target: float | None = None, sdp: bool = True
-                        ) -> tuple[float, str]:
-    """A certified ``t`` with ``H(q,q,q,q) ≥ t |q|⁴`` for all ``q``, and how it was found.
-
-    First the smallest eigenvalue of the canonical Gram matrix (``H`` as a quadratic form on
-    symmetric matrices ``q qᵀ``); if that is below ``target`` and ``sdp``, the best
-    sum-of-squares Gram matrix (``max t`` s.t. ``X - t I ⪰ 0``, ``wᵀ X w ≡ H(q⁴)``, ``w``
-    the scaled quadratic monomials), solved with cvxpy.
-    """
-    H = np.asarray(H, dtype=np.float64)
-    r = H.shape[0]
-    pairs = list(combinations_with_replacement(range(r), 2))
-    U = np.zeros((r * r, len(pairs)))
-    for j, (a, b) in enumerate(pairs):
-        if a == b:
-            U[a * r + a, j] = 1.0
-        else:
-            U[a * r + b, j] = U[b * r + a, j] = 1.0 / math.sqrt(2.0)
-    M = U.T @ H.reshape(r * r, r * r) @ U
-    t_gram = float(np.linalg.eigvalsh(0.5 * (M + M.T))[0])
-    if target is None or t_gram >= target or not sdp:
-        return t_gram, 'gram'
-    try:
-        import cvxpy as cp
-    except ImportError:                                 # pragma: no cover - declared dep
-        return t_gram, 'gram'
-    G, ns = _gram_map(r)
-    mult = np.array([_mult(b) for b in symmetric_index(r, 4)], dtype=np.float64)
-    Aeq = sp.diags(mult) @ G                        # rows in the coefficients' own scale
-    h = mult * np.array([H[b] for b in symmetric_index(r, 4)])
-    scale = max(float(np.max(np.abs(h))), 1e-300)
-    X = cp.Variable((ns, ns), symmetric=True)
-    t = cp.Variable()
-    prob = cp.Problem(cp.Maximize(t), [Aeq @ cp.vec(X, order='C') == h / scale,
-                                       X - t * np.eye(ns) >> 0])
-    try:
-        prob.solve(solver='CLARABEL')
-    except Exception:                                   # a failed SDP certifies nothing
-        return t_gram, 'gram'
-    if prob.status not in ('optimal', 'optimal_inaccurate') or t.value is None:
-        return t_gram, 'gram'
-    # Certify: eigenvalues of the returned Gram matrix after removing the residual.
-    Xv = np.asarray(X.value) * scale
-    resid = float(np.max(np.abs(Aeq @ Xv.ravel() - h)))
-    t_sdp = float(np.linalg.eigvalsh(0.5 * (Xv + Xv.T))[0]) - resid * ns
-    return (t_sdp, 'sos') if t_sdp > t_gram else (t_gram, 'gram')
-
-
 def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT_EPS,
               reg: float = DEFAULT_REG, eps4: float = DEFAULT_EPS4,
               linear_solver: OperatorSolver | None = None) -> CubicSolution:
@@ -249,34 +197,10 @@ def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT
     """
     t0 = time.perf_counter()
     Q, Qd, Qdd, U = (np.asarray(a, dtype=np.float64) for a in (Q, Qd, Qdd, U))
-    r, k = Q.shape
-    m = U.shape[0]
-    lay = _Layout(r, m)
-    Z = lay.features(Q, Qd, U)
-    Qz, Rz = np.linalg.qr(Z.T)
-    A = np.vstack([(lay.L[i].T @ Rz.T).T for i in range(r)])
-    b = -np.concatenate([Qz.T @ Qdd[i] for i in range(r)])
+    r = Q.shape[0]
+    lay = _Layout(r, U.shape[0])
     norm_qdd = max(float(np.linalg.norm(Qdd)), 1e-300)
-    base = float(np.linalg.norm(Qdd) ** 2 - np.linalg.norm(b) ** 2)   # outside range(Z)
-    o = lay.t_off
-    nl = np.arange(o['G'], o['C'])
-    w_nl = np.concatenate([lay.tensor_weights('G'), lay.tensor_weights('H')])
-    lam = float(reg) * k
-    w_all = np.zeros(lay.n_theta)
-    w_all[nl] = w_nl
-
-    # Normal equations (n_theta square), one step of iterative refinement on A itself.
-    ridge = lam * w_all
-    N = A.T @ A + np.diag(ridge)
-    N += 1e-13 * float(np.trace(N)) / lay.n_theta * np.eye(lay.n_theta)
-    g = A.T @ b
-    try:
-        cf = sla.cho_factor(N, check_finite=False)
-    except np.linalg.LinAlgError as err:
-        raise SolverError(f'the cubic LOpInf normal equations are singular ({err}); '
-                          'try a larger reg.') from err
-    theta = sla.cho_solve(cf, g)
-    theta += sla.cho_solve(cf, A.T @ (b - A @ theta) - ridge * theta)
+    N, g, theta, base = _least_squares(lay, Q, Qd, Qdd, U, reg)
     K, C, G, H, B = lay.unpack(theta)
     info: dict[str, Any] = {'solver': 'cubic-potential-least-squares', 'reg': float(reg),
                             'eps': float(eps), 'eps4': float(eps4), 'n_unknowns': lay.n_theta,
@@ -306,7 +230,7 @@ def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT
     if not (np.linalg.eigvalsh(K)[0] >= 0.999 * eps and np.linalg.eigvalsh(C)[0] >= 0.999 * eps
             and t_low >= 0.99 * target):
         raise SolverError('the cubic LOpInf fit could not satisfy K, C ⪰ eps and a '
-                          'positive quartic potential; try a larger reg.')
+                          'positive quartic potential; try a larger --cubic-reg.')
     res = Qdd + C @ Qd + K @ Q + _nl_force(Q, G, H) - B @ U
     info['quartic_lower_bound'] = float(t_low)
     info['quartic_target'] = float(target)
@@ -317,6 +241,38 @@ def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT
     return CubicSolution(K, C, G, H, B, info)
 
 
+def _least_squares(lay: _Layout, Q: Array, Qd: Array, Qdd: Array, U: Array, reg: float
+                   ) -> tuple[Array, Array, Array, float]:
+    """The regularized least squares, compressed by a QR of the features.
+
+    Returns the normal matrix ``N``, its right-hand side ``g``, the solution ``θ`` (one step
+    of iterative refinement on the compressed rows) and the squared residual outside the
+    features' range.
+    """
+    r, k = Q.shape
+    Z = lay.features(Q, Qd, U)
+    Qz, Rz = np.linalg.qr(Z.T)
+    A = np.vstack([(lay.L[i].T @ Rz.T).T for i in range(r)])
+    b = -np.concatenate([Qz.T @ Qdd[i] for i in range(r)])
+    base = float(np.linalg.norm(Qdd) ** 2 - np.linalg.norm(b) ** 2)   # outside range(Z)
+    o = lay.t_off
+    w_all = np.zeros(lay.n_theta)
+    w_all[np.arange(o['G'], o['C'])] = np.concatenate([lay.tensor_weights('G'),
+                                                       lay.tensor_weights('H')])
+    ridge = float(reg) * k * w_all
+    N = A.T @ A + np.diag(ridge)
+    N += 1e-13 * float(np.trace(N)) / lay.n_theta * np.eye(lay.n_theta)
+    g = A.T @ b
+    try:
+        cf = sla.cho_factor(N, check_finite=False)
+    except np.linalg.LinAlgError as err:
+        raise SolverError(f'the cubic LOpInf normal equations are singular ({err}); '
+                          'try a larger --cubic-reg.') from err
+    theta = sla.cho_solve(cf, g)
+    theta += sla.cho_solve(cf, A.T @ (b - A @ theta) - ridge * theta)
+    return N, g, theta, base
+
+
 def _sym_map(r: int) -> Array:
     """``vec(S) = M θ`` for a symmetric ``S`` from its independent entries (row-major)."""
     idx = symmetric_index(r, 2)
@@ -324,23 +280,6 @@ def _sym_map(r: int) -> Array:
     for j, (a, b) in enumerate(idx):
         M[a * r + b, j] = M[b * r + a, j] = 1.0
     return M
-
-
-def _gram_map(r: int) -> tuple[sp.csr_matrix, int]:
-    """Map ``vec(X)`` (Gram matrix on scaled quadratic monomials) to the entries of ``H``."""
-    pairs = symmetric_index(r, 2)
-    quads = symmetric_index(r, 4)
-    qpos = {b: j for j, b in enumerate(quads)}
-    ns = len(pairs)
-    c = np.array([1.0 if a == b else math.sqrt(2.0) for a, b in pairs])
-    rows, cols, vals = [], [], []
-    for p in range(ns):
-        for q in range(ns):
-            beta = tuple(sorted(pairs[p] + pairs[q]))
-            rows.append(qpos[beta])
-            cols.append(p * ns + q)
-            vals.append(c[p] * c[q] / _mult(beta))
-    return sp.csr_matrix((vals, (rows, cols)), shape=(len(quads), ns * ns)), ns
 
 
 def _constrained(N: Array, g: Array, lay: _Layout, eps: float, t4: float
@@ -370,7 +309,7 @@ def _constrained(N: Array, g: Array, lay: _Layout, eps: float, t4: float
     Lc = np.linalg.cholesky(0.5 * (Ns + Ns.T))
     c = sla.solve_triangular(Lc, g[S] - NFS.T @ W[:, -1], lower=True)
     scale = max(float(np.linalg.norm(c)), 1e-300)
-    Tg, ns = _gram_map(r)
+    Tg, ns = gram_map(r)
     nK, nH = o['G'] - o['K'], o['C'] - o['H']
     th = cp.Variable(len(S))
     X = cp.Variable((ns, ns), symmetric=True)

@@ -205,6 +205,10 @@ def solve_two_cone_qp(H: Array, c: Array, fval: Any, idx: SymIndex, x0: Array, *
                       ) -> tuple[Array, dict[str, Any]]:
     """Minimize ``φ(x) = ½ xᵀ H x + cᵀ x + φ₀`` over ``x = (svec X_C, svec X_K)`` in two PSD cones.
 
+    One function of about 125 lines: the interior-point iteration (barrier, Newton step with
+    the factored Hessian, step to the cones' boundary, stopping test) shares its state from
+    step to step, and splitting the loop would pass that state around for nothing.
+
     Parameters
     ----------
     H : ndarray, shape (2n, 2n)

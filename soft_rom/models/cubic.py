@@ -30,16 +30,13 @@ exact for the cubic ``∇V_nl``). Properties:
   ``h Ã / 2`` the Cayley inverse of ``A_d``; ``A_d`` is a ``P``-contraction, so the symmetric
   part of ``S̄`` is negative semidefinite;
 * second order (symmetric), implicit in ``q_{n+1}``: ``r`` unknowns, solved by Newton's method
-  warm-started from the previous step, with step halving as a fallback.
-
-The extended Kalman correction uses :meth:`CubicSecondOrderModel.step_jacobian`, the exact
-derivative of this step map.
+  warm-started from the previous step, with step halving as a fallback; its exact derivative
+  (:meth:`CubicSecondOrderModel.step_jacobian`) serves the extended Kalman correction.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from itertools import combinations_with_replacement, permutations
 import math
 from typing import Any
 
@@ -49,17 +46,12 @@ from numpy.typing import ArrayLike, NDArray
 from soft_rom.data import as_signal
 from soft_rom.errors import DimensionError, SolverError
 from soft_rom.gain import gain_issue
-from soft_rom.models import (
-    _arr,
-    _leading,
-    DiscreteSystem,
-    LinearROM,
-    register_model_class,
-    SecondOrderModel,
-)
+from soft_rom.models.base import _arr, _leading, DiscreteSystem, LinearROM
+from soft_rom.models.files import register_model_class
+from soft_rom.models.linear import SecondOrderModel
+from soft_rom.models.tensors import is_symmetric, quartic_lower_bound, symmetric_index
 
-__all__ = ['CUBIC_FORMAT_VERSION', 'CubicSecondOrderModel', 'StepCache', 'symmetrize',
-           'symmetric_from_entries', 'symmetric_entries', 'symmetric_index']
+__all__ = ['CUBIC_FORMAT_VERSION', 'CubicSecondOrderModel', 'StepCache']
 
 Array = NDArray[np.float64]
 
@@ -72,62 +64,12 @@ _W01 = np.array([[0.5 * (1.0 - _GAUSS[0]), 0.5 * _GAUSS[0]],
                  [0.5 * (1.0 - _GAUSS[1]), 0.5 * _GAUSS[1]]])    # d ḡ / d(q0, q1) weights
 
 
-# ------------------------------------------------------------------ symmetric tensors
 def _vector(name: str, value: ArrayLike, n: int) -> Array:
     """``value`` as a float64 vector of ``n`` entries (one state or input at a time)."""
     a = _leading(name, value, n)
     if a.ndim != 1:
         raise DimensionError(f'{name} must have shape ({n},); got shape {a.shape}.')
     return a
-
-
-def symmetric_index(r: int, degree: int) -> list[tuple[int, ...]]:
-    """The independent entries of a symmetric tensor: sorted index tuples ``i1 ≤ … ≤ id``.
-
-    There are ``C(r + d - 1, d)`` of them (``r(r+1)(r+2)/6`` for ``d = 3``).
-    """
-    return list(combinations_with_replacement(range(r), degree))
-
-
-def symmetrize(T: ArrayLike) -> Array:
-    """Average of a tensor over all permutations of its axes (its fully symmetric part)."""
-    T = np.asarray(T, dtype=np.float64)
-    perms = list(permutations(range(T.ndim)))
-    out = np.zeros_like(T)
-    for p in perms:
-        out += np.transpose(T, p)
-    return out / len(perms)
-
-
-def symmetric_from_entries(values: ArrayLike, r: int, degree: int) -> Array:
-    """The full symmetric tensor ``(r,)*degree`` from its independent entries.
-
-    Parameters
-    ----------
-    values : ndarray, shape (n_independent,)
-        In the order of :func:`symmetric_index`.
-    """
-    values = np.asarray(values, dtype=np.float64)
-    idx = symmetric_index(r, degree)
-    if values.shape != (len(idx),):
-        raise DimensionError(f'need {len(idx)} independent entries; got {values.shape}.')
-    T = np.zeros((r,) * degree)
-    for v, alpha in zip(values, idx):
-        for p in set(permutations(alpha)):
-            T[p] = v
-    return T
-
-
-def symmetric_entries(T: ArrayLike) -> Array:
-    """The independent entries of a symmetric tensor (order of :func:`symmetric_index`)."""
-    T = np.asarray(T, dtype=np.float64)
-    return np.array([T[a] for a in symmetric_index(T.shape[0], T.ndim)])
-
-
-def _is_symmetric(T: Array, rtol: float = 1e-10) -> bool:
-    scale = max(float(np.max(np.abs(T))) if T.size else 0.0, 1e-300)
-    return all(float(np.max(np.abs(T - np.transpose(T, p)))) <= rtol * scale
-               for p in permutations(range(T.ndim)))
 
 
 # ------------------------------------------------------------------ step matrices
@@ -201,7 +143,7 @@ class CubicSecondOrderModel(LinearROM):
         self.G = _arr('G', G, (r, r, r))
         self.H = _arr('H', H, (r, r, r, r))
         for name, T in (('G', self.G), ('H', self.H)):
-            if not _is_symmetric(T):
+            if not is_symmetric(T):
                 raise DimensionError(f'{name} must be a fully symmetric tensor.')
         self._linear = SecondOrderModel(self.K, self.C, self.B, self.E, dt=self.dt,
                                         y_ref=self.y_ref)
@@ -547,7 +489,6 @@ class CubicSecondOrderModel(LinearROM):
             if gain is not None:
                 issues.append(gain)
         if self.r <= 16:      # certificate cost grows like r^6
-            from soft_rom.learners.lopinf_cubic import quartic_lower_bound
             t, _how = quartic_lower_bound(self.H, target=0.0)
             if not t > 0:
                 issues.append('the quartic part of the potential is not certified positive '

@@ -103,7 +103,7 @@ def damping_bound(K0: Array, min_damping_ratio: float, *,
     """
     z = float(min_damping_ratio)
     if not 0.0 <= z < 1.0:
-        raise ConfigError(f'min_damping_ratio must be in [0, 1); got {min_damping_ratio!r}.')
+        raise ConfigError(f'--min-damping-ratio must be in [0, 1); got {min_damping_ratio!r}.')
     lam = np.linalg.eigvalsh(0.5 * (K0 + K0.T))
     eps_k = K_REL_MARGIN * max(float(lam[-1]), 1e-300)
     if frequency is None:

@@ -25,7 +25,7 @@ unbiased for it. The constraints are kept by the parametrization
     K = \\varepsilon_K I + L_K L_K^T, \\qquad C = \\alpha I + \\beta K + L_C L_C^T
 
 (``L_K``, ``L_C`` lower triangular): the refined ROM keeps SPD stiffness and damping and
-the minimum damping ratio of :mod:`soft_rom.learners.lopinf_margins`, so it is
+the minimum damping ratio of :mod:`soft_rom.learners.lopinf.margins`, so it is
 asymptotically stable for every iterate. The problem is not convex; it is started from the
 equation-error LOpInf solution (a good and stable start) and solved by Levenberg–Marquardt
 with exact gradients: the sensitivities of the held-input discretization come from
@@ -454,28 +454,9 @@ def refine_output_error(K: Array, C: Array, B: Array, episodes: Sequence[tuple[A
     prob.set_caps(K, C)
     p0 = prob.pack(K, C, B, initial_states(episodes, Lt_a, dt))
     cost0 = prob.cost(p0)
-    p, iterations, status = p0, 0, 'max_iter'
-    check: dict[str, Any] = {'holdout': float(holdout)}
-    lengths = [int(np.asarray(q).shape[1]) for q, _ in episodes]
-    heads = [int(round(k * (1.0 - holdout))) for k in lengths]
-    if holdout > 0 and all(h >= 32 and k - h >= 8 for h, k in zip(heads, lengths)):
-        # fit on the heads, keep it only if it predicts the held-out tails better than the start
-        head = _Problem([(np.asarray(q)[:, :h], np.asarray(u)[:, :h])
-                         for (q, u), h in zip(episodes, heads)], dt, Lt_a, floors,
-                        free_mass=free_mass)
-        head.set_caps(K, C)
-        p_head, it_head, _ = _levenberg_marquardt(head, p0, max_iter, tol)
-        tail_start = prob.tail_error(_best_x0(head, p0), heads)
-        tail_refined = prob.tail_error(p_head, heads)
-        check.update(tail_error_start=tail_start, tail_error_refined=tail_refined,
-                     iterations_head=it_head)
-        if not tail_refined <= tail_start:
-            status = 'rejected_on_holdout'
-        else:
-            p, iterations, status = _levenberg_marquardt(prob, p_head, max_iter, tol)
-    else:
-        check['holdout'] = 0.0
-        p, iterations, status = _levenberg_marquardt(prob, p0, max_iter, tol)
+    p, iterations, status, check = _search(prob, p0, episodes, dt, Lt_a, floors, (K, C),
+                                           free_mass=free_mass, max_iter=max_iter, tol=tol,
+                                           holdout=holdout)
     cost = prob.cost(p) if p is not p0 else cost0
     Kr, Cr, Br, _, _, _ = prob.unpack(p)
     Lt_r, _ = prob.mass_factor(p)
@@ -486,3 +467,34 @@ def refine_output_error(K: Array, C: Array, B: Array, episodes: Sequence[tuple[A
             'parameters': prob.P, 'seconds': time.perf_counter() - t0, 'validation': check,
             'mass_refined': bool(free_mass), 'mass_factor': Lt_r}
     return Kr, Cr, Br, info
+
+
+def _search(prob: _Problem, p0: Array, episodes: Sequence[tuple[Array, Array]], dt: float,
+            Lt: Array, floors: dict[str, float], start: tuple[Array, Array], *,
+            free_mass: bool, max_iter: int, tol: float, holdout: float
+            ) -> tuple[Array, int, str, dict[str, Any]]:
+    """The Levenberg-Marquardt search, validated on the episodes' tails first (``holdout``).
+
+    Returns the parameters, the iterations, the status and the validation's figures.
+    """
+    check: dict[str, Any] = {'holdout': float(holdout)}
+    lengths = [int(np.asarray(q).shape[1]) for q, _ in episodes]
+    heads = [int(round(k * (1.0 - holdout))) for k in lengths]
+    if not (holdout > 0 and all(h >= 32 and k - h >= 8 for h, k in zip(heads, lengths))):
+        check['holdout'] = 0.0
+        p, iterations, status = _levenberg_marquardt(prob, p0, max_iter, tol)
+        return p, iterations, status, check
+    # fit on the heads, keep it only if it predicts the held-out tails better than the start
+    head = _Problem([(np.asarray(q)[:, :h], np.asarray(u)[:, :h])
+                     for (q, u), h in zip(episodes, heads)], dt, Lt, floors,
+                    free_mass=free_mass)
+    head.set_caps(*start)
+    p_head, it_head, _ = _levenberg_marquardt(head, p0, max_iter, tol)
+    tail_start = prob.tail_error(_best_x0(head, p0), heads)
+    tail_refined = prob.tail_error(p_head, heads)
+    check.update(tail_error_start=tail_start, tail_error_refined=tail_refined,
+                 iterations_head=it_head)
+    if not tail_refined <= tail_start:
+        return p0, 0, 'rejected_on_holdout', check
+    p, iterations, status = _levenberg_marquardt(prob, p_head, max_iter, tol)
+    return p, iterations, status, check

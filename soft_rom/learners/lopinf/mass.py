@@ -21,7 +21,7 @@ Fit, three convex steps:
    (linear least squares with one linear constraint, closed form); if that ``M`` is not
    positive definite, the same objective with ``M ⪰ 10^{-3} I`` by cvxpy and Clarabel;
 3. the identity-mass LOpInf (``K, C ⪰ eps I``,
-   :class:`~soft_rom.learners.lopinf_solvers.FastSPDSolver`) in ``z = L^T q``.
+   :class:`~soft_rom.learners.lopinf.solvers.FastSPDSolver`) in ``z = L^T q``.
 
 A minimization of ``||M Q'' + C Q' + K Q - B U||_F`` over ``M ⪰ I, C, K`` in one convex
 problem is *not* used: the objective is homogeneous, so it shrinks ``M`` in every direction
@@ -41,7 +41,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.errors import ConfigError, SolverError
-from soft_rom.learners.lopinf_solvers import DEFAULT_EPS, FastSPDSolver, LOpInfSolution
+from soft_rom.learners.lopinf.solvers import DEFAULT_EPS, FastSPDSolver, LOpInfSolution
 
 __all__ = ['MASS_CHOICES', 'SHRINKAGE', 'mass_candidates', 'solve_learned_mass']
 

@@ -25,7 +25,7 @@ Solvers (objects behind :class:`OperatorSolver`):
 
 * :class:`FastSPDSolver` (default): the symmetric least-squares solution in closed form; if it
   is already feasible it *is* the optimum and is returned; otherwise a primal-dual interior
-  point (:mod:`soft_rom.learners.lopinf_ipm`: Nesterov-Todd scaling, Mehrotra
+  point (:mod:`soft_rom.learners.lopinf.ipm`: Nesterov-Todd scaling, Mehrotra
   predictor-corrector, Newton systems assembled in symmetric-Kronecker form, ``K`` eliminated
   by a Schur complement when its constraint is inactive), started from the least-squares
   solution lifted into the cones, stopped on a certified duality gap. ``eps`` may be one
@@ -46,9 +46,9 @@ from numpy.typing import ArrayLike, NDArray
 import scipy.linalg as sla
 
 from soft_rom.errors import ConfigError, DimensionError, SolverError
-from soft_rom.learners.lopinf_ipm import BlockFactor, solve_two_cone_qp
-from soft_rom.learners.lopinf_ipm import lift as _lift
-from soft_rom.learners.lopinf_ipm import SymIndex as _SymIndex
+from soft_rom.learners.lopinf.ipm import BlockFactor, solve_two_cone_qp
+from soft_rom.learners.lopinf.ipm import lift as _lift
+from soft_rom.learners.lopinf.ipm import SymIndex as _SymIndex
 
 __all__ = [
     'CvxpySolver',
@@ -229,7 +229,7 @@ class FastSPDSolver:
     On :class:`ReducedProblem` data the squared objective ``φ(θ) = ||W(θ) A + G||_F²`` is a
     quadratic in the ``r(r+1)`` free entries ``θ`` of ``C`` and ``K``. The unconstrained
     symmetric least-squares solution is computed first (one factorization); if it satisfies
-    the margins it *is* the optimum. Otherwise :func:`~soft_rom.learners.lopinf_ipm.
+    the margins it *is* the optimum. Otherwise :func:`~soft_rom.learners.lopinf.ipm.
     solve_two_cone_qp` (Mehrotra predictor-corrector, Nesterov-Todd scaling) solves the
     problem; when ``K``'s constraint is inactive at the least-squares point, ``K`` is
     eliminated exactly (a Schur complement) and only the cone of ``C`` remains (half the
@@ -242,24 +242,20 @@ class FastSPDSolver:
         Stop when the certified gap ``φ(θ) - ψ(S)`` (``ψ`` the Lagrange dual function) is
         below ``rtol · φ(θ)``; the Frobenius objective is then within ``rtol / 2`` of the
         optimum.
-    mu, centring_tol : float
-        Kept for compatibility (the former barrier method's parameters; unused).
     max_newton : int
         Interior-point iterations allowed; :class:`~soft_rom.errors.SolverError` beyond.
     rank_rtol : float
         Relative singular-value threshold for the numerical rank of ``U``.
     """
 
-    def __init__(self, *, rtol: float = 1e-9, mu: float = 30.0, max_newton: int = 100,
-                 centring_tol: float = 0.1, rank_rtol: float = DEFAULT_RANK_RTOL) -> None:
+    def __init__(self, *, rtol: float = 1e-9, max_newton: int = 100,
+                 rank_rtol: float = DEFAULT_RANK_RTOL) -> None:
         self.rtol = rtol
-        self.mu = mu
-        self.centring_tol = centring_tol
         self.max_newton = max_newton
         self.rank_rtol = rank_rtol
 
     def __repr__(self) -> str:
-        return f'FastSPDSolver(rtol={self.rtol}, mu={self.mu})'
+        return f'FastSPDSolver(rtol={self.rtol}, max_newton={self.max_newton})'
 
     def solve(self, Q: ArrayLike, Qd: ArrayLike, Qdd: ArrayLike, U: ArrayLike, *,
               eps: Margin = DEFAULT_EPS) -> LOpInfSolution:
