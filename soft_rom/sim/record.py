@@ -16,6 +16,7 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 import json
+import multiprocessing
 from pathlib import Path
 from typing import Any
 
@@ -238,7 +239,11 @@ def record_episodes(out_dir: str | Path, episodes: int | Sequence[int] = 6, *,
                 for e in eps]
     tasks = [(cfg, e, out / f'ep{e}', dict(kwargs, progress=False)) for e in eps]
     results: list[dict[str, Any]] = []
-    with ProcessPoolExecutor(max_workers=jobs, initializer=_one_blas_thread) as pool:
+    # Spawned, not forked: a fork of a multi-threaded caller (a test runner, an IDE, a ROS
+    # node) can hand the workers a lock held by another thread, and they wait for ever.
+    ctx = multiprocessing.get_context('spawn')
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=ctx,
+                             initializer=_one_blas_thread) as pool:
         try:
             it = pool.map(_worker, tasks)
             if progress:
