@@ -155,7 +155,7 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
                               (r, tr[0], te[0], tr[1], te[1], model.stability_margin(), fit_s)):
                 c[key].append(v)
             predictions[method][r] = Yh
-            labels[(method, r)] = model_label(model)
+            labels[(method, r)] = _slot_label(method, model)
             if tick:
                 tick(f'{method} r={r}')
         curves[method] = c
@@ -204,7 +204,7 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
     chosen, models, swept, era_episode = _choose_models(ts, cfg, train_eps, tests, tick,
                                                         fit_seconds)
     for method, model in models.items():
-        chosen[method]['label'] = model_label(model)
+        chosen[method]['label'] = _slot_label(method, model)
     test: dict[str, dict[str, float]] = {}
     test_dev: dict[str, dict[str, float]] = {}
     preds: dict[str, dict[str, np.ndarray]] = {}
@@ -432,3 +432,11 @@ def _jsonable(obj: Any) -> Any:
     if isinstance(obj, Path):
         return str(obj)
     return obj
+
+
+def _slot_label(method: str, model: Any) -> str:
+    """The model's exact label; the cubic slot says when its selection kept linear forces."""
+    label = model_label(model)
+    if method == 'lopinf_cubic' and 'cubic' not in label.lower():
+        label += ' (cubic slot: linear kept)'
+    return label
