@@ -355,24 +355,13 @@ def _cold_read(out: Path, cfg: StudyConfig, bag_dir: Path, progress: bool) -> di
 
 def _report(out: Path, cfg: StudyConfig, bag_dir: Path, progress: bool) -> dict[str, Any]:
     """``summary.json`` and ``report.md`` from the stage records."""
-    import numpy as np
-
     from soft_rom.dataset import TrainingSet
     from soft_rom.study.report import study_report
-    from soft_rom.study.run import _conclusions, _jsonable
+    from soft_rom.study.run import _conclusions, _jsonable, fom_summary
 
     records = {s: _stage_record(out, s) or {} for s in STAGES if s != 'report'}
     ts = TrainingSet.open(out / 'data.zarr')
-    ep1 = ts['ep1']
-    summary: dict[str, Any] = {'config': asdict(cfg)}
-    summary['fom'] = {
-        'episodes': len(ts.episode_names), 'samples per episode': ep1.n_samples,
-        'dt [s]': ep1.dt, 'state DOF n': None if ts.q_ref is None else int(ts.q_ref.size),
-        'inputs m': ep1.U.shape[0], 'outputs p': ep1.Y.shape[0],
-        'max |output deviation| Ep 1 [mm]': float(
-            np.max(np.abs(ep1.Y - ts.y_ref[:, None])) * 1e3),
-        'storage': cfg.storage,
-    }
+    summary: dict[str, Any] = {'config': asdict(cfg), 'fom': fom_summary(ts, cfg)}
     for key in ('study1', 'study2'):
         if records[key].get('result'):
             summary[key] = records[key]['result']

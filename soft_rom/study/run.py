@@ -175,16 +175,7 @@ def _run_study(out: Path, cfg: StudyConfig, *, progress: bool, studies: Sequence
         bar.set_postfix_str(label)
         bar.update()
 
-    summary: dict[str, Any] = {'config': asdict(cfg)}
-    ep1 = ts['ep1']
-    summary['fom'] = {
-        'episodes': len(ts.episode_names), 'samples per episode': ep1.n_samples,
-        'dt [s]': ep1.dt, 'state DOF n': None if ts.q_ref is None else int(ts.q_ref.size),
-        'inputs m': ep1.U.shape[0], 'outputs p': ep1.Y.shape[0],
-        'max |output deviation| Ep 1 [mm]': float(
-            np.max(np.abs(ep1.Y - ts.y_ref[:, None])) * 1e3),
-        'storage': cfg.storage,
-    }
+    summary: dict[str, Any] = {'config': asdict(cfg), 'fom': fom_summary(ts, cfg)}
     if 1 in studies:
         t0 = time.perf_counter()
         summary['study1'] = study_time_extrapolation(ts, cfg, out, tick)
@@ -231,3 +222,16 @@ def _machine(load_start: float | None) -> dict[str, Any]:
              f', load average {load_start:.1f} at the start and {load_end:.1f} at the end')
     return {'cpus': n, 'cpu': cpu, 'load_start': load_start, 'load_end': load_end,
             'description': f'{n} CPUs ({cpu}){loads}'}
+
+
+def fom_summary(ts: Any, cfg: StudyConfig) -> dict[str, Any]:
+    """The report's "Full-order model and data" table, from the training set (Ep 1)."""
+    ep1 = ts['ep1']
+    return {
+        'episodes': len(ts.episode_names), 'samples per episode': ep1.n_samples,
+        'dt [s]': ep1.dt, 'state DOF n': None if ts.q_ref is None else int(ts.q_ref.size),
+        'inputs m': ep1.U.shape[0], 'outputs p': ep1.Y.shape[0],
+        'max |output deviation| Ep 1 [mm]': float(
+            np.max(np.abs(ep1.Y - ts.y_ref[:, None])) * 1e3),
+        'storage': cfg.storage,
+    }
