@@ -64,9 +64,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         help='control step in s, a multiple of the model dt (default 0.01)')
     parser.add_argument('--horizon', type=finite_float(0.0, 100.0, lo_open=True), default=0.2,
                         help='prediction horizon in s (default 0.2)')
-    parser.add_argument('--rate-weight', type=finite_float(0.0, 1e12), default=1e-3,
+    parser.add_argument('--rate-weight', type=finite_float(0.0, 1e12), default=1e-4,
                         help='weight of input increments against the output error (default '
-                             '1e-3)')
+                             '1e-4, the library default)')
     parser.add_argument('--u-min', type=_floats, default=None, metavar='P[,P...]',
                         help='lower pressure bound(s), Pa (default: the training range)')
     parser.add_argument('--u-max', type=_floats, default=None, metavar='P[,P...]',

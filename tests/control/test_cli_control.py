@@ -86,3 +86,13 @@ def test_control_refuses_bad_input_in_one_line(run_dir, model_file, reference, t
         assert code == 2, (args, err)
         assert why in err and err.count('\n') == 1 and 'Traceback' not in err, err
         assert not (tmp_path / 'a').exists()
+
+
+def test_the_rate_weight_default_is_the_library_default() -> None:
+    """`soft-rom control` and the controller node (which reads MPCConfig) use one weight."""
+    import argparse
+
+    from soft_rom.cli.control import add_parser
+    from soft_rom.control import MPCConfig
+    parser = add_parser(argparse.ArgumentParser().add_subparsers())
+    assert parser.get_default('rate_weight') == MPCConfig().rate_weight == 1e-4

@@ -49,14 +49,15 @@ def test_offset_free_on_a_model_with_the_wrong_gain() -> None:
     ref = Reference(t=t, Y=Y)
     # state noise 0: the filter is a pure output-disturbance observer (fast to settle here;
     # with state noise the eel's 0.27 Hz first mode settles over seconds)
-    est = EstimatorConfig(process_noise=0.0)
+    est = EstimatorConfig(process_noise=0.0, slow_mode_noise=0.0)
     res = run_closed_loop(wrong, ref, plant=ROMPlant(model), sensor=Sensor(noise=0.0),
                           estimator=est, duration=1.5)
     dev = np.linalg.norm(target - model.y_ref)
     final = np.linalg.norm(res.Y[:, -1] - target)
     assert final < 1e-3 * dev
     # and without the disturbance estimate the same loop keeps an offset
-    no_d = EstimatorConfig(disturbance_noise=1e-7, process_noise=0.0)   # d frozen
+    no_d = EstimatorConfig(disturbance_noise=1e-7, process_noise=0.0,   # d frozen
+                           slow_mode_noise=0.0)
     res0 = run_closed_loop(wrong, ref, plant=ROMPlant(model), sensor=Sensor(noise=0.0),
                            estimator=no_d, duration=1.5)
     assert np.linalg.norm(res0.Y[:, -1] - target) > 0.05 * dev
@@ -149,3 +150,79 @@ def test_riccati_terminal_cost_makes_the_horizon_infinite() -> None:
     short = MPC(model, MPCConfig(terminal='none', **big))
     v_short = short.scale(short.solve(x0, np.zeros(mpc.p), R_ref, short.centre).u)
     assert np.abs(v_short - v_lq).max() > 0.05 * np.abs(v_lq).max()
+
+
+def _slow_plant(d0: np.ndarray) -> tuple[DiscreteModel, DiscreteModel, np.ndarray]:
+    """A 3-state, 2-input, 3-output linear system with a slow mode (-0.3/s) and fast ones.
+
+    Returns the controller's model, the plant (the same system with a constant output
+    disturbance ``d0``: its ``y_ref``) and the steady-state gain.
+    """
+    import scipy.linalg as sla
+    dt = 1e-3
+    Ac = np.diag([-0.3, -8.0, -12.0])                  # time constants 3.3 s, 0.13 s, 0.08 s
+    Bc = np.array([[1.0, 0.5], [8.0, -4.0], [-6.0, 12.0]])
+    C = np.array([[1.0, 1.0, 0.0], [1.0, 0.0, 1.0], [1.0, -0.5, 0.5]])
+    M = sla.expm(np.block([[Ac, Bc], [np.zeros((2, 5))]]) * dt)
+    A, B = M[:3, :3], M[:3, 3:]
+    names = ('a', 'b', 'c')
+    model = DiscreteModel(A, B, C, dt=dt, method='dmdc', y_ref=np.zeros(3), output_names=names)
+    plant = DiscreteModel(A, B, C, dt=dt, method='dmdc', y_ref=d0, output_names=names)
+    return model, plant, C @ np.linalg.solve(np.eye(3) - A, B)
+
+
+@pytest.mark.parametrize('estimator', [EstimatorConfig(),
+                                       EstimatorConfig(process_noise=0.0, slow_mode_noise=0.0)],
+                         ids=['defaults', 'output-disturbance-only'])
+def test_offset_free_with_a_slow_mode_and_a_constant_output_disturbance(
+        estimator: EstimatorConfig) -> None:
+    """A reachable step settles within 2 % in 1.5 s and stays there.
+
+    1.5 s is under half the slow mode's time constant; with the disturbance estimate frozen
+    the loop keeps an offset.
+    """
+    d0 = np.array([0.5, -0.4, 0.3])
+    model, plant, G = _slow_plant(d0)
+    u_star = np.array([1.0, -0.5])
+    target = G @ u_star + d0                           # reachable by the plant at u_star
+    ref = Reference(t=np.array([0.0, 0.05, 0.0501, 10.0]),
+                    Y=np.stack([d0, d0, target, target], axis=1))
+    cfg = MPCConfig(u_min=(-3.0,), u_max=(3.0,))
+    sensor = Sensor(noise=1e-3)
+    dev = np.linalg.norm(target - d0)
+
+    def errors(est: EstimatorConfig) -> tuple[np.ndarray, np.ndarray]:
+        est = EstimatorConfig(**{**est.__dict__, 'measurement_noise': 1e-3})
+        res = run_closed_loop(model, ref, plant=ROMPlant(plant), mpc=cfg, sensor=sensor,
+                              estimator=est, duration=4.0)
+        return res.t, np.linalg.norm(res.Y - target[:, None], axis=0) / dev
+
+    t, err = errors(estimator)
+    settled = t >= 0.05 + 1.5
+    assert err[settled].max() <= 0.02
+    assert err[-1] <= 2e-3
+    assert err[t >= 0.05 + 0.3].max() > 0.1            # a step, not already there
+    # without the disturbance estimate the loop keeps the part of d0 its inputs can reach
+    frozen = EstimatorConfig(disturbance_noise=1e-7, process_noise=0.0, slow_mode_noise=0.0)
+    _t, err0 = errors(frozen)
+    assert err0[-1] > 0.1
+
+
+def test_slow_modes_are_the_modes_slower_than_the_rate() -> None:
+    import scipy.linalg as sla
+
+    from soft_rom.control.estimator import slow_modes
+    model, _plant, _G = _slow_plant(np.zeros(3))
+    A, C = model.A, model.C
+    Vs = slow_modes(A, C, model.dt, 1.0)
+    assert Vs.shape == (3, 1)
+    np.testing.assert_allclose(np.abs(Vs[:, 0]), [1 / np.sqrt(3), 0, 0], atol=1e-12)
+    assert slow_modes(A, C, model.dt, 0.1).shape == (3, 0)
+    # a lightly damped pair gives two columns (real and imaginary parts), unit output each
+    om, a = 2.6, 0.1
+    Ad = sla.expm(np.array([[-a, om], [-om, -a]]) * 0.01)
+    Cd = np.array([[1.0, 0.0], [0.5, 2.0]])
+    Vp = slow_modes(Ad, Cd, 0.01, 1.0)
+    assert Vp.shape == (2, 2)
+    np.testing.assert_allclose(np.linalg.norm(Cd @ Vp, axis=0), 1.0, rtol=1e-12)
+
