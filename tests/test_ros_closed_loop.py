@@ -45,8 +45,7 @@ def setup(tmp_path_factory):
     ref_path = tmp / 'feasible.npz'
     np.savez(ref_path, t=np.arange(k) * 1e-3, Y=Y)
     ref = Reference(t=np.arange(k) * 1e-3, Y=Y)
-    inproc = run_closed_loop(model, ref, estimator=EstimatorConfig(process_noise=0.0,
-                                                                    slow_mode_noise=0.0),
+    inproc = run_closed_loop(model, ref, estimator=EstimatorConfig(process_noise=0.0),
                              duration=DURATION)
     return tmp, model, model_path, ref_path, ref, inproc
 

@@ -101,8 +101,7 @@ class ControllerNode(Node):
         self.input_offset = float(declare('input_offset', 0.0, 'see input_scale'))
         step = float(declare('step_s', 0.01, 'control step, s'))
         horizon = float(declare('horizon_s', 0.2, 'prediction horizon, s'))
-        rate_weight = float(declare('rate_weight', MPCConfig.rate_weight,
-                                     'weight of input increments'))
+        rate_weight = float(declare('rate_weight', MPCConfig.rate_weight, 'input change weight'))
         noise = float(declare('sensor_noise', 5e-4, 'measurement noise std, m'))
         sensor_rate = float(declare('sensor_rate_hz', 120.0, 'measured centerline rate'))
         stale = float(declare('stale_after_s', 0.1, 'hold the command beyond this age'))
@@ -125,8 +124,7 @@ class ControllerNode(Node):
                                  f'lists {len(self.topics)} topics')
             external = bool(self.state_topic)
             est = EstimatorConfig(measurement_noise=max(noise, 1e-5), sensor_rate=sensor_rate,
-                                  **({'process_noise': 0.0, 'slow_mode_noise': 0.0}
-                                     if external else {}))
+                                  **({'process_noise': 0.0} if external else {}))
             self.core = Controller(self.model, MPCConfig(step=step, horizon=horizon,
                                                          rate_weight=rate_weight), est,
                                    stale_after=stale, external_state=external)

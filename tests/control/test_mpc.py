@@ -49,15 +49,14 @@ def test_offset_free_on_a_model_with_the_wrong_gain() -> None:
     ref = Reference(t=t, Y=Y)
     # state noise 0: the filter is a pure output-disturbance observer (fast to settle here;
     # with state noise the eel's 0.27 Hz first mode settles over seconds)
-    est = EstimatorConfig(process_noise=0.0, slow_mode_noise=0.0)
+    est = EstimatorConfig(process_noise=0.0)
     res = run_closed_loop(wrong, ref, plant=ROMPlant(model), sensor=Sensor(noise=0.0),
                           estimator=est, duration=1.5)
     dev = np.linalg.norm(target - model.y_ref)
     final = np.linalg.norm(res.Y[:, -1] - target)
     assert final < 1e-3 * dev
     # and without the disturbance estimate the same loop keeps an offset
-    no_d = EstimatorConfig(disturbance_noise=1e-7, process_noise=0.0,   # d frozen
-                           slow_mode_noise=0.0)
+    no_d = EstimatorConfig(disturbance_noise=1e-7, process_noise=0.0)   # d frozen
     res0 = run_closed_loop(wrong, ref, plant=ROMPlant(model), sensor=Sensor(noise=0.0),
                            estimator=no_d, duration=1.5)
     assert np.linalg.norm(res0.Y[:, -1] - target) > 0.05 * dev
@@ -172,8 +171,9 @@ def _slow_plant(d0: np.ndarray) -> tuple[DiscreteModel, DiscreteModel, np.ndarra
 
 
 @pytest.mark.parametrize('estimator', [EstimatorConfig(),
-                                       EstimatorConfig(process_noise=0.0, slow_mode_noise=0.0)],
-                         ids=['defaults', 'output-disturbance-only'])
+                                       EstimatorConfig(slow_mode_noise=0.03),
+                                       EstimatorConfig(process_noise=0.0)],
+                         ids=['defaults', 'slow-mode-noise', 'output-disturbance-only'])
 def test_offset_free_with_a_slow_mode_and_a_constant_output_disturbance(
         estimator: EstimatorConfig) -> None:
     """A reachable step settles within 2 % in 1.5 s and stays there.
@@ -203,7 +203,7 @@ def test_offset_free_with_a_slow_mode_and_a_constant_output_disturbance(
     assert err[-1] <= 2e-3
     assert err[t >= 0.05 + 0.3].max() > 0.1            # a step, not already there
     # without the disturbance estimate the loop keeps the part of d0 its inputs can reach
-    frozen = EstimatorConfig(disturbance_noise=1e-7, process_noise=0.0, slow_mode_noise=0.0)
+    frozen = EstimatorConfig(disturbance_noise=1e-7, process_noise=0.0)
     _t, err0 = errors(frozen)
     assert err0[-1] > 0.1
 
@@ -218,6 +218,10 @@ def test_slow_modes_are_the_modes_slower_than_the_rate() -> None:
     assert Vs.shape == (3, 1)
     np.testing.assert_allclose(np.abs(Vs[:, 0]), [1 / np.sqrt(3), 0, 0], atol=1e-12)
     assert slow_modes(A, C, model.dt, 0.1).shape == (3, 0)
+    # an unstable mode is not a slow one
+    grow = np.diag([np.exp(0.2 * model.dt), np.exp(-0.5 * model.dt), np.exp(-30 * model.dt)])
+    Vg = slow_modes(grow, C, model.dt, 1.0)
+    assert Vg.shape == (3, 1) and abs(Vg[1, 0]) > 0.9 * np.linalg.norm(Vg)
     # a lightly damped pair gives two columns (real and imaginary parts), unit output each
     om, a = 2.6, 0.1
     Ad = sla.expm(np.array([[-a, om], [-om, -a]]) * 0.01)
