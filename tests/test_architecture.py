@@ -28,7 +28,7 @@ MAX_LONG_FUNCTIONS = 5
 #: split (issue 23); none may grow, and no other may pass the limit.
 LONG_MODULES = {
     'sim/eel.py': 851, 'ros/predictor_node.py': 622, 'predictor/core.py': 600,
-    'predictor/loop.py': 560, 'convert/stream.py': 503,
+    'predictor/loop.py': 560,
 }
 #: Functions over the limit today (module:function), each with the length it may not exceed.
 LONG_FUNCTIONS = {
