@@ -27,7 +27,7 @@ MAX_LONG_FUNCTIONS = 5
 #: Modules over the limit today, each with the length it may not exceed: they are to be
 #: split (issue 23); none may grow, and no other may pass the limit.
 LONG_MODULES = {
-    'sim/eel.py': 851, 'ros/predictor_node.py': 622, 'predictor/core.py': 600,
+    'ros/predictor_node.py': 622, 'predictor/core.py': 600,
     'predictor/loop.py': 560,
 }
 #: Functions over the limit today (module:function), each with the length it may not exceed.
@@ -35,7 +35,7 @@ LONG_FUNCTIONS = {
     'learners/lopinf/ipm.py:solve_two_cone_qp': 129, 'control/study.py:run_control_study': 143,
     'cli/fit.py:add_parser': 119, 'convert/mapping.py:from_dict': 91,
     'ros/controller_node.py:__init__': 92,
-    'control/loop.py:run_closed_loop': 85, 'sim/eel.py:simulate': 83,
+    'control/loop.py:run_closed_loop': 85,
     'study/figures.py:errors_vs_r': 81,
 }
 
