@@ -27,8 +27,7 @@ MAX_LONG_FUNCTIONS = 5
 #: Modules over the limit today, each with the length it may not exceed: they are to be
 #: split (issue 23); none may grow, and no other may pass the limit.
 LONG_MODULES = {
-    'ros/predictor_node.py': 622, 'predictor/core.py': 600,
-    'predictor/loop.py': 560,
+    'ros/predictor_node.py': 622,
 }
 #: Functions over the limit today (module:function), each with the length it may not exceed.
 LONG_FUNCTIONS = {
