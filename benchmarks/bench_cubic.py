@@ -36,7 +36,7 @@ import scipy.linalg as sla
 
 from soft_rom.ddt import FiniteDifference
 from soft_rom.learners.lopinf import cubic as lc
-from soft_rom.models.tensors import symmetric_entries
+from soft_rom.models.tensors import gram_map, symmetric_entries
 
 
 def _chain_module() -> object:
@@ -79,7 +79,7 @@ def _baseline(A: np.ndarray, b: np.ndarray, lay: lc._Layout, ridge: np.ndarray, 
     Lc = np.linalg.cholesky(N)
     c = sla.solve_triangular(Lc, A.T @ b, lower=True)
     scale = max(float(np.linalg.norm(c)), 1e-300)
-    Tg, ns = lc._gram_map(r)
+    Tg, ns = gram_map(r)
     th_K, th_G = cp.Variable(o['G'] - o['K']), cp.Variable(o['H'] - o['G'])
     th_C, th_B = cp.Variable(o['B'] - o['C']), cp.Variable(lay.n_theta - o['B'])
     X = cp.Variable((ns, ns), symmetric=True)

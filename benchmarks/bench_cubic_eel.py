@@ -97,8 +97,8 @@ def build_data(path: Path) -> None:
     """Simulate the study's default eel, convert, reduce as study 2 does; save ``path``."""
     from soft_rom.basis import POD, project
     from soft_rom.convert import convert
+    from soft_rom.study.fits import _in_memory
     from soft_rom.study.run import simulate_bags, StudyConfig
-    from soft_rom.study.studies import _in_memory
     cfg = StudyConfig()
     work = Path(tempfile.mkdtemp(prefix='cubic_eel_', dir=path.parent))
     t0 = time.perf_counter()

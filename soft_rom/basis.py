@@ -195,6 +195,22 @@ class POD:
         -------
         self : POD
         """
+        V, s = self.svd(snapshots, q_ref)
+        return self.fit_svd(V, s, q_ref)
+
+    def svd(self, snapshots: Sequence[Any] | Any, q_ref: ArrayLike) -> tuple[Array, Array]:
+        """The thin SVD ``(V, s)`` of the centred snapshots, read in column blocks.
+
+        Parameters
+        ----------
+        snapshots : array or sequence of arrays, each shape (n, k_i)
+        q_ref : ndarray, shape (n,)
+
+        Returns
+        -------
+        V : ndarray, shape (n, min(n, k))
+        s : ndarray, shape (min(n, k),)
+        """
         parts: list[Any] = [snapshots] if hasattr(snapshots, 'shape') else list(snapshots)
         if not parts:
             raise DimensionError('POD.fit needs at least one snapshot array.')
@@ -215,6 +231,29 @@ class POD:
         if not all_finite(X):
             raise DimensionError('snapshots contain NaN or Inf; clean them before POD.')
         V, s, _ = np.linalg.svd(X, full_matrices=False)
+        return V, s
+
+    def fit_svd(self, V: ArrayLike, s: ArrayLike, q_ref: ArrayLike) -> POD:
+        """The basis from a thin SVD of the centred snapshots, already computed.
+
+        :meth:`fit` ends here; a caller that needs several truncations of the same snapshots
+        (:class:`~soft_rom.reduce.InMemoryPOD` with ``share_svd``) computes the SVD once.
+
+        Parameters
+        ----------
+        V : ndarray, shape (n, k)
+            Left singular vectors, in the order of ``s``.
+        s : ndarray, shape (k,)
+            Singular values, descending.
+        q_ref : ndarray, shape (n,)
+
+        Returns
+        -------
+        self : POD
+        """
+        V = np.asarray(V, dtype=np.float64)
+        s = np.asarray(s, dtype=np.float64).reshape(-1)
+        ref = np.asarray(q_ref, dtype=np.float64).reshape(-1)
         r = select_rank(s, r=self.r, energy=self.energy)
         V = V[:, :r]
         idx = np.argmax(np.abs(V), axis=0)

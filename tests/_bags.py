@@ -7,7 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
-from soft_rom.bags.replay_io import _float64_array, _header, _open_writer, _pose_array, _T, _TS
+from soft_rom.bags.prediction_writer import (
+    _float64_array,
+    _header,
+    _open_writer,
+    _pose_array,
+    _T,
+    _TS,
+)
 from soft_rom.data import Episode
 from soft_rom.errors import BagError
 from soft_rom.models import SecondOrderModel

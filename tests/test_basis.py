@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from soft_rom.basis import BasisBuilder, POD, project, select_rank
+from soft_rom.data import Episode
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
 
 
@@ -87,3 +88,30 @@ def test_sign_convention_is_scale_invariant():
     a = POD(r=3).fit(eps, q_ref)
     b = POD(r=3).fit([1e3 * Q for Q in eps], 1e3 * q_ref)
     np.testing.assert_allclose(a.basis_, b.basis_, atol=1e-10)
+
+
+def test_shared_svd_gives_the_same_pod_bit_for_bit_and_only_for_the_same_arrays() -> None:
+    from soft_rom.reduce import InMemoryPOD
+    from soft_rom.reduce.memory import training_data
+
+    rng = np.random.default_rng(4)
+    t = np.arange(120) * 1e-3
+    eps = [Episode(t=t, U=rng.standard_normal((2, 120)), Y=rng.standard_normal((3, 120)),
+                   Q=rng.standard_normal((40, 120)) @ np.diag(np.linspace(1, 0.01, 120)),
+                   name=f'ep{i}') for i in (1, 2)]
+    data = training_data(eps, q_ref=np.zeros(40))
+    shared = InMemoryPOD(share_svd=True)
+    for r in (8, 3, 8):
+        a, b = shared.reduce(data, r=r), InMemoryPOD().reduce(data, r=r)
+        assert np.array_equal(a.modes, b.modes) and a.modes.shape == (40, r)
+        assert all(np.array_equal(x, y) for x, y in zip(a.coordinates, b.coordinates))
+        assert np.array_equal(a.singular_values, b.singular_values)
+    held = shared._svd
+    # The same values in other arrays, or another q_ref: a new SVD, never the kept one.
+    copies = training_data([Episode(t=e.t, U=e.U, Y=e.Y, Q=e.Q.copy(), name=e.name)
+                            for e in eps], q_ref=np.zeros(40))
+    shared.reduce(copies, r=3)
+    assert shared._svd is not held
+    other_ref = training_data(copies.episodes, q_ref=np.full(40, 0.5))
+    a = shared.reduce(other_ref, r=3)
+    assert np.array_equal(a.modes, InMemoryPOD().reduce(other_ref, r=3).modes)

@@ -184,3 +184,35 @@ def test_a_method_with_no_fitted_r_draws_no_curve(tmp_path) -> None:
     assert not ax.lines
     assert _plot_in_range(ax, [2, 4], [0.5, 5.0], 1e-3, 1.0, log=True) is True
     plt.close(fig)
+
+
+def test_dmdc_in_a_second_process_gives_the_same_study_2(study, tmp_path) -> None:
+    """``jobs`` 2 runs study 2's DMDc in a spawned process: the same numbers, bit for bit."""
+    from dataclasses import replace
+
+    from soft_rom.convert import convert
+    from soft_rom.study.run import blas_threads
+    from soft_rom.study.studies import study_unseen_inputs
+
+    out, _summary = study
+    ts, _ = convert([out / 'bags' / f'ep{i}' for i in (1, 2, 3)], tmp_path / 'data.zarr',
+                    progress=False)
+    cfg = StudyConfig(n_episodes=3, duration=0.4, t_train=0.3, r_lopinf=(4,),
+                      r_dmdc=(2, 4), r_era=(6,), shape_times=(0.1, 0.2, 0.39), jobs=1,
+                      era_options={'decimation': 1, 'output_rank': 4, 'observer_order': 8,
+                                   'n_markov': 100})
+    for name in ('one', 'two'):
+        (tmp_path / name).mkdir()
+    with blas_threads(cfg.blas_threads):              # as run_study: the worker's count
+        one = study_unseen_inputs(ts, cfg, tmp_path / 'one')
+        two = study_unseen_inputs(ts, replace(cfg, jobs=2), tmp_path / 'two')
+    assert list(two['chosen']) == list(one['chosen']) == ['lopinf', 'dmdc', 'lopinf_cubic',
+                                                         'era']
+    assert two['chosen'] == one['chosen']
+    assert two['test'] == one['test'] and two['test_dev'] == one['test_dev']
+    r = one['chosen']['dmdc']['r']
+    a = load_model(tmp_path / 'two' / 'models' / f'eel_dmdc_r{r}.npz')
+    b = load_model(tmp_path / 'one' / 'models' / f'eel_dmdc_r{r}.npz')
+    assert a.metadata['held_out'] == b.metadata['held_out']
+    assert np.array_equal(a.A, b.A) and np.array_equal(a.B, b.B)
+    assert two['fit_seconds']['dmdc'] > 0

@@ -54,10 +54,7 @@ def _methods(text: str) -> tuple[str, ...]:
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register ``fit``.
-
-    Long (about 115 lines) because it only declares the verb's options, one after the other.
-    """
+    """Register ``fit``: the training set and methods, then the options by concern."""
     parser = subparsers.add_parser(
         'fit', help='fit LOpInf / DMDc / ERA-OKID ROMs on a training set',
         description='Fit reduced-order models on a training set and write one model file per '
@@ -68,6 +65,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                              'is converted first: soft-rom convert BAG -o SET.zarr)')
     parser.add_argument('--method', type=_methods, default=('lopinf',),
                         help='lopinf, dmdc, era, or several comma-separated (default lopinf)')
+    _add_size_and_lopinf_options(parser)
+    _add_era_options(parser.add_argument_group('ERA/OKID'))
+    _add_variant_options(parser.add_argument_group('LOpInf / DMDc variants'))
+    _add_run_options(parser)
+    parser.set_defaults(func=run)
+    return parser
+
+
+def _add_size_and_lopinf_options(parser: argparse.ArgumentParser) -> None:
+    """``--r`` / ``--energy``, the LOpInf solver, forces and derivatives, the data used."""
     size = parser.add_mutually_exclusive_group()
     size.add_argument('--r', type=parse_r_list, default=None, metavar='R',
                       help='reduced dimension(s): 16, 4,8,16 or START:STOP[:STEP] (inclusive)')
@@ -111,7 +118,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help='train on samples with t - t_start < T_MAX seconds of each episode')
     parser.add_argument('--p', type=int_range(1), default=None, dest='dmdc_p',
                         help='DMDc truncation of the SVD of [Q; U] (default r + m)')
-    era = parser.add_argument_group('ERA/OKID')
+
+
+def _add_era_options(era: Any) -> None:
+    """The ERA/OKID option group."""
     era.add_argument('--era-episode', default=None,
                      help='the one episode ERA/OKID is fitted on (default the first selected)')
     era.add_argument('--decimation', type=int_range(1, 100_000), default=None,
@@ -140,7 +150,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     era.add_argument('--okid-ridge', type=finite_float(0.0), default=None,
                      help='relative ridge weight of OKID (default: selected on a held-out '
                           'tail)')
-    variants = parser.add_argument_group('LOpInf / DMDc variants')
+
+
+def _add_variant_options(variants: Any) -> None:
+    """The LOpInf / DMDc variants option group."""
     variants.add_argument('--regularization', default=None, metavar='GAMMA|auto',
                           help="LOpInf Tikhonov weight (dimensionless), or 'auto' to select it "
                                'on held-out episode tails (default none)')
@@ -152,6 +165,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                                'spectral radius <= 1; files named PREFIX_dmdc-stable_rR.npz, '
                                'flagged when their training error is worse than the paper '
                                "variant's)")
+
+
+def _add_run_options(parser: argparse.ArgumentParser) -> None:
+    """Streaming and Dask, the output directory and files, JSON and quiet."""
     parser.add_argument('--streaming', action='store_true',
                         help='stream the snapshots from disk with bounded memory (for training '
                              'sets larger than RAM; the exact Gram POD while it fits in 1 GiB, '
@@ -170,8 +187,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         help='file-name prefix (default: the training set name, e.g. eel)')
     add_json(parser, help='also write the summary table as JSON')
     add_quiet(parser, old=True)
-    parser.set_defaults(func=run)
-    return parser
 
 
 _MODEL_FILE = is_model_file

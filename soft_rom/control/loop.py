@@ -253,11 +253,7 @@ def run_closed_loop(model: Any, reference: Reference, *, plant: Any = None,
     ctl.set_reference(reference)
     plant = plant if plant is not None else FOMPlant(model)
     dt = float(plant.dt)
-    ratio = ctl.h / dt
-    every = int(round(ratio))
-    if every < 1 or abs(ratio - every) > 1e-6:
-        raise ConfigError(f'the control step {ctl.h:g} s must be a whole multiple of the plant '
-                          f'step {dt:g} s.')
+    every = _control_every(ctl.h, dt)
     duration = reference.duration if duration is None else float(duration)
     k = max(1, int(round(duration / dt)))
     rng = np.random.default_rng(sensor.seed)
@@ -265,11 +261,7 @@ def run_closed_loop(model: Any, reference: Reference, *, plant: Any = None,
     p, m = ctl.mpc.p, ctl.mpc.m
     Y = np.empty((p, k))
     U = np.empty((m, k))
-    frames = np.floor(np.arange(0, k * dt * sensor.rate + 1e-9) / sensor.rate / dt + 1e-9
-                      ).astype(np.int64)
-    frames = np.unique(frames[frames < k])
-    is_frame = np.zeros(k, dtype=bool)
-    is_frame[frames] = True
+    is_frame = _frame_mask(k, dt, sensor.rate)
     t_meas, Y_meas = [], []
     t_ctl, solve_s, step_s, step_cpu, status = [], [], [], [], []
     ctl.start(0.0)
@@ -293,13 +285,7 @@ def run_closed_loop(model: Any, reference: Reference, *, plant: Any = None,
         plant.step(ctl.u)
         if progress is not None and j % 100 == 0:
             progress(j / k)
-    wall = time.perf_counter() - t_start
-    info = {'method': str(model.method), 'r': int(model.r), 'reference': reference.label,
-            'control_step_s': ctl.h, 'horizon_steps': ctl.mpc.N, 'plant_step_s': dt,
-            'sensor_rate_hz': sensor.rate, 'sensor_noise': sensor.noise,
-            'sensor_seed': sensor.seed, 'qp_solver': ctl.mpc.solver.name,
-            'duration_s': k * dt, 'wall_s': wall,
-            'measurements_dropped': ctl.counters.measurements_dropped}
+    info = _loop_info(model, reference, ctl, sensor, dt, k, time.perf_counter() - t_start)
     return ClosedLoopResult(
         t=t, U=U, Y=Y, Y_ref=reference.at(t), t_meas=np.array(t_meas),
         Y_meas=np.array(Y_meas).T.reshape(p, -1), t_control=np.array(t_ctl),
@@ -307,6 +293,36 @@ def run_closed_loop(model: Any, reference: Reference, *, plant: Any = None,
         status=np.array(status, dtype='U16'),
         u_min=ctl.mpc.lo.copy(), u_max=ctl.mpc.hi.copy(), y_ref=np.asarray(model.y_ref).copy(),
         info=info)
+
+
+def _control_every(h: float, dt: float) -> int:
+    """Plant steps per control step (the control step must be a whole multiple of ``dt``)."""
+    ratio = h / dt
+    every = int(round(ratio))
+    if every < 1 or abs(ratio - every) > 1e-6:
+        raise ConfigError(f'the control step {h:g} s must be a whole multiple of the plant '
+                          f'step {dt:g} s.')
+    return every
+
+
+def _frame_mask(k: int, dt: float, rate: float) -> NDArray[np.bool_]:
+    """Which of ``k`` plant steps of ``dt`` the sensor sees at ``rate`` frames per second."""
+    frames = np.floor(np.arange(0, k * dt * rate + 1e-9) / rate / dt + 1e-9).astype(np.int64)
+    frames = np.unique(frames[frames < k])
+    is_frame = np.zeros(k, dtype=bool)
+    is_frame[frames] = True
+    return is_frame
+
+
+def _loop_info(model: Any, reference: Reference, ctl: Controller, sensor: Sensor, dt: float,
+               k: int, wall: float) -> dict[str, Any]:
+    """The ``info`` of a :class:`ClosedLoopResult`: settings, duration and wall time."""
+    return {'method': str(model.method), 'r': int(model.r), 'reference': reference.label,
+            'control_step_s': ctl.h, 'horizon_steps': ctl.mpc.N, 'plant_step_s': dt,
+            'sensor_rate_hz': sensor.rate, 'sensor_noise': sensor.noise,
+            'sensor_seed': sensor.seed, 'qp_solver': ctl.mpc.solver.name,
+            'duration_s': k * dt, 'wall_s': wall,
+            'measurements_dropped': ctl.counters.measurements_dropped}
 
 
 def open_loop_plan(model: Any, reference: Reference, *, mpc: MPCConfig | None = None,

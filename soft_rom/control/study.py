@@ -137,7 +137,6 @@ def run_control_study(out: str | Path, models: dict[str, Any],
     from concurrent.futures import ProcessPoolExecutor
     import multiprocessing
 
-    from soft_rom.control.figures import closed_loop_figure
     from soft_rom.models import load_model
     from soft_rom.sim import EelModel
     cfg = cfg or ControlStudyConfig()
@@ -145,7 +144,6 @@ def run_control_study(out: str | Path, models: dict[str, Any],
     out.mkdir(parents=True, exist_ok=True)
     eel = EelModel()
     loaded = {k: load_model(p) for k, p in models.items()}
-    first = next(iter(loaded.values()))
     t_start = time.perf_counter()
     summary: dict[str, Any] = {'config': {
         'duration_s': cfg.duration, 'n_references': cfg.n_references, 'seed': cfg.seed,
@@ -158,107 +156,16 @@ def run_control_study(out: str | Path, models: dict[str, Any],
     # and a forked worker can inherit a lock held by one of them and wait on it forever
     pool = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context(
         'spawn')) if jobs > 1 else None
-
-    def run_all(tasks: list[tuple]) -> list[Any]:
-        if pool is None:
-            return [_task(t) for t in tasks]
-        return list(pool.map(_task, tasks))
-
+    st = _Study(out, models, loaded, cfg, eel, log, pool)
     try:
-        # the weight, chosen once on a training reference
-        train = _feasible(first, eel, cfg.train_seed, cfg.train_episode, 1.0, cfg.amplitude,
-                          cfg.mpc.horizon)
-        grid = [(w, lab) for w in cfg.rate_weights for lab in models]
-        errs = run_all([(str(models[lab]), train.t, train.Y, train.label,
-                         replace(cfg.mpc, rate_weight=w), 1.0, False) for w, lab in grid])
-        tuning: dict[str, dict[str, float]] = {}
-        for (w, lab), (e, _s, _r) in zip(grid, errs):
-            tuning.setdefault(f'{w:g}', {})[lab] = e
-        for text, row in tuning.items():
-            log(f'  weight {text} on the training reference: '
-                + ', '.join(f'{lab} {v:.3f}' for lab, v in row.items()))
-        # the geometric mean: each controller's relative change counts the same (the
-        # arithmetic mean follows the controllers with the largest errors only)
-        best = min(cfg.rate_weights,
-                   key=lambda w: float(np.mean(np.log(list(tuning[f'{w:g}'].values())))))
+        best, tuning = _choose_weight(st)
         mpc = replace(cfg.mpc, rate_weight=best)
         summary['weight'] = {'chosen_rate_weight': best, 'training_reference_errors': tuning}
-        log(f'  chosen weight {best:g}')
-
-        # experiment 1: feasible references
-        refs = [_feasible(first, eel, cfg.seed, e, cfg.duration, cfg.amplitude,
-                          cfg.mpc.horizon) for e in range(1, cfg.n_references + 1)]
-        k = int(round(cfg.duration / 1e-3))
-        pairs = [(ref, lab) for ref in refs for lab in models]
-        results = run_all([(str(models[lab]), ref.t, ref.Y, ref.label, mpc, cfg.duration,
-                            ref is refs[0]) for ref, lab in pairs])
-        exp1: dict[str, dict[str, Any]] = {lab: {} for lab in models}
-        for (ref, lab), (closed, s, res) in zip(pairs, results):
-            model = loaded[lab]
-            U = ref.U if ref.U is not None else np.zeros((model.n_inputs, ref.t.size))
-            open_loop = relative_deviation_error(ref.Y[:, :k], model.simulate(U[:, :k]),
-                                                 model.y_ref)
-            exp1[lab][ref.label] = {'closed_loop': closed, 'open_loop_prediction': open_loop,
-                                    'ratio': closed / open_loop,
-                                    'solve_p99_ms': s['solve']['p99_ms'],
-                                    'saturated_fraction': s['saturated_fraction']}
-            log(f'  {lab} on {ref.label}: closed loop {closed:.3f}, open-loop prediction '
-                f'{open_loop:.3f} (ratio {closed / open_loop:.2f})')
-            if res is not None:
-                closed_loop_figure(out / f'feasible_{_slug(lab)}.png', res,
-                                   list(model.output_names),
-                                   title=f'{lab}: feasible reference {ref.label}')
-        summary['experiment1'] = exp1
-
-        # experiment 2: the travelling wave, closed loop and open loop applied
-        wave = parse_reference(cfg.wave, first, duration=cfg.duration + cfg.mpc.horizon)
-        summary['wave'] = wave.label
-        labels = list(models)
-        closed_w = run_all([(str(models[lab]), wave.t, wave.Y, wave.label, mpc, cfg.duration,
-                             True) for lab in labels])
-        ol_args = [(str(models[lab]), wave.t, wave.Y, mpc, cfg.duration) for lab in labels]
-        Y_ols = list(pool.map(_open_loop_task, ol_args)) if pool is not None else \
-            [_open_loop_task(a) for a in ol_args]
-        exp2: dict[str, Any] = {}
-        for lab, (closed, s, res), Y_ol in zip(labels, closed_w, Y_ols):
-            model = loaded[lab]
-            ol = relative_deviation_error(wave.at(res.t), Y_ol, model.y_ref)
-            floor = _reach_floor(model, wave, mpc, cfg.duration)
-            exp2[lab] = {'closed_loop': closed, 'open_loop_applied': ol, 'ratio': closed / ol,
-                         'model_floor': floor,
-                         'saturated_fraction': s['saturated_fraction'],
-                         'solve_p99_ms': s['solve']['p99_ms']}
-            log(f'  {lab} on the wave: closed loop {closed:.3f}, open loop applied {ol:.3f} '
-                f'(ratio {closed / ol:.2f}), inputs at a bound '
-                f'{100 * s["saturated_fraction"]:.0f} %; the same MPC with the model as the '
-                f'plant and no input bounds: {floor:.3f}')
-            closed_loop_figure(out / f'wave_{_slug(lab)}.png', res, list(model.output_names),
-                               title=f'{lab}: {wave.label}', open_loop=Y_ol)
+        summary['experiment1'] = _feasible_references(st, mpc)
+        wave, exp2 = _travelling_wave(st, mpc)
+        summary['wave'] = wave
         summary['experiment2'] = exp2
-
-        # the offset-free check: a static bend from the FOM's own steady state
-        bend = step_reference(first, np.array(cfg.bend), 2.0, at=0.05, plant=eel)
-        target = bend.Y[:, -1]
-        commanded = float(np.linalg.norm(target - first.y_ref))
-        bend_res = run_all([(str(models[lab]), bend.t, bend.Y, bend.label, mpc, 2.0, True)
-                            for lab in labels])
-        offset: dict[str, Any] = {}
-        for lab, (_e, _s, res) in zip(labels, bend_res):
-            after = res.t >= 1.0
-            err = np.linalg.norm(res.Y[:, after] - target[:, None], axis=0) / commanded
-            every = np.linalg.norm(res.Y - target[:, None], axis=0) / commanded
-            above = np.flatnonzero(every > 0.02)
-            within = float(res.t[above[-1] + 1]) if above.size and above[-1] + 1 < res.t.size \
-                else (None if above.size else 0.0)
-            offset[lab] = {'max_error_after_1s': float(err.max()),
-                           'mean_error_after_1s': float(err.mean()),
-                           'final_error': float(err[-1]),
-                           'within_2pct_from_s': within}
-            log(f'  {lab} static bend: error after 1 s at most {100 * err.max():.2f} % of the '
-                f'commanded deviation (final {100 * err[-1]:.2f} %; within 2 % from '
-                + ('never' if within is None else f'{within:.2f} s') + ')')
-        summary['offset_free'] = {'reference': bend.label, 'commanded_deviation_m': commanded,
-                                  'per_model': offset}
+        summary['offset_free'] = _static_bend(st, mpc)
     finally:
         if pool is not None:
             pool.shutdown()
@@ -268,6 +175,142 @@ def run_control_study(out: str | Path, models: dict[str, Any],
                                       encoding='utf-8')
     (out / 'report.md').write_text(_report(summary), encoding='utf-8')
     return summary
+
+
+@dataclass
+class _Study:
+    """What the stages of :func:`run_control_study` share: the models, the FOM, the pool."""
+
+    out: Path
+    models: dict[str, Any]          # label -> model file
+    loaded: dict[str, Any]          # label -> model
+    cfg: ControlStudyConfig
+    eel: Any
+    log: Callable[[str], None]
+    pool: Any                       # a process pool, or None: in this process
+
+    @property
+    def first(self) -> Any:
+        """The first model (references and the wave are built on its outputs)."""
+        return next(iter(self.loaded.values()))
+
+    def run_all(self, tasks: list[tuple]) -> list[Any]:
+        """Closed loops (:func:`_task`), in the pool if there is one."""
+        if self.pool is None:
+            return [_task(t) for t in tasks]
+        return list(self.pool.map(_task, tasks))
+
+    def open_loops(self, tasks: list[tuple]) -> list[Any]:
+        """Open loops (:func:`_open_loop_task`), in the pool if there is one."""
+        if self.pool is None:
+            return [_open_loop_task(a) for a in tasks]
+        return list(self.pool.map(_open_loop_task, tasks))
+
+
+def _choose_weight(st: _Study) -> tuple[float, dict[str, dict[str, float]]]:
+    """The rate weight, chosen once on a training reference; with every weight's errors."""
+    cfg, models = st.cfg, st.models
+    train = _feasible(st.first, st.eel, cfg.train_seed, cfg.train_episode, 1.0, cfg.amplitude,
+                      cfg.mpc.horizon)
+    grid = [(w, lab) for w in cfg.rate_weights for lab in models]
+    errs = st.run_all([(str(models[lab]), train.t, train.Y, train.label,
+                        replace(cfg.mpc, rate_weight=w), 1.0, False) for w, lab in grid])
+    tuning: dict[str, dict[str, float]] = {}
+    for (w, lab), (e, _s, _r) in zip(grid, errs):
+        tuning.setdefault(f'{w:g}', {})[lab] = e
+    for text, row in tuning.items():
+        st.log(f'  weight {text} on the training reference: '
+               + ', '.join(f'{lab} {v:.3f}' for lab, v in row.items()))
+    # the geometric mean: each controller's relative change counts the same (the
+    # arithmetic mean follows the controllers with the largest errors only)
+    best = min(cfg.rate_weights,
+               key=lambda w: float(np.mean(np.log(list(tuning[f'{w:g}'].values())))))
+    st.log(f'  chosen weight {best:g}')
+    return best, tuning
+
+
+def _feasible_references(st: _Study, mpc: MPCConfig) -> dict[str, dict[str, Any]]:
+    """Experiment 1: feasible references, closed loop against the open-loop prediction."""
+    from soft_rom.control.figures import closed_loop_figure
+    cfg, models = st.cfg, st.models
+    refs = [_feasible(st.first, st.eel, cfg.seed, e, cfg.duration, cfg.amplitude,
+                      cfg.mpc.horizon) for e in range(1, cfg.n_references + 1)]
+    k = int(round(cfg.duration / 1e-3))
+    pairs = [(ref, lab) for ref in refs for lab in models]
+    results = st.run_all([(str(models[lab]), ref.t, ref.Y, ref.label, mpc, cfg.duration,
+                           ref is refs[0]) for ref, lab in pairs])
+    exp1: dict[str, dict[str, Any]] = {lab: {} for lab in models}
+    for (ref, lab), (closed, s, res) in zip(pairs, results):
+        model = st.loaded[lab]
+        U = ref.U if ref.U is not None else np.zeros((model.n_inputs, ref.t.size))
+        open_loop = relative_deviation_error(ref.Y[:, :k], model.simulate(U[:, :k]),
+                                             model.y_ref)
+        exp1[lab][ref.label] = {'closed_loop': closed, 'open_loop_prediction': open_loop,
+                                'ratio': closed / open_loop,
+                                'solve_p99_ms': s['solve']['p99_ms'],
+                                'saturated_fraction': s['saturated_fraction']}
+        st.log(f'  {lab} on {ref.label}: closed loop {closed:.3f}, open-loop prediction '
+               f'{open_loop:.3f} (ratio {closed / open_loop:.2f})')
+        if res is not None:
+            closed_loop_figure(st.out / f'feasible_{_slug(lab)}.png', res,
+                               list(model.output_names),
+                               title=f'{lab}: feasible reference {ref.label}')
+    return exp1
+
+
+def _travelling_wave(st: _Study, mpc: MPCConfig) -> tuple[str, dict[str, Any]]:
+    """Experiment 2: the travelling wave, closed loop and open loop applied; its label."""
+    from soft_rom.control.figures import closed_loop_figure
+    cfg, models = st.cfg, st.models
+    wave = parse_reference(cfg.wave, st.first, duration=cfg.duration + cfg.mpc.horizon)
+    labels = list(models)
+    closed_w = st.run_all([(str(models[lab]), wave.t, wave.Y, wave.label, mpc, cfg.duration,
+                            True) for lab in labels])
+    Y_ols = st.open_loops([(str(models[lab]), wave.t, wave.Y, mpc, cfg.duration)
+                           for lab in labels])
+    exp2: dict[str, Any] = {}
+    for lab, (closed, s, res), Y_ol in zip(labels, closed_w, Y_ols):
+        model = st.loaded[lab]
+        ol = relative_deviation_error(wave.at(res.t), Y_ol, model.y_ref)
+        floor = _reach_floor(model, wave, mpc, cfg.duration)
+        exp2[lab] = {'closed_loop': closed, 'open_loop_applied': ol, 'ratio': closed / ol,
+                     'model_floor': floor,
+                     'saturated_fraction': s['saturated_fraction'],
+                     'solve_p99_ms': s['solve']['p99_ms']}
+        st.log(f'  {lab} on the wave: closed loop {closed:.3f}, open loop applied {ol:.3f} '
+               f'(ratio {closed / ol:.2f}), inputs at a bound '
+               f'{100 * s["saturated_fraction"]:.0f} %; the same MPC with the model as the '
+               f'plant and no input bounds: {floor:.3f}')
+        closed_loop_figure(st.out / f'wave_{_slug(lab)}.png', res, list(model.output_names),
+                           title=f'{lab}: {wave.label}', open_loop=Y_ol)
+    return wave.label, exp2
+
+
+def _static_bend(st: _Study, mpc: MPCConfig) -> dict[str, Any]:
+    """The offset-free check: a static bend from the FOM's own steady state."""
+    first, models = st.first, st.models
+    bend = step_reference(first, np.array(st.cfg.bend), 2.0, at=0.05, plant=st.eel)
+    target = bend.Y[:, -1]
+    commanded = float(np.linalg.norm(target - first.y_ref))
+    labels = list(models)
+    bend_res = st.run_all([(str(models[lab]), bend.t, bend.Y, bend.label, mpc, 2.0, True)
+                           for lab in labels])
+    offset: dict[str, Any] = {}
+    for lab, (_e, _s, res) in zip(labels, bend_res):
+        after = res.t >= 1.0
+        err = np.linalg.norm(res.Y[:, after] - target[:, None], axis=0) / commanded
+        every = np.linalg.norm(res.Y - target[:, None], axis=0) / commanded
+        above = np.flatnonzero(every > 0.02)
+        within = float(res.t[above[-1] + 1]) if above.size and above[-1] + 1 < res.t.size \
+            else (None if above.size else 0.0)
+        offset[lab] = {'max_error_after_1s': float(err.max()),
+                       'mean_error_after_1s': float(err.mean()),
+                       'final_error': float(err[-1]),
+                       'within_2pct_from_s': within}
+        st.log(f'  {lab} static bend: error after 1 s at most {100 * err.max():.2f} % of the '
+               f'commanded deviation (final {100 * err[-1]:.2f} %; within 2 % from '
+               + ('never' if within is None else f'{within:.2f} s') + ')')
+    return {'reference': bend.label, 'commanded_deviation_m': commanded, 'per_model': offset}
 
 
 def _reach_floor(model: Any, ref: Reference, mpc: MPCConfig, duration: float) -> float:

@@ -6,7 +6,8 @@ one bag into an in-memory :class:`~soft_rom.data.Episode` (the replay tool uses 
 
 Modules: :mod:`~soft_rom.convert.mapping` (the mapping and its validation),
 :mod:`~soft_rom.convert.report` (report dataclasses), :mod:`~soft_rom.convert.stream` (probe
-and streaming converter of one bag), :mod:`~soft_rom.convert.api` (the two entry points).
+and streaming converter of one bag; :mod:`~soft_rom.convert.hold` holds the inputs on the
+grid), :mod:`~soft_rom.convert.api` (the two entry points).
 
 Mapping
 -------

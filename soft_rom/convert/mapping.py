@@ -130,8 +130,8 @@ class BagMapping:
         """Build from the YAML structure of ``config/bag_mapping.yaml``.
 
         Every key is type-checked here, once: a wrong type or value raises
-        :class:`~soft_rom.errors.ConfigError` naming the key (``output.points``, ...). About
-        90 lines: one check per key of the file, read top to bottom.
+        :class:`~soft_rom.errors.ConfigError` naming the key (``output.points``, ...), in
+        the order of the file, top to bottom.
         """
         if d is None:
             d = {}
@@ -153,38 +153,10 @@ class BagMapping:
         _no_extra('state', st, {'topic', 'include'})
         _no_extra('time', tm, {'stamps', 'match_tolerance', 'dt', 'max_gap', 'split_gap',
                                'min_samples'})
-        sources: list[InputSource] | None
-        if 'sources' in inp:
-            if not isinstance(inp['sources'], (list, tuple)):
-                raise ConfigError(f'inputs.sources must be a list of sources (a topic, or '
-                                  f'{{topic, slice}} / {{topic, indices}}); got '
-                                  f"{show_value(inp['sources'])}.")
-            sources = [_source('inputs.sources', s) for s in inp['sources']]
-        elif 'topic' in inp:
-            sources = [_source('inputs', {k: inp[k] for k in ('topic', 'indices', 'slice')
-                                          if k in inp})]
-        elif inp.get('topics', 'auto') in ('auto', None):
-            sources = None
-        elif isinstance(inp['topics'], (list, tuple)):
-            sources = [InputSource(_topic('inputs.topics', t)) for t in inp['topics']]
-        else:
-            raise ConfigError(f"inputs.topics must be 'auto' or a list of topics; got "
-                              f"{show_value(inp['topics'])}.")
-        if sources is not None and not sources:
-            raise ConfigError('inputs: at least one input source is needed.')
+        sources = _input_sources(inp)
         names = _strs('inputs.names', inp.get('names'), one=False)
         units = _strs('inputs.units', inp.get('units', 'Pa'), one=True)
-        comps_v = out.get('components', ('x', 'z'))
-        if isinstance(comps_v, str):
-            comps_v = list(comps_v)          # 'xz' spells [x, z]
-        if not isinstance(comps_v, (list, tuple)) or not all(isinstance(c, str)
-                                                             for c in comps_v):
-            raise ConfigError(f'output.components must be a list of distinct x, y, z; got '
-                              f'{show_value(comps_v)}.')
-        comps = tuple(comps_v)
-        if not comps or any(c not in COMPONENTS for c in comps) or len(set(comps)) < len(comps):
-            raise ConfigError(f'output.components must be a list of distinct x, y, z; got '
-                              f'{show_value(list(comps))}.')
+        comps = _components(out.get('components', ('x', 'z')))
         order = _choice('output.order', out.get('order', 'component_major'), ORDERS)
         stamps = _choice('time.stamps', tm.get('stamps', 'header'), ('header', 'log'))
         points = _indices('output.points', out.get('points'))
@@ -248,6 +220,45 @@ class BagMapping:
 
 def _sorted(keys: Any) -> list[str]:
     return sorted(str(k) for k in keys)
+
+
+def _input_sources(inp: Mapping[str, Any]) -> list[InputSource] | None:
+    """The input sources of the ``inputs`` section (``None``: every pressure topic, ``auto``)."""
+    sources: list[InputSource] | None
+    if 'sources' in inp:
+        if not isinstance(inp['sources'], (list, tuple)):
+            raise ConfigError(f'inputs.sources must be a list of sources (a topic, or '
+                              f'{{topic, slice}} / {{topic, indices}}); got '
+                              f"{show_value(inp['sources'])}.")
+        sources = [_source('inputs.sources', s) for s in inp['sources']]
+    elif 'topic' in inp:
+        sources = [_source('inputs', {k: inp[k] for k in ('topic', 'indices', 'slice')
+                                      if k in inp})]
+    elif inp.get('topics', 'auto') in ('auto', None):
+        sources = None
+    elif isinstance(inp['topics'], (list, tuple)):
+        sources = [InputSource(_topic('inputs.topics', t)) for t in inp['topics']]
+    else:
+        raise ConfigError(f"inputs.topics must be 'auto' or a list of topics; got "
+                          f"{show_value(inp['topics'])}.")
+    if sources is not None and not sources:
+        raise ConfigError('inputs: at least one input source is needed.')
+    return sources
+
+
+def _components(comps_v: Any) -> tuple[str, ...]:
+    """``output.components``: distinct x, y, z (``'xz'`` spells ``[x, z]``)."""
+    if isinstance(comps_v, str):
+        comps_v = list(comps_v)          # 'xz' spells [x, z]
+    if not isinstance(comps_v, (list, tuple)) or not all(isinstance(c, str)
+                                                         for c in comps_v):
+        raise ConfigError(f'output.components must be a list of distinct x, y, z; got '
+                          f'{show_value(comps_v)}.')
+    comps = tuple(comps_v)
+    if not comps or any(c not in COMPONENTS for c in comps) or len(set(comps)) < len(comps):
+        raise ConfigError(f'output.components must be a list of distinct x, y, z; got '
+                          f'{show_value(list(comps))}.')
+    return comps
 
 
 def _section(name: str, v: Any) -> dict[str, Any]:

@@ -29,7 +29,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from soft_rom.bags.reader import BagMessage, BagReader
-from soft_rom.convert.mapping import BagMapping, InputSource, per_input
+from soft_rom.convert.hold import InputTrack, LOST_FACTOR
+from soft_rom.convert.mapping import BagMapping, per_input
 from soft_rom.convert.probe import (
     BagPlan,
     layout_ok,
@@ -49,8 +50,6 @@ Array = NDArray[np.float64]
 
 #: Rejected stamps in a row, agreeing among themselves, after which a clock jump is followed.
 REANCHOR = 8
-#: Interval (in periods) above which samples are counted as lost between two others.
-LOST_FACTOR = 1.5
 
 
 class SegmentSink(Protocol):
@@ -68,18 +67,6 @@ class EpisodeSink(Protocol):
 
     def begin(self, name: str, n_states: int | None, t0_ns: int) -> SegmentSink:
         """Start episode ``name``."""
-
-
-@dataclass
-class _Track:
-    """Held-value timeline of one input source."""
-
-    source: InputSource
-    report: TopicReport
-    width: int
-    offset_ns: int
-    times: list[int] = field(default_factory=list)
-    values: list[Array] = field(default_factory=list)
 
 
 @dataclass
@@ -123,12 +110,12 @@ class BagConverter:
         self.report = ConversionReport(str(plan.path), plan.storage, plan.t_ref_ns,
                                        self.dt_ns * 1e-9)
         ref = plan.t_ref_ns
-        self.tracks: dict[str, _Track] = {}
+        self.tracks: dict[str, InputTrack] = {}
         for tp in plan.inputs:
             src = next(s for s in plan.sources if s.topic == tp.topic)
             rep = TopicReport(tp.topic, 'input', tp.msgtype, ref)
             self.report.topics[tp.topic] = rep
-            self.tracks[tp.topic] = _Track(src, rep, int(tp.size or 0), tp.offset_ns)
+            self.tracks[tp.topic] = InputTrack(src, rep, int(tp.size or 0), tp.offset_ns)
         out = plan.output
         self.out_plan = out
         self.out_rep = TopicReport(out.topic, 'output', out.msgtype, ref)
@@ -448,30 +435,7 @@ class BagConverter:
         self.report.n_samples += int(seg.k)
 
     def _held_inputs(self, grid: NDArray[np.int64]) -> Array:
-        blocks = []
-        for tr in self.tracks.values():
-            times = np.asarray(tr.times, dtype=np.int64)
-            vals = np.asarray(tr.values, dtype=np.float64)          # (count, width)
-            idx = np.searchsorted(times, grid, side='right') - 1   # last stamp <= t
-            if np.any(idx < 0):  # cannot happen: a piece starts after every first input
-                raise BagError(f'{tr.source.topic}: no input value before grid stamp '
-                               f'{int(grid[np.argmax(idx < 0)])} ns.')
-            blocks.append(vals[idx].T)
-            rep = tr.report
-            rep.used += int(np.unique(idx).size)
-            age = (grid - times[idx]) * 1e-9
-            rep.max_hold_s = max(rep.max_hold_s, float(age.max()))
-            if times.size > 1:
-                # held over a gap: the held message is followed by an interval longer than
-                # 1.5 input periods (a message missing or dropped), and the grid point is
-                # after the held message's stamp
-                limit = LOST_FACTOR * float(np.median(np.diff(times))) * 1e-9
-                has_next = idx < times.size - 1
-                nxt = times[np.minimum(idx + 1, times.size - 1)]
-                interval = np.where(has_next, (nxt - times[idx]) * 1e-9, np.inf)
-                in_gap = (age > 0) & np.where(has_next, interval > limit, age > limit)
-                rep.held_over_gap += int(np.sum(in_gap))
-        U = np.concatenate(blocks, axis=0)
+        U = np.concatenate([tr.held(grid) for tr in self.tracks.values()], axis=0)
         mm = U.shape[0]
         scale = np.asarray(per_input('inputs.scale', self.mapping.scale, mm), dtype=np.float64)
         offset = np.asarray(per_input('inputs.offset', self.mapping.offset, mm),

@@ -474,9 +474,16 @@ class StoredArray:
         return np.asarray(self[...], dtype=dtype)
 
     def to_dask(self) -> Any:
-        """A dask array over this one, chunked as stored (what ``da.from_zarr`` would give)."""
+        """A dask array over this one, chunked as stored (what ``da.from_zarr`` would give).
+
+        Every chunk's read task carries its own copy of this array (``inline_array``), so
+        that no task holds the array for the reads to depend on: a worker lost while holding
+        such a key leaves reads waiting on it, and distributed 2024.1's scheduler then fails
+        on them and drops every worker (a fit waited for ever). A copy reopens and checks
+        the array where it is read (a directory listing and a ``stat`` per chunk).
+        """
         import dask.array as da
         from dask.base import tokenize
         self.check()
         name = 'soft_rom-stored-' + tokenize(str(self.directory), self.array, self.chunks)
-        return da.from_array(self, chunks=self.chunks, name=name)
+        return da.from_array(self, chunks=self.chunks, name=name, inline_array=True)

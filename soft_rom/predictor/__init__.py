@@ -6,11 +6,13 @@ ROS: the node converts messages (:mod:`soft_rom.predictor.conversions`), hands t
 what the loop says is due; ``soft-rom replay`` (and ``--stream``) run the same loop offline.
 
 Modules: :mod:`~soft_rom.predictor.config` (settings, health levels),
-:mod:`~soft_rom.predictor.core` (stepping, inputs, measurements),
+:mod:`~soft_rom.predictor.core` (inputs, time, health; with
+:mod:`~soft_rom.predictor.stepping` and :mod:`~soft_rom.predictor.measuring`),
 :mod:`~soft_rom.predictor.dynamics` (linear fast path, model protocol, Kalman gain),
 :mod:`~soft_rom.predictor.envelope` (training envelope, bounds),
 :mod:`~soft_rom.predictor.monitor` (windowed error), :mod:`~soft_rom.predictor.health`,
-:mod:`~soft_rom.predictor.loop` (publish schedule, rates, diagnostics),
+:mod:`~soft_rom.predictor.loop` (publish schedule, rates, diagnostics;
+:mod:`~soft_rom.predictor.seqclock` stamps un-stamped messages),
 :mod:`~soft_rom.predictor.params` (node parameters), :mod:`~soft_rom.predictor.replay`.
 """
 

@@ -98,16 +98,40 @@ class InMemoryPOD:
         (default 0.95, as in the paper).
     builder : BasisBuilder, optional
         A basis builder object (default :class:`~soft_rom.basis.POD`); copied before use.
+    share_svd : bool
+        Keep the thin SVD of the last snapshots reduced with the default POD, and reuse it
+        when the same snapshot arrays (the same objects) and ``q_ref`` come again: several
+        fits of one training set (the study's linear and cubic LOpInf, at other ``r``) then
+        take one SVD, with the same basis bit for bit. It holds the ``(n, k)`` singular
+        vectors in memory until the reducer is dropped.
     """
 
     name = 'memory'
 
-    def __init__(self, energy: float = 0.95, *, builder: BasisBuilder | None = None) -> None:
+    def __init__(self, energy: float = 0.95, *, builder: BasisBuilder | None = None,
+                 share_svd: bool = False) -> None:
         self.energy = energy
         self.builder = builder
+        self.share_svd = share_svd
+        self._svd: tuple[tuple[Any, ...], bytes, Array, Array] | None = None
 
     def __repr__(self) -> str:
-        return f'InMemoryPOD(energy={self.energy!r}, builder={self.builder!r})'
+        return (f'InMemoryPOD(energy={self.energy!r}, builder={self.builder!r}, '
+                f'share_svd={self.share_svd!r})')
+
+    def _pod(self, arrays: list[Any], q_ref: Array, r: int | None) -> POD:
+        """The default POD of ``arrays``, its SVD reused when :attr:`share_svd` allows."""
+        builder = POD(r=r, energy=self.energy)
+        if not self.share_svd:
+            return builder.fit(arrays, q_ref)
+        key = tuple(arrays)             # the arrays themselves: held, so never a reused id
+        ref = np.ascontiguousarray(q_ref).tobytes()
+        held = self._svd
+        if held is None or len(held[0]) != len(key) or held[1] != ref or any(
+                a is not b for a, b in zip(held[0], key)):
+            V, s = builder.svd(arrays, q_ref)
+            held = self._svd = (key, ref, V, s)
+        return builder.fit_svd(held[2], held[3], q_ref)
 
     def reduce(self, data: TrainingData, *, basis: str = 'pod', r: int | None = None,
                n_coordinates: int | None = None, what: str = 'the POD') -> ReducedData:
@@ -135,13 +159,17 @@ class InMemoryPOD:
                                q_ref=q_ref, **common)
         if basis != 'pod':
             raise ConfigError(f"basis must be 'pod', 'identity' or 'none'; got {basis!r}.")
-        builder = POD(r=r, energy=self.energy) if self.builder is None else copy.deepcopy(
-            self.builder)
-        if not callable(getattr(builder, 'fit', None)):
-            raise ConfigError(f'basis must be a BasisBuilder object (fit, basis_, '
-                              f'singular_values_); got {type(builder).__name__}.')
-        _ = data.dt                                # validate before the expensive POD
-        builder.fit(arrays, q_ref)
+        builder: Any
+        if self.builder is None:
+            _ = data.dt                            # validate before the expensive POD
+            builder = self._pod(arrays, q_ref, r)
+        else:
+            builder = copy.deepcopy(self.builder)
+            if not callable(getattr(builder, 'fit', None)):
+                raise ConfigError(f'basis must be a BasisBuilder object (fit, basis_, '
+                                  f'singular_values_); got {type(builder).__name__}.')
+            _ = data.dt                            # validate before the expensive POD
+            builder.fit(arrays, q_ref)
         if not isinstance(builder, BasisBuilder):
             raise ConfigError(f'the basis builder {type(builder).__name__} has no basis_ or '
                               'singular_values_ after fit().')

@@ -80,9 +80,9 @@ class ColumnWindow:
         if hasattr(self.array, 'to_dask'):      # a training set's checked StoredArray
             base = self.array.to_dask()
         elif type(self.array).__module__.startswith('zarr'):
-            base = da.from_zarr(self.array)
+            base = da.from_zarr(self.array, inline_array=True)
         else:
-            base = da.from_array(self.array)
+            base = da.from_array(self.array, inline_array=True)
         return base[:, :self.stop]
 
 

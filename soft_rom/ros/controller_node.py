@@ -78,13 +78,30 @@ class ControllerNode(Node):
 
     def __init__(self, node_name: str = 'soft_rom_controller', **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
+        self._start_core(self._declare_parameters())
+        self.t0: float | None = None
+        self.samples: list[tuple[float, np.ndarray]] = []
+        self._create_entities()
+        self.last: Any = None
+        self.callback_errors = 0
+        # the whole tick (estimate, solve, publish), wall and thread CPU seconds
+        self.ticks: deque[tuple[float, float]] = deque(maxlen=100_000)
+        self._prepare_reference_message()
+
+    def _declare_parameters(self) -> dict[str, Any]:
+        """Declare the (read-only) parameters; returns the settings of the core.
+
+        The topics, the command conversion and the reference frame become attributes.
+        """
 
         def declare(name: str, value: Any, text: str) -> Any:
             return self.declare_parameter(name, value, ParameterDescriptor(
                 description=text, read_only=True)).value
 
-        model_path = str(declare('model_path', '', 'linear model file (.npz)'))
-        spec = str(declare('reference', '', 'built-in reference or .npz (empty: the topic)'))
+        core: dict[str, Any] = {}
+        core['model_path'] = str(declare('model_path', '', 'linear model file (.npz)'))
+        core['spec'] = str(declare('reference', '',
+                                   'built-in reference or .npz (empty: the topic)'))
         self.reference_topic = str(declare('reference_topic', '~/reference_in',
                                            'PoseArray reference samples'))
         self.measured_topic = str(declare('measured_topic', '/soft_robot/centerline',
@@ -99,16 +116,30 @@ class ControllerNode(Node):
         self.input_scale = float(declare('input_scale', 1.0, 'published value = (u - '
                                           'input_offset) / input_scale, as the predictor reads'))
         self.input_offset = float(declare('input_offset', 0.0, 'see input_scale'))
-        step = float(declare('step_s', 0.01, 'control step, s'))
-        horizon = float(declare('horizon_s', 0.2, 'prediction horizon, s'))
-        rate_weight = float(declare('rate_weight', MPCConfig.rate_weight, 'input change weight'))
-        noise = float(declare('sensor_noise', 5e-4, 'measurement noise std, m'))
-        sensor_rate = float(declare('sensor_rate_hz', 120.0, 'measured centerline rate'))
-        stale = float(declare('stale_after_s', 0.1, 'hold the command beyond this age'))
-        duration = float(declare('reference_duration_s', 60.0, 'length of a built-in one'))
+        core['step'] = float(declare('step_s', 0.01, 'control step, s'))
+        core['horizon'] = float(declare('horizon_s', 0.2, 'prediction horizon, s'))
+        core['rate_weight'] = float(declare('rate_weight', MPCConfig.rate_weight,
+                                            'weight of input increments'))
+        core['noise'] = float(declare('sensor_noise', 5e-4, 'measurement noise std, m'))
+        core['sensor_rate'] = float(declare('sensor_rate_hz', 120.0,
+                                            'measured centerline rate'))
+        core['stale'] = float(declare('stale_after_s', 0.1,
+                                      'hold the command beyond this age'))
+        core['duration'] = float(declare('reference_duration_s', 60.0,
+                                         'length of a built-in one'))
         self.frame_id = str(declare('frame_id', 'world', 'frame of ~/reference'))
         self.ref_t0 = float(declare('reference_t0_s', -1.0, "clock time of the reference's "
                                     't = 0 (< 0: the first control tick)'))
+        return core
+
+    def _start_core(self, c: dict[str, Any]) -> None:
+        """Check the settings, load the model, build the controller and the fixed reference.
+
+        Raises
+        ------
+        StartupError
+            Logged as one line first.
+        """
         from soft_rom.models import load_model
         try:
             if self.input_mode not in INPUT_MODES:
@@ -118,23 +149,25 @@ class ControllerNode(Node):
                     and math.isfinite(self.input_offset)):
                 raise ValueError(f'input_scale ({self.input_scale!r}) must be finite and not 0 '
                                  f'and input_offset ({self.input_offset!r}) finite')
-            self.model = load_model(model_path)
+            self.model = load_model(c['model_path'])
             if self.input_mode == 'per_chamber' and len(self.topics) != self.model.n_inputs:
                 raise ValueError(f'the model has {self.model.n_inputs} inputs but input_topics '
                                  f'lists {len(self.topics)} topics')
             external = bool(self.state_topic)
-            est = EstimatorConfig(measurement_noise=max(noise, 1e-5), sensor_rate=sensor_rate,
+            est = EstimatorConfig(measurement_noise=max(c['noise'], 1e-5),
+                                  sensor_rate=c['sensor_rate'],
                                   **({'process_noise': 0.0} if external else {}))
-            self.core = Controller(self.model, MPCConfig(step=step, horizon=horizon,
-                                                         rate_weight=rate_weight), est,
-                                   stale_after=stale, external_state=external)
-            self.fixed_ref = parse_reference(spec, self.model, duration=duration) \
-                if spec else None
+            self.core = Controller(self.model, MPCConfig(step=c['step'], horizon=c['horizon'],
+                                                         rate_weight=c['rate_weight']), est,
+                                   stale_after=c['stale'], external_state=external)
+            self.fixed_ref = parse_reference(c['spec'], self.model, duration=c['duration']) \
+                if c['spec'] else None
         except (OSError, ValueError) as err:
             self.get_logger().error(f'cannot start: {err}')
             raise StartupError(str(err)) from None
-        self.t0: float | None = None
-        self.samples: list[tuple[float, np.ndarray]] = []
+
+    def _create_entities(self) -> None:
+        """The command and reference publishers, the subscriptions and the control timer."""
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         if self.input_mode == 'array':
             self.pubs = []
@@ -151,10 +184,9 @@ class ControllerNode(Node):
         if self.reference_topic:
             self.create_subscription(PoseArray, self.reference_topic, self._on_reference, qos)
         self.create_timer(self.core.h, self._on_tick)
-        self.last: Any = None
-        self.callback_errors = 0
-        # the whole tick (estimate, solve, publish), wall and thread CPU seconds
-        self.ticks: deque[tuple[float, float]] = deque(maxlen=100_000)
+
+    def _prepare_reference_message(self) -> None:
+        """``~/reference`` reused at every publish, and where the model's outputs go in it."""
         n = len([nm for nm in self.model.output_names if nm.startswith('x')])
         self.ref_msg = PoseArray()
         self.ref_msg.header.frame_id = self.frame_id

@@ -3,7 +3,9 @@
 All behaviour lives in the ROS-free core: a :class:`soft_rom.predictor.loop.RuntimeLoop`
 around a :class:`soft_rom.predictor.Predictor` decides what is due (the same loop runs in
 ``soft-rom replay``); this node declares the parameters, converts messages, feeds the loop
-and publishes what it returns:
+and publishes what it returns (the parameters are declared and checked in
+:mod:`soft_rom.ros.node_params`, the messages published by
+:mod:`soft_rom.ros.prediction_publishers`):
 
 * ``~/output`` (``std_msgs/Float64MultiArray``) at every step (``publish_rate_hz`` 0) or
   decimated, and with each one ``~/output_stamped`` (``sensor_msgs/JointState``:
@@ -48,10 +50,7 @@ import sys
 import threading
 from typing import Any
 
-from builtin_interfaces.msg import Time as TimeMsg
-from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import Point, Pose, PoseArray
-import numpy as np
+from geometry_msgs.msg import PoseArray
 import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -60,25 +59,21 @@ from rclpy.logging import get_logger, get_logger_level, LoggingSeverity, set_log
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.signals import SignalHandlerOptions
-from sensor_msgs.msg import FluidPressure, JointState
-from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension, String
+from sensor_msgs.msg import FluidPressure
+from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
-from visualization_msgs.msg import Marker
 
 from soft_rom.errors import ConfigError
 from soft_rom.predictor import Predictor
 from soft_rom.predictor.conversions import (
-    array_to_data,
     data_to_array,
-    model_info_json,
-    ns_to_stamp,
     poses_to_points,
-    set_points,
     stamp_to_ns,
 )
-from soft_rom.predictor.loop import MARKER_STYLES, Publish, RuntimeLoop
+from soft_rom.predictor.loop import RuntimeLoop
 from soft_rom.ros.diagnostics import Diagnostics, TopicMonitor
 from soft_rom.ros.node_params import NodeSettings, ParameterMixin, rclpy_reason
+from soft_rom.ros.prediction_publishers import PredictionPublishers
 
 __all__ = ['PredictorNode', 'StartupError', 'main']
 
@@ -87,7 +82,7 @@ class StartupError(Exception):
     """A bad parameter at start-up; already logged (one error line): exit status 1."""
 
 
-class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
+class PredictorNode(LifecycleNodeMixin, ParameterMixin, PredictionPublishers, Node):
     """Subscribes to pressures (and a measured centerline), publishes the ROM's prediction.
 
     Parameters
@@ -271,16 +266,6 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
         self._start_timer()
         self._publish_info()
 
-    def _publish_info(self, if_changed: bool = False) -> None:
-        """Publish ``~/model_info`` (latched); ``if_changed``: only if it says something new."""
-        if not self._active or self.loop is None:
-            return
-        text = model_info_json(self.loop.predictor.info)
-        if if_changed and text == self._info_sent:
-            return
-        self._info_sent = text
-        self._pub_info.publish(String(data=text))
-
     def _input_qos(self) -> QoSProfile:
         best = self.settings.input_qos == 'sensor_data'
         return QoSProfile(depth=self.settings.qos_depth, history=HistoryPolicy.KEEP_LAST,
@@ -292,18 +277,7 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
         if self._active:
             return
         s = self.settings
-        pub = self.create_publisher
-        self._pub_output = pub(Float64MultiArray, '~/output', 100)
-        self._pub_output_stamped = pub(JointState, '~/output_stamped', 100)
-        self._pub_centerline = pub(PoseArray, '~/centerline', 10)
-        self._pub_marker = pub(Marker, '~/centerline_marker', 10)
-        self._pub_error = pub(Float64, '~/error', 10)
-        self._pub_diag = pub(DiagnosticArray, '/diagnostics', 10)
-        self._pub_info = pub(String, '~/model_info', self._latched)
-        self._pub_state = pub(JointState, '~/state', 10)
-        ents: list[Any] = [self._pub_output, self._pub_output_stamped, self._pub_centerline,
-                           self._pub_marker, self._pub_error, self._pub_diag, self._pub_info,
-                           self._pub_state]
+        ents: list[Any] = self._create_publishers()
         ents.append(self.create_service(Trigger, '~/reset', self._on_reset))
         qos = self._input_qos()
         if s.input_mode == 'per_chamber':
@@ -350,42 +324,7 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
             self._timer = self.create_timer(self.loop.timer_period_ns() * 1e-9,
                                             self._on_tick)
 
-    def _prepare_messages(self) -> None:
-        """Message objects reused at every publish (sized for the loaded model)."""
-        assert self.loop is not None
-        model = self.loop.predictor.model
-        n = model.n_outputs // len(self.settings.output_components)
-        frame = self.settings.frame_id
-        self._pose_msg = PoseArray()
-        self._pose_msg.header.frame_id = frame
-        self._pose_msg.poses = [Pose() for _ in range(n)]
-        self._positions = [p.position for p in self._pose_msg.poses]
-        self._marker = self._make_marker('predicted', n)
-        self._marker_measured = self._make_marker('measured', 0)
-        self._output_msg = Float64MultiArray()
-        self._output_msg.layout.dim = [MultiArrayDimension(
-            label='outputs', size=model.n_outputs, stride=model.n_outputs)]
-        self._stamped_msg = JointState()
-        self._stamped_msg.header.frame_id = frame
-        self._stamped_msg.name = list(model.output_names)
-        self._state_msg = JointState()
-        self._state_msg.header.frame_id = frame
-        self._state_msg.name = [f'x{i}' for i in range(model.n_states)]
-
-    def _make_marker(self, kind: str, n: int) -> Marker:
-        ns, marker_id, rgba, width = MARKER_STYLES[kind]
-        m = Marker()
-        m.header.frame_id = self.settings.frame_id
-        m.ns, m.id, m.type, m.action = ns, marker_id, Marker.LINE_STRIP, Marker.ADD
-        m.scale.x = width
-        m.color.r, m.color.g, m.color.b, m.color.a = rgba
-        m.points = [Point() for _ in range(n)]
-        return m
-
     # -- callbacks -----------------------------------------------------------------------------
-    def _now_ns(self) -> int:
-        return self.get_clock().now().nanoseconds
-
     def _guard(self, what: str, err: Exception) -> None:
         self.callback_errors += 1
         self.get_logger().warning(f'{what}: {type(err).__name__}: {err} (message dropped)',
@@ -430,67 +369,6 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, Node):
                 self._publish(self.loop.tick(self._now_ns()))
         except Exception as err:  # noqa: BLE001
             self._guard('timer', err)
-
-    def _publish(self, pub: Publish) -> None:
-        """Publish what the loop says is due."""
-        if not self._active:
-            return
-        out, sm = self._output_msg, self._stamped_msg
-        for t_ns, y in pub.outputs:
-            out.data = array_to_data(y)
-            self._pub_output.publish(out)
-            sec, nsec = ns_to_stamp(t_ns)
-            sm.header.stamp.sec, sm.header.stamp.nanosec = sec, nsec
-            sm.position = out.data
-            self._pub_output_stamped.publish(sm)
-        if pub.outputs:
-            self._publish_state()
-        if pub.centerline is not None:
-            self._publish_centerline(*pub.centerline, pub.measured_points, pub.error)
-        if pub.diagnostics_due:
-            self._publish_diagnostics(self._now_ns())
-
-    def _publish_state(self) -> None:
-        """``~/state``: the ROM state estimate (deviations) stamped with its model time."""
-        loop = self.loop
-        t_ns = None if loop is None else loop.predictor.t_ns
-        if loop is None or t_ns is None:
-            return
-        msg = self._state_msg
-        msg.header.stamp.sec, msg.header.stamp.nanosec = ns_to_stamp(t_ns)
-        msg.position = array_to_data(np.asarray(loop.predictor.x, dtype=np.float64))
-        self._pub_state.publish(msg)
-
-    def _publish_centerline(self, t_ns: int, pts: np.ndarray, measured: np.ndarray | None,
-                            error: float | None) -> None:
-        sec, nsec = ns_to_stamp(t_ns)
-        stamp = TimeMsg(sec=sec, nanosec=nsec)
-        self._pose_msg.header.stamp = stamp
-        set_points(self._positions, pts)
-        self._pub_centerline.publish(self._pose_msg)
-        self._marker.header.stamp = stamp
-        set_points(self._marker.points, pts)
-        self._pub_marker.publish(self._marker)
-        if measured is not None:
-            mk = self._marker_measured
-            if len(mk.points) != len(measured):
-                mk.points = [Point() for _ in range(len(measured))]
-            mk.header.stamp = stamp
-            set_points(mk.points, measured)
-            self._pub_marker.publish(mk)
-        if error is not None:
-            self._pub_error.publish(Float64(data=error))
-
-    def _publish_diagnostics(self, now_ns: int) -> None:
-        loop = self.loop
-        report = None if loop is None else loop.diagnostics(
-            now_ns, extra=[('callback_errors', str(self.callback_errors))])
-        sec, nsec = ns_to_stamp(now_ns)
-        timeout = float(self.settings_value('input_timeout_s'))
-        newest = None if loop is None else [int(t) for t in loop.predictor.channels.newest]
-        self._pub_diag.publish(self.diagnostics.message(
-            now_ns, TimeMsg(sec=sec, nanosec=nsec), report, self.startup_error,
-            self.measured_monitor, timeout, newest))
 
     def _on_reset(self, request: Trigger.Request, response: Trigger.Response
                   ) -> Trigger.Response:

@@ -4,7 +4,8 @@ The workers read the blocks themselves: each episode's snapshot array becomes a 
 array chunked as stored (a training set's :class:`~soft_rom.dataset.stored.StoredArray`
 through its ``to_dask``, so that the workers' reads are checked and their errors named too;
 a bare zarr array with :func:`dask.array.from_zarr`; the workers must see the same storage
-path, e.g. a shared file system or an object store), cut into the *same* block
+path, e.g. a shared file system or an object store; each read task carries its own handle on
+the array, so that a lost worker takes no key the reads depend on), cut into the *same* block
 plan as the local executor. Each block is centred and multiplied on a worker by the same
 kernel; the partial sums are added in plan order by a chain of tasks on the cluster, so
 the result equals the local one (same kernels, same order of additions; what differs at
@@ -206,7 +207,7 @@ class DaskExecutor:
             if hasattr(a, 'to_dask'):  # a training set's array, or a window (t_max) on one
                 out.append(a.to_dask())
             elif type(a).__module__.startswith('zarr'):
-                out.append(da.from_zarr(a))
+                out.append(da.from_zarr(a, inline_array=True))
             elif isinstance(a, da.Array):
                 out.append(a)
             else:  # in-memory data: shipped from the client (small data, tests)

@@ -5,6 +5,13 @@
 episodes Ep 1-Ep 6; :meth:`EelModel.linearization` exports ``(M, C, K, B, E)`` at rest.
 numpy and scipy; the ``fast`` extra (numba for the element loop, CHOLMOD from scikit-sparse
 for the linear solve) makes a step about 3x cheaper on the paper-size mesh. No ROS.
+
+Modules: :mod:`~soft_rom.sim.eel` (the model and its time stepping), with
+:mod:`~soft_rom.sim.eel_types` (configuration, linearization, results),
+:mod:`~soft_rom.sim.eel_geometry` (chambers, walls, pressure loads, centerline map) and
+:mod:`~soft_rom.sim.linsolve` (the rest-system factor, PCG, memory estimate);
+:mod:`~soft_rom.sim.mesh`, :mod:`~soft_rom.sim.fem`, :mod:`~soft_rom.sim.inputs`,
+:mod:`~soft_rom.sim.record` (episodes to bags).
 """
 
 from __future__ import annotations

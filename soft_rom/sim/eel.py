@@ -57,178 +57,41 @@ nodal positions). The linear-model output vector is ``[x_1..x_20, z_1..z_20]`` (
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import replace
 import functools
 import time
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-import scipy.linalg as sla
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
-from soft_rom.data import all_finite, Episode
+from soft_rom.data import all_finite
 from soft_rom.errors import ConfigError, DimensionError, SolverError
+from soft_rom.sim.eel_geometry import (
+    centerline_map,
+    chamber_cells,
+    pressure_matrix,
+    triangle_forces,
+    wall_triangles,
+)
+from soft_rom.sim.eel_types import EelConfig, Linearization, SimulationResult, StepCallback
 from soft_rom.sim.fem import CorotationalFEM
 from soft_rom.sim.inputs import DEFAULT_AMPLITUDE, random_pressures
-from soft_rom.sim.mesh import box_grid, cavity_faces, TetMesh, tetrahedralize
+from soft_rom.sim.linsolve import (
+    _pcg,
+    _SPDFactor,
+    cholmod_available,
+    LINEAR_SOLVERS,
+    memory_estimate,
+)
+from soft_rom.sim.mesh import box_grid, TetMesh, tetrahedralize
 
 __all__ = ['EelConfig', 'EelModel', 'EelStepper', 'LINEAR_SOLVERS', 'Linearization',
            'SimulationResult', 'StepCallback', 'cholmod_available', 'memory_estimate',
            'simulate_episode']
 
 Array = NDArray[np.float64]
-
-#: ``callback(j, t, u, centerline, positions)`` called for every recorded sample; ``positions``
-#: (n_nodes, 3) is a view of the solver's buffer, valid only during the call.
-StepCallback = Callable[[int, float, Array, Array, Array], None]
-
-
-@dataclass(frozen=True)
-class EelConfig:
-    """Geometry, material and discretization of the eel FOM (SI units).
-
-    Parameters
-    ----------
-    resolution : int
-        Mesh refinement factor: the grid has ``(48 r, 4 r, 6 r)`` cells along ``(x, y, z)``.
-        ``r = 1`` (default, 5,145 DOF) keeps the demo quick; ``r = 2``: 33,237 DOF;
-        ``r = 3``: 103,305; ``r = 4``: 234,357 DOF, the paper's size (231,336).
-    length, width, height : float
-        Body box (m): ``x`` in ``[0, length]``, ``y`` and ``z`` centred on 0.
-    segments : tuple of (float, float)
-        ``x``-ranges of the three actuated body segments; between them are couplers.
-    couplers : tuple of (float, float)
-        ``x``-ranges of the stiffer couplers.
-    chamber_margin : float
-        Solid length (m) at each end of a segment, closing its chambers.
-    chamber_y : float
-        Half-width (m) of a chamber in ``y``.
-    chamber_z : (float, float)
-        ``|z|`` range (m) of a chamber (top chamber ``z > 0``, bottom ``z < 0``).
-    fiber_reinforced : bool
-        Chambers are fiber-reinforced (default): hoop fibers carry the pressure on the
-        lateral walls, so only the end caps (walls normal to ``x``) receive the pressure
-        load. ``False`` loads every wall; the thin silicone walls then balloon, and the
-        ballooning's second-order shortening dominates the bending at a few kPa -- the
-        reason fluid elastomer actuators are reinforced.
-    follower : bool
-        Pressure acts on the current wall geometry (default, as SOFA's surface pressure
-        constraints); ``False``: dead loads on the rest geometry (constant ``B``). Dead axial
-        cap forces stay parallel while the caps rotate with the bending, which adds a large
-        spurious moment (about 25 % of the response at 40 kPa).
-    young_soft, young_coupler : float
-        Young's moduli (Pa) of the silicone body and of the couplers.
-    poisson : float
-        Poisson's ratio (silicone-like, moderately compressible to limit locking of linear
-        tetrahedra).
-    density : float
-        kg/m^3.
-    rayleigh_mass, rayleigh_stiffness : float
-        ``alpha`` (1/s) and ``beta`` (s) of ``C = alpha M + beta K_0``.
-    n_centerline : int
-        Number of centerline points (20 in the paper).
-    """
-
-    resolution: int = 1
-    length: float = 1.2
-    width: float = 0.06
-    height: float = 0.08
-    segments: tuple[tuple[float, float], ...] = ((0.15, 0.40), (0.45, 0.70), (0.75, 1.00))
-    couplers: tuple[tuple[float, float], ...] = ((0.40, 0.45), (0.70, 0.75))
-    chamber_margin: float = 0.025
-    chamber_y: float = 0.015
-    chamber_z: tuple[float, float] = (0.01333, 0.02667)
-    fiber_reinforced: bool = True
-    follower: bool = True
-    young_soft: float = 1.0e6
-    young_coupler: float = 20.0e6
-    poisson: float = 0.42
-    density: float = 1100.0
-    rayleigh_mass: float = 0.3
-    rayleigh_stiffness: float = 0.02
-    n_centerline: int = 20
-
-    def grid_shape(self) -> tuple[int, int, int]:
-        """Number of cells ``(nx, ny, nz)``."""
-        r = int(self.resolution)
-        if r != self.resolution or r < 1:
-            raise ConfigError(f'resolution must be a positive integer; got {self.resolution!r}.')
-        return 48 * r, 4 * r, 6 * r
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-friendly dictionary (provenance sidecars)."""
-        return asdict(self)
-
-
-@dataclass(frozen=True)
-class Linearization:
-    """The FOM linearized at rest: ``M q'' + C q' + K q = B u``, ``y = E q + y_ref``.
-
-    ``q`` is the nodal displacement from ``q_ref`` (node-major, ``3 n_nodes``). Clamped DOFs
-    are included with zero rows and columns in ``K`` and ``C`` (and ``B``); ``free`` marks the
-    others. Output ``y = [x_1..x_N, z_1..z_N]`` of the centerline.
-
-    Attributes
-    ----------
-    M : scipy.sparse matrix, shape (n, n)
-        Lumped (diagonal) mass, kg.
-    C, K : scipy.sparse matrix, shape (n, n)
-        Rayleigh damping and rest stiffness.
-    B : ndarray, shape (n, m)
-        Force per unit chamber pressure (N/Pa).
-    E : scipy.sparse matrix, shape (p, n)
-        Output map.
-    q_ref : ndarray, shape (n,)
-    y_ref : ndarray, shape (p,)
-    free : ndarray of bool, shape (n,)
-    """
-
-    M: sp.spmatrix
-    C: sp.spmatrix
-    K: sp.spmatrix
-    B: Array
-    E: sp.spmatrix
-    q_ref: Array
-    y_ref: Array
-    free: NDArray[np.bool_]
-
-
-@dataclass
-class SimulationResult:
-    """What :meth:`EelModel.simulate` produced.
-
-    Attributes
-    ----------
-    t : ndarray, shape (k,)
-        Sample times (s), ``t_j = j dt``.
-    pressures : ndarray, shape (m, k)
-        Chamber pressures (Pa), ``u_j`` held over ``[t_j, t_{j+1})``.
-    centerline : ndarray, shape (N, 3, k)
-        Centerline points (m).
-    states : ndarray, shape (n_nodes, 3, k) or None
-        Nodal positions (m), only with ``store_states=True``.
-    info : dict
-        Wall time, DOF, solver statistics.
-    """
-
-    t: Array
-    pressures: Array
-    centerline: Array
-    states: Array | None = None
-    info: dict[str, Any] = field(default_factory=dict)
-
-    def outputs(self, components: str = 'xz') -> Array:
-        """Output matrix ``Y``, shape (len(components) * N, k): component-major rows."""
-        idx = ['xyz'.index(c) for c in components]
-        return np.concatenate([self.centerline[:, i, :] for i in idx], axis=0)
-
-    def to_episode(self, name: str = '', components: str = 'xz') -> Episode:
-        """As a :class:`soft_rom.data.Episode` (``Q`` = nodal positions if stored)."""
-        Q = None if self.states is None else self.states.reshape(-1, self.states.shape[-1])
-        return Episode(t=self.t, U=self.pressures, Y=self.outputs(components), Q=Q, name=name,
-                       metadata=dict(self.info))
 
 
 class EelModel:
@@ -263,54 +126,25 @@ class EelModel:
         self.config = cfg
         nx, ny, nz = cfg.grid_shape()
         xs, ys, zs = box_grid(cfg.length, cfg.width, cfg.height, nx, ny, nz)
-        xc, yc, zc = (0.5 * (a[1:] + a[:-1]) for a in (xs, ys, zs))
-        X, Y, Z = np.meshgrid(xc, yc, zc, indexing='ij')
-        region = np.zeros((nx, ny, nz), dtype=np.int64)
-        for a, b in cfg.couplers:
-            region[(X > a) & (X < b)] = 1
-        chambers = []
-        for a, b in cfg.segments:
-            in_x = (X > a + cfg.chamber_margin) & (X < b - cfg.chamber_margin)
-            in_y = np.abs(Y) < cfg.chamber_y
-            for sign in (1, -1):
-                in_z = (sign * Z > cfg.chamber_z[0]) & (sign * Z < cfg.chamber_z[1])
-                cav = in_x & in_y & in_z
-                if not cav.any():
-                    raise ConfigError('a chamber has no cell at this resolution; refine the mesh '
-                                      'or enlarge the chambers.')
-                chambers.append(cav)
-                region[cav] = -1
+        region, chambers = chamber_cells(cfg, xs, ys, zs)
         self.mesh: TetMesh = tetrahedralize(xs, ys, zs, region)
         young = np.where(self.mesh.region == 1, cfg.young_coupler, cfg.young_soft)
         self.fem = CorotationalFEM(self.mesh.nodes, self.mesh.tets, young=young,
                                    poisson=cfg.poisson, density=cfg.density)
-        n = self.mesh.n_nodes
-        tris, owner = [], []
-        for c, cav in enumerate(chambers):
-            tri = cavity_faces(xs, ys, zs, region, cav, self.mesh,
-                               axes=(0,) if cfg.fiber_reinforced else (0, 1, 2))
-            tris.append(tri)
-            owner.append(np.full(len(tri), c))
         #: chamber wall triangles (n_tri, 3) and the chamber of each
-        self.wall_triangles = np.concatenate(tris)
-        self.wall_chamber = np.concatenate(owner)
-        f_rest = self._triangle_forces(self.mesh.nodes)           # (n_tri, 3) per unit p
-        dof = 3 * self.wall_triangles[:, :, None] + np.arange(3)   # (n_tri, 3, 3)
-        self.B = sp.csr_matrix(
-            (np.broadcast_to(f_rest[:, None, :], dof.shape).ravel(),
-             (dof.ravel(), np.repeat(self.wall_chamber, 9))),
-            shape=(3 * n, self.n_chambers))
-        self.B.sum_duplicates()
+        self.wall_triangles, self.wall_chamber = wall_triangles(
+            xs, ys, zs, region, chambers, self.mesh, cfg.fiber_reinforced)
+        self.B = pressure_matrix(self.wall_triangles, self.wall_chamber, self.mesh.nodes,
+                                 self.n_chambers)
         self.free = np.repeat(self.mesh.nodes[:, 0] > 1e-12 * cfg.length, 3)
-        self.centerline_map = self._centerline_map(xs)
+        self.centerline_map = centerline_map(self.mesh, xs, cfg.length, cfg.n_centerline)
         self._K0: sp.csr_matrix | None = None
         self._factor: dict[tuple[float, str], tuple] = {}
 
     # ------------------------------------------------------------------ operators
     def _triangle_forces(self, x: Array) -> Array:
         """Force per unit pressure on each corner of each wall triangle, shape (n_tri, 3)."""
-        t = self.wall_triangles
-        return np.cross(x[t[:, 1]] - x[t[:, 0]], x[t[:, 2]] - x[t[:, 0]]) / 6.0
+        return triangle_forces(self.wall_triangles, x)
 
     def pressure_force(self, x: Array, u: Array) -> Array:
         """Nodal pressure forces (n_nodes, 3) at positions ``x`` for pressures ``u`` (6,).
@@ -340,28 +174,6 @@ class EelModel:
     def q_ref(self) -> Array:
         """Rest positions, node-major, shape (n_dof,)."""
         return self.mesh.nodes.ravel()
-
-    def _centerline_map(self, xs: Array) -> sp.csr_matrix:
-        cfg = self.config
-        gi = self.mesh.grid_index[:, 0]
-        counts = np.bincount(gi, minlength=len(xs))
-        stations = np.linspace(0.0, cfg.length, cfg.n_centerline)
-        dx = xs[1] - xs[0]
-        rows, cols, vals = [], [], []
-        for s, xq in enumerate(stations):
-            f = min(xq / dx, len(xs) - 1 - 1e-12)
-            i0 = int(np.floor(f))
-            w1 = f - i0
-            for i, w in ((i0, 1 - w1), (i0 + 1, w1)):
-                if w <= 1e-14:
-                    continue
-                nodes = np.nonzero(gi == i)[0]
-                rows.append(np.full(nodes.size, s))
-                cols.append(nodes)
-                vals.append(np.full(nodes.size, w / counts[i]))
-        return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows),
-                                                     np.concatenate(cols))),
-                             shape=(cfg.n_centerline, self.n_nodes))
 
     def stiffness(self) -> sp.csr_matrix:
         """Rest stiffness ``K_0`` (all DOFs), cached."""
@@ -430,9 +242,6 @@ class EelModel:
                  linear_solver: str = 'auto') -> SimulationResult:
         """Integrate from rest (``q = q_ref``, ``v = 0``) for ``n_steps`` samples.
 
-        One method of about 115 lines: the implicit time loop (corotated forces, Newton
-        iterations with the CG solve, recording) keeps its work arrays across steps.
-
         Parameters
         ----------
         pressures : ndarray, shape (6, n_steps), or callable ``t -> (6,)``
@@ -455,9 +264,9 @@ class EelModel:
         cg_rtol, cg_maxiter : float, int
             Conjugate-gradient tolerance (relative residual) and cap (corotated tangent).
         linear_solver : {'auto', 'cholmod', 'banded'}
-            Factorization of the rest system (:class:`_SPDFactor`): CHOLMOD when installed
-            (``'auto'``), else LAPACK's banded Cholesky. Both give the same trajectories to
-            round-off; CHOLMOD is faster on large meshes.
+            Factorization of the rest system (:mod:`soft_rom.sim.linsolve`): CHOLMOD when
+            installed (``'auto'``), else LAPACK's banded Cholesky. Both give the same
+            trajectories to round-off; CHOLMOD is faster on large meshes.
 
         Returns
         -------
@@ -470,17 +279,9 @@ class EelModel:
             raise ConfigError(f'need n_steps >= 1 and dt > 0; got {n_steps}, {dt}.')
         if callable(pressures):
             fn = pressures
-            U = np.stack([np.asarray(fn(j * dt), dtype=np.float64).reshape(self.n_chambers)
-                          for j in range(n_steps)], axis=1)
-        else:
-            U = np.asarray(pressures, dtype=np.float64)
-            if U.ndim != 2 or U.shape[0] != self.n_chambers or U.shape[1] < n_steps:
-                raise DimensionError(f'pressures must be ({self.n_chambers}, >= {n_steps}); got '
-                                     f'{U.shape}. Arrays are (n_channels, n_samples).')
-            U = U[:, :n_steps]
-        if not all_finite(U):
-            raise DimensionError('pressures contain NaN or Inf.')
-
+            pressures = np.stack([np.asarray(fn(j * dt), dtype=np.float64).reshape(
+                self.n_chambers) for j in range(n_steps)], axis=1)
+        U = self._pressures(pressures, n_steps)
         t0 = time.perf_counter()
         stepper = self.stepper(dt, jacobian=jacobian, linear=linear, cg_rtol=cg_rtol,
                                cg_maxiter=cg_maxiter, linear_solver=linear_solver)
@@ -497,16 +298,29 @@ class EelModel:
             if callback is not None:
                 callback(j, float(t[j]), U[:, j], centerline[:, :, j], stepper.x)
             stepper.step(U[:, j], None if BU is None else BU[:, j])
-        lu = stepper.factor
-        cg_iters, cg_worst = stepper.cg_iterations, stepper.cg_worst_residual
-        wall = time.perf_counter() - t0
-        info = {'solver': lu.kind, 'n_dof': self.n_dof, 'n_nodes': self.n_nodes,
-                'n_tets': int(len(self.fem.tets)),
-                'n_steps': n_steps, 'dt': dt, 'jacobian': 'linear' if linear else jacobian,
-                'wall_s': wall, 'factor_s': t_factor, 'cg_iterations': cg_iters,
-                'cg_worst_residual': cg_worst}
+        info = self._info(stepper.factor.kind, n_steps, dt, 'linear' if linear else jacobian,
+                          time.perf_counter() - t0, t_factor, stepper.cg_iterations,
+                          stepper.cg_worst_residual)
         return SimulationResult(t=t, pressures=U, centerline=centerline, states=states, info=info)
 
+    def _pressures(self, pressures: ArrayLike, n_steps: int) -> Array:
+        """The first ``n_steps`` columns of a pressure sequence, checked: shape and finite."""
+        U = np.asarray(pressures, dtype=np.float64)
+        if U.ndim != 2 or U.shape[0] != self.n_chambers or U.shape[1] < n_steps:
+            raise DimensionError(f'pressures must be ({self.n_chambers}, >= {n_steps}); got '
+                                 f'{U.shape}. Arrays are (n_channels, n_samples).')
+        U = U[:, :n_steps]
+        if not all_finite(U):
+            raise DimensionError('pressures contain NaN or Inf.')
+        return U
+
+    def _info(self, solver: str, n_steps: int, dt: float, jacobian: str, wall: float,
+              t_factor: float, cg_iterations: int, cg_worst: float) -> dict[str, Any]:
+        """The ``info`` of a :class:`SimulationResult`: sizes, scheme, timings, CG figures."""
+        return {'solver': solver, 'n_dof': self.n_dof, 'n_nodes': self.n_nodes,
+                'n_tets': int(len(self.fem.tets)), 'n_steps': n_steps, 'dt': dt,
+                'jacobian': jacobian, 'wall_s': wall, 'factor_s': t_factor,
+                'cg_iterations': cg_iterations, 'cg_worst_residual': cg_worst}
 
     def simulate_lockstep(self, pressures: Sequence[ArrayLike], n_steps: int,
                           dt: float = 1e-3, *,
@@ -538,15 +352,7 @@ class EelModel:
         n_steps = int(n_steps)
         if n_steps < 1 or not dt > 0:
             raise ConfigError(f'need n_steps >= 1 and dt > 0; got {n_steps}, {dt}.')
-        Us = []
-        for P in pressures:
-            U = np.asarray(P, dtype=np.float64)
-            if U.ndim != 2 or U.shape[0] != self.n_chambers or U.shape[1] < n_steps:
-                raise DimensionError(f'pressures must be ({self.n_chambers}, >= {n_steps}); '
-                                     f'got {U.shape}. Arrays are (n_channels, n_samples).')
-            if not all_finite(U[:, :n_steps]):
-                raise DimensionError('pressures contain NaN or Inf.')
-            Us.append(U[:, :n_steps])
+        Us = [self._pressures(P, n_steps) for P in pressures]
         k = len(Us)
         cbs = list(callbacks) if callbacks is not None else [None] * k
         if len(cbs) != k:
@@ -581,11 +387,9 @@ class EelModel:
                 v = np.zeros(self.n_dof)
                 v[free] = V[:, e]
                 xs[e] = xs[e] + h * v.reshape(-1, 3)
-        wall = time.perf_counter() - t0
-        info = {'solver': lu.kind, 'n_dof': self.n_dof, 'n_nodes': self.n_nodes,
-                'n_tets': int(len(self.fem.tets)), 'n_steps': n_steps, 'dt': dt,
-                'jacobian': 'rest', 'wall_s': wall, 'factor_s': t_factor, 'cg_iterations': 0,
-                'cg_worst_residual': 0.0, 'lockstep': k}
+        info = self._info(lu.kind, n_steps, dt, 'rest', time.perf_counter() - t0, t_factor,
+                          0, 0.0)
+        info['lockstep'] = k
         return [SimulationResult(t=t, pressures=U, centerline=c, info=dict(info))
                 for U, c in zip(Us, centerlines)]
 
@@ -694,158 +498,3 @@ def simulate_episode(model: EelModel, episode: int, *, seed: int = 0, n_steps: i
     return result
 
 
-#: Linear solvers of the rest system, ``'auto'`` first (:class:`_SPDFactor`).
-LINEAR_SOLVERS = ('auto', 'cholmod', 'banded')
-
-
-def memory_estimate(resolution: int, solver: str = 'auto') -> tuple[int, float]:
-    """``(n_dof, bytes)``: the peak memory of simulating episodes, before building the model.
-
-    The larger of two moments, plus 200 MB of interpreter: the assembly of the rest stiffness
-    (about 15 kB per DOF: its element blocks in coordinate form, then compressed), and the
-    factor with the operators and work vectors (3 kB per DOF). CHOLMOD's factor has about
-    ``9.5e6 (n / 32886)^1.4`` entries (measured 9.5 M, 48 M and 150 M at resolutions 2, 3
-    and 4), at about 12 bytes an entry with its supernodal padding; the banded factor is
-    about 3.8 cross-sections of DOFs wide (measured 395 at resolution 2, 1,355 at 4).
-    Measured peak RSS (``benchmarks/bench_sim.py``): 0.28, 0.61, 1.63 and 3.52 GB (CHOLMOD)
-    at resolutions 1-4, 3.70 GB (banded) at 4; estimated 0.28, 0.71, 1.81, 3.89 and 4.12 GB.
-    """
-    nx, ny, nz = EelConfig(resolution=resolution).grid_shape()
-    section = (ny + 1) * (nz + 1)
-    n_dof = 3 * (nx + 1) * section
-    if solver == 'auto':
-        solver = 'cholmod' if cholmod_available() else 'banded'
-    if solver == 'cholmod':
-        factor = 12.0 * 9.5e6 * (n_dof / 32886.0) ** 1.4
-    else:
-        factor = 3.8 * section * n_dof * 8.0
-    return n_dof, max(15e3 * n_dof, factor + 3e3 * n_dof) + 200e6
-
-
-#: Environment variables that fix the thread count of the BLAS CHOLMOD loads.
-_BLAS_THREAD_VARS = ('OPENBLAS_NUM_THREADS', 'OMP_NUM_THREADS')
-
-
-def _cholmod() -> Any:
-    """``sksparse.cholmod``, its BLAS loaded with one thread (ImportError without it).
-
-    A CHOLMOD solve is a sequence of small BLAS calls, one per supernode; a threaded BLAS
-    synchronizes its threads at each, which on a loaded machine made a resolution-2 step
-    13x slower in wall time than one thread (measured 2.7 s against 0.2 s, same CPU time).
-    The thread count is read when the library loads, so it is set for that moment only
-    (the variables are restored; a value the user set is kept).
-    """
-    import sys
-    if 'sksparse.cholmod' in sys.modules:
-        return sys.modules['sksparse.cholmod']
-    import os
-    saved = {k: os.environ.get(k) for k in _BLAS_THREAD_VARS}
-    for k in _BLAS_THREAD_VARS:
-        os.environ.setdefault(k, '1')
-    try:
-        import sksparse.cholmod
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
-    return sksparse.cholmod
-
-
-def cholmod_available() -> bool:
-    """Whether CHOLMOD (scikit-sparse, the ``fast`` extra) can be imported."""
-    try:
-        _cholmod()
-    except ImportError:
-        return False
-    return True
-
-
-class _SPDFactor:
-    """Cholesky factorization of the SPD rest matrix ``M + h C + h^2 K_0``, reused every step.
-
-    ``'cholmod'``: CHOLMOD's supernodal Cholesky with its fill-reducing ordering (METIS nested
-    dissection or AMD, whichever fills less), from scikit-sparse (the ``fast`` extra). At the
-    paper's size (233,082 free DOFs) its factor has 150 M entries against the band's 316 M,
-    and a solve reads it in BLAS blocks: measured 1.8x faster for one right-hand side
-    (``benchmarks/bench_sim.py``). ``'banded'``: the nodes are numbered x-major, so the
-    matrix of the slender body is banded with a half-bandwidth of about three cross-sections
-    of DOFs, and LAPACK's banded Cholesky (``pbtrf``/``pbtrs``) beats SuperLU's general
-    sparse LU; above ``max_bytes`` of band storage it falls back to SuperLU with a symmetric
-    minimum-degree ordering. ``'auto'``: CHOLMOD when installed, else banded.
-    """
-
-    def __init__(self, A: sp.spmatrix, kind: str = 'auto', max_bytes: float = 6e9) -> None:
-        if kind not in LINEAR_SOLVERS:
-            raise ConfigError(f'linear solver must be one of {", ".join(LINEAR_SOLVERS)}; '
-                              f'got {kind!r}.')
-        if kind == 'cholmod' or (kind == 'auto' and cholmod_available()):
-            self._init_cholmod(A)
-            return
-        coo = sp.triu(A, format='coo')
-        n = A.shape[0]
-        bw = int(np.max(coo.col - coo.row)) if coo.nnz else 0
-        self.kind = 'banded-cholesky'
-        if (bw + 1) * n * 8 <= max_bytes:
-            ab = np.zeros((bw + 1, n))
-            ab[bw + coo.row - coo.col, coo.col] = coo.data
-            try:
-                self._cb = sla.cholesky_banded(ab, lower=False, check_finite=False)
-            except np.linalg.LinAlgError as err:
-                raise SolverError(f'the rest system matrix is not positive definite: {err}') \
-                    from err
-            self.bandwidth = bw
-            return
-        self.kind = 'superlu'
-        self._lu = spla.splu(A.tocsc(), permc_spec='MMD_AT_PLUS_A', diag_pivot_thresh=0.0,
-                             options={'SymmetricMode': True})
-
-    def _init_cholmod(self, A: sp.spmatrix) -> None:
-        try:
-            cholmod = _cholmod()
-        except ImportError as err:
-            raise ConfigError('the CHOLMOD linear solver needs scikit-sparse: pip install '
-                              "'soft_rom[fast]' (with SuiteSparse, e.g. apt install "
-                              'libsuitesparse-dev), or use the banded solver') from err
-        self.kind = 'cholmod'
-        try:
-            self._chol = cholmod.cholesky(sp.csc_matrix(A), mode='supernodal')
-        except cholmod.CholmodNotPositiveDefiniteError as err:
-            raise SolverError(f'the rest system matrix is not positive definite: {err}') \
-                from err
-
-    def solve(self, b: Array) -> Array:
-        """``A^{-1} b`` for ``b`` of shape (n,) or (n, k)."""
-        if self.kind == 'cholmod':
-            return np.asarray(self._chol.solve_A(b))
-        if self.kind == 'superlu':
-            return self._lu.solve(b)
-        return sla.cho_solve_banded((self._cb, False), b, check_finite=False)
-
-
-def _pcg(apply_A: Callable[[NDArray], NDArray], precond: Callable[[NDArray], NDArray],
-         b: Array, x0: Array, rtol: float, maxiter: int) -> tuple[Array, int, float]:
-    """Preconditioned CG from ``x0``; returns ``(x, iterations, relative residual)``."""
-    x = x0.copy()
-    r = b - apply_A(x)
-    bnorm = float(np.linalg.norm(b)) or 1.0
-    res = float(np.linalg.norm(r)) / bnorm
-    if res <= rtol:
-        return x, 0, res
-    z = precond(r)
-    p = z.copy()
-    rz = float(r @ z)
-    for it in range(1, maxiter + 1):
-        Ap = apply_A(p)
-        a = rz / float(p @ Ap)
-        x += a * p
-        r -= a * Ap
-        res = float(np.linalg.norm(r)) / bnorm
-        if res <= rtol:
-            return x, it, res
-        z = precond(r)
-        rz_new = float(r @ z)
-        p = z + (rz_new / rz) * p
-        rz = rz_new
-    return x, maxiter, res

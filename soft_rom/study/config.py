@@ -1,14 +1,15 @@
-"""What the studies run: :class:`StudyConfig`."""
+"""What the studies run: :class:`StudyConfig`, and the BLAS threads they run with."""
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 from typing import Any
 
 from soft_rom.errors import ConfigError
 from soft_rom.study.presets import ERA_EEL_OPTIONS
 
-__all__ = ['StudyConfig']
+__all__ = ['blas_threads', 'StudyConfig']
 
 
 @dataclass(frozen=True)
@@ -86,3 +87,14 @@ class StudyConfig:
             raise ConfigError('the studies need at least 2 episodes (6 for study 2).')
         if not 0 < self.t_train < self.duration:
             raise ConfigError(f't_train must lie in (0, {self.duration}); got {self.t_train}.')
+
+
+def blas_threads(n: int | None) -> Any:
+    """At most ``n`` BLAS threads in this process while the context lasts (threadpoolctl)."""
+    if n is None:
+        return contextlib.nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:      # a ROS install without it: the library's default applies
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=int(n), user_api='blas')

@@ -231,6 +231,13 @@ def errors_vs_r(path: Path, curves: Mapping[str, Mapping[str, Sequence[float]]],
             ax.set_xlim(min(rs) - 1, max(rs) + 1)
         ax.grid(True, which='both', alpha=0.25)
     axes[0][0].set_ylabel(metric_label, fontsize=8.5)
+    handles, entries = _errors_vs_r_legend(plt, curves, names, bool(paper), cut)
+    return _finish(fig, path, title, handles, entries, ncol=4)
+
+
+def _errors_vs_r_legend(plt: Any, curves: Mapping[str, Any], names: Mapping[str, str],
+                        paper: bool, cut: bool) -> tuple[list[Any], list[str]]:
+    """Legend of :func:`errors_vs_r`: the two windows, the paper, one patch per method."""
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
     handles: list[Any] = [Line2D([], [], ls=':', marker='o', color='0.2', ms=4.5),
@@ -246,7 +253,7 @@ def errors_vs_r(path: Path, curves: Mapping[str, Mapping[str, Sequence[float]]],
     if cut:
         h, n = _off_handles(plt)
         handles, entries = handles + h, entries + n
-    return _finish(fig, path, title, handles, entries, ncol=4)
+    return handles, entries
 
 
 def output_traces(path: Path, t: NDArray[np.float64], fom: NDArray[np.float64],

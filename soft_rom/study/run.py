@@ -15,7 +15,6 @@ Pipeline (every step goes through the same public pieces a user calls):
 from __future__ import annotations
 
 from collections.abc import Sequence
-import contextlib
 from dataclasses import asdict
 import json
 import os
@@ -27,16 +26,17 @@ from typing import Any
 import numpy as np
 
 from soft_rom.errors import BagError, ConfigError
-from soft_rom.study.config import StudyConfig
+from soft_rom.study.config import blas_threads, StudyConfig
+
+# _conclusions, _in_memory, _record_held_out: re-exported for the paper-scale run and tests.
+from soft_rom.study.fits import _in_memory as _in_memory
+from soft_rom.study.fits import _record_held_out as _record_held_out
+from soft_rom.study.fits import sweep
 from soft_rom.study.presets import CUBIC_EEL_OPTIONS, ERA_EEL_OPTIONS
 from soft_rom.study.replay import replay_check
 from soft_rom.study.report import study_report
-
-# _conclusions, _in_memory, _record_held_out: re-exported for the paper-scale run and tests.
 from soft_rom.study.studies import _conclusions as _conclusions
-from soft_rom.study.studies import _in_memory as _in_memory
-from soft_rom.study.studies import _jsonable, study_time_extrapolation, study_unseen_inputs, sweep
-from soft_rom.study.studies import _record_held_out as _record_held_out
+from soft_rom.study.studies import _jsonable, study_time_extrapolation, study_unseen_inputs
 
 __all__ = ['CUBIC_EEL_OPTIONS', 'ERA_EEL_OPTIONS', 'StudyConfig', 'run_study', 'simulate_bags',
            'study_time_extrapolation', 'study_unseen_inputs', 'sweep']
@@ -129,20 +129,9 @@ def run_study(out_dir: str | Path, cfg: StudyConfig | None = None, *, progress: 
         Reuse bags from here (simulated there if missing).
     """
     cfg = cfg or StudyConfig()
-    with _blas_threads(cfg.blas_threads):
+    with blas_threads(cfg.blas_threads):
         return _run_study(Path(out_dir), cfg, progress=progress, studies=studies,
                           replay=replay, bag_dir=bag_dir)
-
-
-def _blas_threads(n: int | None) -> Any:
-    """At most ``n`` BLAS threads in this process while the context lasts (threadpoolctl)."""
-    if n is None:
-        return contextlib.nullcontext()
-    try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:      # a ROS install without it: the library's default applies
-        return contextlib.nullcontext()
-    return threadpool_limits(limits=int(n), user_api='blas')
 
 
 def _run_study(out: Path, cfg: StudyConfig, *, progress: bool, studies: Sequence[int],

@@ -22,80 +22,25 @@ from typing import Any
 import numpy as np
 
 from soft_rom.data import Episode
-from soft_rom.errors import ConfigError, DatasetError
+from soft_rom.errors import DatasetError
 from soft_rom.metrics import relative_deviation_error, relative_error
 from soft_rom.models import LinearROM
 from soft_rom.models.labels import model_label
-from soft_rom.pipeline import fit_method, FitSettings, open_training_data
-from soft_rom.pipeline.data import CHANNEL_KEYS
 from soft_rom.study import figures, paper
 from soft_rom.study.config import StudyConfig
+from soft_rom.study.fits import (
+    _choose_models,
+    _in_memory,
+    _predict,
+    _record_held_out,
+    HELD_OUT_METHODS,
+    sweep,
+)
 
 __all__ = ['study_time_extrapolation', 'study_unseen_inputs', 'sweep']
 
 LOG = logging.getLogger(__name__)
 METHODS = ('lopinf', 'dmdc', 'era', 'lopinf_cubic')
-
-
-def sweep(method: str, rs: Sequence[int], episodes: Sequence[Episode], ts: Any, *,
-          era_options: dict[str, Any] | None = None,
-          cubic_options: dict[str, Any] | None = None,
-          streaming: bool = False) -> dict[int, LinearROM]:
-    """ROMs of one method for several ``r``: the pipeline of ``soft-rom fit``.
-
-    ``method`` is ``'lopinf'``, ``'dmdc'``, ``'era'`` or ``'lopinf_cubic'`` (LOpInf with cubic
-    forces: ``cubic_options`` fixed, or ``None`` for the held-out selection). The expensive
-    part is shared: one POD (LOpInf), one pair of SVDs (DMDc), one OKID and Hankel SVD
-    (ERA/OKID, one episode). With ``streaming``, the snapshots of the stored episodes (the
-    ``episodes`` are their heads) are streamed from disk by
-    :class:`~soft_rom.reduce.StreamingReducer` (bounded memory: the paper-scale run).
-    """
-    era = dict(era_options or {})
-    if method == 'era':
-        if len(episodes) != 1:
-            raise ConfigError('ERA/OKID fits one episode.')
-        era['episode'] = episodes[0].name
-    cubic = method == 'lopinf_cubic'
-    settings = FitSettings(forces='cubic' if cubic else 'linear',
-                           cubic_options=cubic_options if cubic else None, era=era,
-                           held_out=False)         # recorded for the chosen models only
-    provenance = {'training_set': str(getattr(ts, 'path', '')),
-                  'time_ranges': [[float(ep.t[0]), float(ep.t[-1])] for ep in episodes]}
-    reducer = None
-    if streaming and method != 'era':
-        from soft_rom.reduce import StreamingReducer
-        first = ts[episodes[0].name]
-        t_max = (None if all(ep.n_samples == ts[ep.name].n_samples for ep in episodes)
-                 else float(max(ep.t[-1] for ep in episodes) - first.t[0]
-                            + 0.5 * episodes[0].dt))
-        data = open_training_data(ts, episodes=[ep.name for ep in episodes], t_max=t_max,
-                                  provenance=provenance)
-        reducer = StreamingReducer()
-    else:
-        data = open_training_data(
-            list(episodes), q_ref=ts.q_ref, y_ref=ts.y_ref,
-            channels={key: getattr(ts, key, None) for key in CHANNEL_KEYS},
-            provenance=provenance)
-    fitted = fit_method(data, 'lopinf' if cubic else method,
-                        tuple(sorted(set(int(r) for r in rs))), settings, reducer,
-                        notes=False)
-    return {fit.model.r: fit.model for fit in fitted}
-
-
-def _in_memory(ep: Episode, limit_bytes: float = 2e9) -> Episode:
-    """Load a lazy ``Q`` into memory when it is small (the default mesh): fits read it often."""
-    if ep.Q is None or isinstance(ep.Q, np.ndarray):
-        return ep
-    n, k = ep.Q.shape
-    if n * k * 8 > limit_bytes:
-        return ep
-    return Episode(t=ep.t, U=ep.U, Y=ep.Y, Q=np.asarray(ep.Q[:, :], dtype=np.float64),
-                   name=ep.name, metadata=ep.metadata)
-
-
-def _predict(model: LinearROM, episode: Episode) -> np.ndarray:
-    from soft_rom.evaluation import predict
-    return predict(model, episode)
 
 
 def _errors(Y: np.ndarray, Yh: np.ndarray, y_ref: np.ndarray) -> tuple[float, float]:
@@ -227,7 +172,7 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
                              'from y_ref')
     shapes_png = _shapes_figure(ts, cfg, out, tests[0], preds, labels)
     for method, model in models.items():
-        if method in HELD_OUT_METHODS:
+        if method in HELD_OUT_METHODS and 'held_out' not in model.metadata:
             _record_held_out(method, model, chosen[method], train_eps, ts, cfg)
         model.save(out / 'models' / f'eel_{method}_r{chosen[method]["r"]}.npz')
     result = {'chosen': chosen, 'era_episode': era_episode, 'test': test, 'test_dev': test_dev,
@@ -242,61 +187,6 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
     result['long_inputs'] = {m: _long_inputs(models[m], tests, train_eps, y_ref)
                              for m in ('lopinf', 'lopinf_cubic') if m in models}
     return result
-
-
-def _choose_models(ts: Any, cfg: StudyConfig, train_eps: list[Episode], tests: list[Episode],
-                   tick: Callable[[str], None] | None, fit_seconds: dict[str, float]
-                   ) -> tuple[dict[str, dict[str, Any]], dict[str, LinearROM],
-                              dict[str, dict[int, LinearROM]], str | None]:
-    """Each method's ROM with the lowest training error; ERA/OKID from the better episode.
-
-    ``fit_seconds`` receives each method's fitting time (all its sweeps).
-    """
-    grids = {'lopinf': cfg.r_lopinf, 'dmdc': cfg.r_dmdc, 'era': cfg.r_era,
-             'lopinf_cubic': cfg.r_cubic}
-    swept: dict[str, dict[int, LinearROM]] = {}
-
-    def pick(method: str, eps: Sequence[Episode]) -> tuple[float, int, LinearROM] | None:
-        t0 = time.perf_counter()
-        try:
-            models = sweep(method, grids[method], eps, ts, era_options=cfg.era_options,
-                           cubic_options=cfg.cubic_options, streaming=cfg.streaming)
-            fit_seconds[method] = fit_seconds.get(method, 0.0) + time.perf_counter() - t0
-        except Exception as err:
-            LOG.warning('study 2: %s on %s failed: %s', method, [e.name for e in eps], err)
-            return None
-        swept[method] = models
-        best = None
-        for r, model in models.items():
-            Y = np.concatenate([e.Y for e in eps], axis=1)
-            e = relative_error(Y, np.concatenate([_predict(model, e) for e in eps], axis=1))
-            if tick:
-                tick(f'{method} r={r}')
-            if np.isfinite(e) and (best is None or e < best[0]):
-                best = (e, r, model)
-        return best
-
-    chosen: dict[str, dict[str, Any]] = {}
-    models: dict[str, LinearROM] = {}
-    for method in ('lopinf', 'dmdc', 'lopinf_cubic'):
-        best = pick(method, train_eps) if grids[method] else None
-        if best is not None:
-            chosen[method] = {'r': best[1], 'train': best[0]}
-            models[method] = best[2]
-    era_candidates = {}
-    for ep in train_eps:
-        best = pick('era', [ep])
-        if best is not None:
-            test_err = relative_error(np.concatenate([t.Y for t in tests], axis=1),
-                                      np.concatenate([_predict(best[2], t) for t in tests], 1))
-            era_candidates[ep.name] = (test_err, best)
-    era_episode = None
-    if era_candidates:
-        era_episode = min(era_candidates, key=lambda k: era_candidates[k][0])
-        _e, (e_train, r, model) = era_candidates[era_episode]
-        chosen['era'] = {'r': r, 'train': e_train, 'episode': era_episode}
-        models['era'] = model
-    return chosen, models, swept, era_episode
 
 
 def _shapes_figure(ts: Any, cfg: StudyConfig, out: Path, shape_ep: Episode,
@@ -316,31 +206,6 @@ def _shapes_figure(ts: Any, cfg: StudyConfig, out: Path, shape_ep: Episode,
                   f'(trained on Ep 1 + Ep 2), FOM and ROMs at t = '
                   f'{", ".join(f"{t:g}" for t in cfg.shape_times)} s')
     return shapes_png
-
-
-#: Methods whose saved study models record their held-out error (the predictor's monitor
-#: thresholds; :func:`soft_rom.evaluation.held_out_errors`). The cubic fit is left out: its
-#: conic refits would double its cost.
-HELD_OUT_METHODS = ('lopinf', 'dmdc', 'era')
-
-
-def _record_held_out(method: str, model: LinearROM, chosen: dict[str, Any],
-                     train_eps: Sequence[Episode], ts: Any, cfg: StudyConfig) -> None:
-    """``model.metadata['held_out']``: the same fit, on held-out training data."""
-    from soft_rom.evaluation import held_out_errors
-
-    r = int(chosen['r'])
-    eps = [e for e in train_eps if e.name == chosen['episode']] if 'episode' in chosen \
-        else list(train_eps)
-
-    def refit(episodes: Sequence[Episode]) -> LinearROM:
-        return sweep(method, [r], episodes, ts, era_options=cfg.era_options,
-                     cubic_options=cfg.cubic_options)[r]
-
-    try:
-        model.metadata['held_out'] = held_out_errors(refit, eps, ts.y_ref)
-    except Exception as err:  # noqa: BLE001 -- no held-out error: the monitor's defaults
-        LOG.warning('study 2: held-out error of %s r=%d not recorded: %s', method, r, err)
 
 
 def _ep(name: str) -> str:

@@ -146,7 +146,7 @@ def test_cli_replay_with_params_file_and_kalman_comparison(tmp_path, capsys) -> 
 
 
 def test_cdr_templates_equal_direct_serialization() -> None:
-    from soft_rom.bags import replay_io as rio
+    from soft_rom.bags import prediction_writer as rio
 
     rng = np.random.default_rng(3)
     with_writer = rio.PredictionBagWriter.__new__(rio.PredictionBagWriter)

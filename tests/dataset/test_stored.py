@@ -106,6 +106,18 @@ def test_to_dask_reads_the_stored_chunks(intact):
     np.testing.assert_array_equal(q.compute(), _episodes()[0].Q)
 
 
+def test_every_dask_read_carries_its_own_array(intact):
+    # No task holds the array for the reads to depend on: a Dask worker killed while holding
+    # such a key left queued reads whose dependency was gone, and distributed 2024.1's
+    # scheduler then failed an assertion and dropped the other workers (a fit waited for ever)
+    pytest.importorskip('dask.array')
+    from dask.core import get_dependencies
+    q = TrainingSet.open(intact).q_array('ep1').to_dask()
+    graph = dict(q.__dask_graph__())
+    assert len(graph) == q.npartitions == 15                    # one task per chunk
+    assert all(not get_dependencies(graph, key) for key in graph)
+
+
 # -- damaged chunks -------------------------------------------------------------------------
 @pytest.mark.parametrize('key', ['t', 'U', 'Y', 'Q'])
 @pytest.mark.parametrize('damage, words', [

@@ -147,19 +147,6 @@ def _processing(client, worker: str) -> bool:
     return bool(client.processing().get(worker))
 
 
-def _distributed_version() -> tuple[int, ...]:
-    import distributed as dist
-    return tuple(int(x) for x in re.findall(r'\d+', dist.__version__)[:2])
-
-
-# Seen in CI after the fit pipeline's merge: on distributed 2024.1.0 (the minimum stage) the
-# fit whose worker was killed waits for ever on its pass (twice of twice); 2026.8 gives the
-# same model bit for bit. Versions between are not checked.
-KILL_OK = _distributed_version() >= (2026, 8)
-
-
-@pytest.mark.xfail(not KILL_OK, reason='distributed < 2026.8: a fit whose worker was killed '
-                   'mid-POD can wait for ever (seen on 2024.1.0)', strict=False)
 def test_a_worker_killed_mid_pod_gives_the_same_model(tmp_path):
     ts = _set(tmp_path / 'ts.zarr')
     c = Cluster(tmp_path, 2, delay=0.4)
@@ -177,7 +164,7 @@ def test_a_worker_killed_mid_pod_gives_the_same_model(tmp_path):
             assert fit.poll() is None and time.monotonic() < deadline
             time.sleep(0.02)
         victim.send_signal(signal.SIGKILL)               # in the middle of a block read
-        assert fit.wait(300 if KILL_OK else 60) == 0, fit.stderr.read()
+        assert fit.wait(300) == 0, fit.stderr.read()
         assert victim.wait() == -signal.SIGKILL
         a, b = _models(tmp_path / 'clean'), _models(tmp_path / 'killed')
         for name in a:

@@ -16,7 +16,8 @@ from scipy.spatial.transform import Rotation
 
 from soft_rom.errors import ConfigError
 from soft_rom.sim import _kernels, CorotationalFEM, EelModel, simulate_episode, tetrahedralize
-from soft_rom.sim.eel import _SPDFactor, cholmod_available
+from soft_rom.sim.eel import cholmod_available
+from soft_rom.sim.linsolve import _SPDFactor
 from soft_rom.sim.mesh import box_grid
 
 

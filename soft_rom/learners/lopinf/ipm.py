@@ -200,14 +200,87 @@ def _nt_scaling(X: Array, S: Array) -> tuple[Array, Array, Array]:
             np.asarray(0.5 * (Xi + Xi.T), dtype=np.float64))
 
 
+def _split(idx: SymIndex, v: Array, nc: int) -> list[Array]:
+    """The ``nc`` symmetric matrices of a stacked svec vector."""
+    n = idx.n
+    return [idx.smat(v[i * n:(i + 1) * n]) for i in range(nc)]
+
+
+def _join(idx: SymIndex, Ms: list[Array]) -> Array:
+    """The stacked svec vector of symmetric matrices."""
+    return np.concatenate([idx.svec(M) for M in Ms])
+
+
+class _NewtonSystem:
+    """One interior-point iteration's Newton system: NT scalings and the factored matrix.
+
+    Built from the current iterate ``(X, S)`` of each cone and the dual residual ``rd``;
+    raises ``numpy.linalg.LinAlgError`` when the scaled matrix is not positive definite.
+    """
+
+    def __init__(self, H: Array, idx: SymIndex, nc: int, Xs: list[Array], Ss: list[Array],
+                 rd: Array) -> None:
+        n = idx.n
+        self.idx, self.nc, self.Ss, self.rd = idx, nc, Ss, rd
+        self.scal = [_nt_scaling(X, S) for X, S in zip(Xs, Ss)]
+        Hn = H.copy()
+        for i in range(nc):
+            Hn[i * n:(i + 1) * n, i * n:(i + 1) * n] += idx.skron(self.scal[i][1])
+        self.fac = sla.cho_factor(Hn, lower=True, check_finite=False)
+
+    def direction(self, Rc: list[Array]) -> tuple[Array, list[Array], list[Array]]:
+        """``(Δx, ΔX, ΔS)`` for the complementarity right-hand sides ``Rc``."""
+        scal, nc = self.scal, self.nc
+        rhs = -self.rd + _join(self.idx, Rc)
+        dx = sla.cho_solve(self.fac, rhs, check_finite=False)
+        dX = list(_split(self.idx, dx, nc))
+        dS = [Rc[i] - scal[i][1] @ dX[i] @ scal[i][1] for i in range(nc)]
+        dS = [0.5 * (M + M.T) for M in dS]
+        return dx, dX, dS
+
+    def step_len(self, dX: list[Array], dS: list[Array]) -> float:
+        """Largest step along ``(ΔX, ΔS)`` that keeps every ``X`` and ``S`` in its cone."""
+        a = 1e30
+        for i in range(self.nc):
+            a = min(a, _max_step(self.scal[i][0], dX[i]),
+                    _max_step(np.asarray(np.linalg.cholesky(self.Ss[i])), dS[i]))
+        return a
+
+    def mehrotra_step(self, Xs: list[Array], mu: float
+                      ) -> tuple[Array, list[Array], list[Array], float]:
+        """Predictor-corrector direction ``(Δx, ΔX, ΔS)`` and its step length."""
+        Ss, scal, nc, r = self.Ss, self.scal, self.nc, self.idx.r
+        # Predictor (affine scaling).
+        Rc_aff = [-S for S in Ss]
+        dx_a, dX_a, dS_a = self.direction(Rc_aff)
+        a_aff = min(1.0, self.step_len(dX_a, dS_a))
+        mu_aff = sum(float(np.sum((X + a_aff * dX) * (S + a_aff * dS)))
+                     for X, S, dX, dS in zip(Xs, Ss, dX_a, dS_a)) / (nc * r)
+        sigma = min(max((mu_aff / mu) ** 3, 0.0), 1.0)
+        # Corrector: centring plus the second-order term sym(X⁻¹ ΔX_a ΔS_a).
+        Rc = []
+        for i in range(nc):
+            Xi = scal[i][2]
+            T = Xi @ dX_a[i] @ dS_a[i]
+            Rc.append(sigma * mu * Xi - Ss[i] - 0.5 * (T + T.T))
+        dx, dX, dS = self.direction(Rc)
+        alpha = min(1.0, 0.98 * self.step_len(dX, dS))
+        if alpha < 0.5 * a_aff:
+            # The second-order term can point out of the cone (it is a heuristic in the NT
+            # scaling); then take the plain centred direction.
+            sigma = max(sigma, 0.1)
+            dx, dX, dS = self.direction([sigma * mu * scal[i][2] - Ss[i] for i in range(nc)])
+            alpha = min(1.0, 0.98 * self.step_len(dX, dS))
+        return dx, dX, dS, alpha
+
+
 def solve_two_cone_qp(H: Array, c: Array, fval: Any, idx: SymIndex, x0: Array, *,
                       h_factor: Any, rtol: float, max_iter: int = 100, n_cones: int = 2
                       ) -> tuple[Array, dict[str, Any]]:
     """Minimize ``φ(x) = ½ xᵀ H x + cᵀ x + φ₀`` over ``x = (svec X_C, svec X_K)`` in two PSD cones.
 
-    One function of about 125 lines: the interior-point iteration (barrier, Newton step with
-    the factored Hessian, step to the cones' boundary, stopping test) shares its state from
-    step to step, and splitting the loop would pass that state around for nothing.
+    Each iteration checks the certified gap, then takes one Mehrotra predictor-corrector
+    step (:class:`_NewtonSystem`) to a fraction of the distance to the cones' boundary.
 
     Parameters
     ----------
@@ -234,21 +307,14 @@ def solve_two_cone_qp(H: Array, c: Array, fval: Any, idx: SymIndex, x0: Array, *
     info : dict
         ``iterations``, ``gap_bound`` (absolute, on ``φ``), ``dual_bound``.
     """
-    n, r = idx.n, idx.r
+    r = idx.r
     nc = int(n_cones)
-
-    def split(v: Array) -> list[Array]:
-        return [idx.smat(v[i * n:(i + 1) * n]) for i in range(nc)]
-
-    def join(*Ms: Array) -> Array:
-        return np.concatenate([idx.svec(M) for M in Ms])
-
     x = x0.copy()
     d0 = x - h_factor.solve(-c)                      # x0 minus the unconstrained minimizer
     mu0 = max(float(d0 @ (H @ d0)) / (nc * r), 1e-300)
-    Xs = list(split(x))
+    Xs = list(_split(idx, x, nc))
     Ss: list[Array] = [np.asarray(mu0 * np.linalg.inv(X), dtype=np.float64) for X in Xs]
-    s = join(*Ss)
+    s = _join(idx, Ss)
     best: tuple[float, Array, float] | None = None
     it = 0
     while it < max_iter:
@@ -264,60 +330,18 @@ def solve_two_cone_qp(H: Array, c: Array, fval: Any, idx: SymIndex, x0: Array, *
         if gap <= rtol * max(abs(f), 1e-300):
             break
         mu = float(x @ s) / (nc * r)
-        scal = [_nt_scaling(X, S) for X, S in zip(Xs, Ss)]
-        Hn = H.copy()
-        for i in range(nc):
-            Hn[i * n:(i + 1) * n, i * n:(i + 1) * n] += idx.skron(scal[i][1])
         try:
-            fac = sla.cho_factor(Hn, lower=True, check_finite=False)
+            system = _NewtonSystem(H, idx, nc, Xs, Ss, rd)
         except np.linalg.LinAlgError:
             break
-
-        def direction(Rc: list[Array], fac: Any = fac, scal: list[Any] = scal,
-                      rd: Array = rd) -> tuple[Array, list[Array], list[Array]]:
-            rhs = -rd + join(*Rc)
-            dx = sla.cho_solve(fac, rhs, check_finite=False)
-            dX = list(split(dx))
-            dS = [Rc[i] - scal[i][1] @ dX[i] @ scal[i][1] for i in range(nc)]
-            dS = [0.5 * (M + M.T) for M in dS]
-            return dx, dX, dS
-
-        def step_len(dX: list[Array], dS: list[Array], scal: list[Any] = scal,
-                     Ss: list[Array] = Ss) -> float:
-            a = 1e30
-            for i in range(nc):
-                a = min(a, _max_step(scal[i][0], dX[i]),
-                        _max_step(np.asarray(np.linalg.cholesky(Ss[i])), dS[i]))
-            return a
-
-        # Predictor (affine scaling).
-        Rc_aff = [-S for S in Ss]
-        dx_a, dX_a, dS_a = direction(Rc_aff)
-        a_aff = min(1.0, step_len(dX_a, dS_a))
-        mu_aff = sum(float(np.sum((X + a_aff * dX) * (S + a_aff * dS)))
-                     for X, S, dX, dS in zip(Xs, Ss, dX_a, dS_a)) / (nc * r)
-        sigma = min(max((mu_aff / mu) ** 3, 0.0), 1.0)
-        # Corrector: centring plus the second-order term sym(X⁻¹ ΔX_a ΔS_a).
-        Rc = []
-        for i in range(nc):
-            Xi = scal[i][2]
-            T = Xi @ dX_a[i] @ dS_a[i]
-            Rc.append(sigma * mu * Xi - Ss[i] - 0.5 * (T + T.T))
-        dx, dX, dS = direction(Rc)
-        alpha = min(1.0, 0.98 * step_len(dX, dS))
-        if alpha < 0.5 * a_aff:
-            # The second-order term can point out of the cone (it is a heuristic in the NT
-            # scaling); then take the plain centred direction.
-            sigma = max(sigma, 0.1)
-            dx, dX, dS = direction([sigma * mu * scal[i][2] - Ss[i] for i in range(nc)])
-            alpha = min(1.0, 0.98 * step_len(dX, dS))
+        dx, dX, dS, alpha = system.mehrotra_step(Xs, mu)
         x = x + alpha * dx
         Xs = [Xs[i] + alpha * dX[i] for i in range(nc)]
         Ss = [Ss[i] + alpha * dS[i] for i in range(nc)]
         Xs = [np.asarray(0.5 * (M + M.T), dtype=np.float64) for M in Xs]
         Ss = [np.asarray(0.5 * (M + M.T), dtype=np.float64) for M in Ss]
-        x = join(*Xs)
-        s = join(*Ss)
+        x = _join(idx, Xs)
+        s = _join(idx, Ss)
         if not all(np.all(np.isfinite(M)) for M in Xs + Ss):
             raise SolverError('LOpInf interior point: non-finite iterate; check the data for '
                               'NaN/huge values.')
