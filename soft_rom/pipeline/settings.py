@@ -83,7 +83,8 @@ class FitSettings:
         Record each model's held-out error (``metadata['held_out']``, from which the
         predictor sets its monitor thresholds): the fit is repeated on part of the training
         data (:func:`~soft_rom.pipeline.fit.held_out_by_order`). In memory only, and not
-        for cubic forces chosen on held-out data (their selection already refits).
+        for LOpInf with ``forces='auto'`` or cubic forces chosen on held-out data (their
+        selection already refits).
     """
 
     energy: float | None = None
