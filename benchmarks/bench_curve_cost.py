@@ -5,8 +5,9 @@ episodes of 2 s at 1 ms, the eel at 50 kPa) within 60 s on the 2-core machine, a
 predictor step of such a model within 50 us. Timed A/B in one process: the linear LOpInf fit
 on the same reduced coordinates is the baseline of the fit; the predictor step of the linear
 model is the baseline of the step. Also timed: the whole held-out verdict of
-``soft-rom fit --forces auto`` at that ``r`` (``choose_forces``: 4 folds x the cubic grid,
-each candidate simulated on the episodes left out), which is what a user waits for.
+``soft-rom fit --forces auto`` at that ``r`` (the pipeline's ``HeldOutCubicSelection``: 4
+folds x the cubic grid, each candidate simulated on the episodes left out), which is what a
+user waits for.
 
 The training set is the study's (``soft-rom study --learning-curve`` writes
 ``data/50kPa_train.zarr`` in its folder). Run::
@@ -30,9 +31,17 @@ import time
 import numpy as np
 
 from soft_rom.dataset import TrainingSet
+from soft_rom.errors import SoftRomError
+from soft_rom.pipeline import (
+    CUBIC_GRID,
+    FitSettings,
+    HeldOutCubicSelection,
+    make_learner,
+    replace_learner,
+)
 from soft_rom.predictor import Predictor
 from soft_rom.study.curve.run import _episodes
-from soft_rom.study.curve.select import choose_forces, CUBIC_GRID, Reduction
+from soft_rom.study.curve.select import Reduction
 
 
 def _load() -> str:
@@ -91,10 +100,16 @@ def main() -> None:
     t_lin = time.perf_counter() - t0
     print(f'linear LOpInf fit r={args.r}: {t_lin:.2f} s (baseline)')
     cubic = {}
+    learner = make_learner('lopinf', FitSettings(forces='cubic'), 'state')
+    reduced = red.reduced(idx, args.r)
     for reg, eps4 in CUBIC_GRID:
         t0 = time.perf_counter()
         c0 = time.process_time()
-        fitted = red.cubic(idx, args.r, [(reg, eps4)])
+        fit = replace_learner(learner, r=args.r, cubic_options={'reg': reg, 'eps4': eps4})
+        try:
+            fitted = {(reg, eps4): fit.fit(reduced).model_}
+        except (SoftRomError, np.linalg.LinAlgError):
+            fitted = {}
         wall, cpu = time.perf_counter() - t0, time.process_time() - c0
         status = 'fitted' if fitted else 'failed'
         print(f'cubic LOpInf fit r={args.r} reg={reg:g} eps4={eps4:g}: {wall:.1f} s wall, '
@@ -111,7 +126,7 @@ def main() -> None:
         break
     if args.verdict:
         t0 = time.perf_counter()
-        (v,) = choose_forces(eps, q_ref, y_ref, (args.r,))
+        v = HeldOutCubicSelection().select(reduced, learner, args.r)
         print(f'held-out verdict (fit --forces auto) r={args.r}: '
               f'{time.perf_counter() - t0:.0f} s; ' + ' '.join(v.lines('auto')))
     print(_load())

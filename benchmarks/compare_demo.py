@@ -115,9 +115,9 @@ def main(argv: list[str] | None = None) -> int:
     if cub_b or cub_n:
         print(f'cubic / linear ratio, baseline {json.dumps(cub_b.get("ratio"))}; '
               f'new {json.dumps(cub_n.get("ratio"))}')
-    sel = new.get('study2', {}).get('cubic_selection')
+    sel = new.get('study2', {}).get('forces_selection')
     if sel:
-        print(f'cubic selection (new): {json.dumps(sel)}')
+        print(f'cubic forces selection (new): {json.dumps(sel)}')
     return 0 if ok else 1
 
 

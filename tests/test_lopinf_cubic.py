@@ -283,9 +283,11 @@ def test_cli_fit_forces_cubic_then_info(tmp_path, capsys) -> None:
                str(tmp_path / 'm2'), '--quiet'])
     assert rc == 0
     streamed = load_model(tmp_path / 'm2' / 'chain_lopinf_cubic_r4.npz')
-    for key in ('forces', 'options', 'scheme'):
-        assert streamed.metadata['cubic_selection'][key] == \
-            model.metadata['cubic_selection'][key]
+    sel, streamed_sel = model.metadata['forces_selection'], streamed.metadata['forces_selection']
+    for key in ('kept', 'scheme', 'folds', 'forces_auto'):
+        assert streamed_sel[key] == sel[key]
+    assert (streamed_sel['choice']['reg'], streamed_sel['choice']['eps4']) == \
+        (sel['choice']['reg'], sel['choice']['eps4'])
     Y1, Y2 = model.simulate(U[:, :500]), streamed.simulate(U[:, :500])
     assert np.linalg.norm(Y1 - Y2) <= 1e-4 * np.linalg.norm(Y1 - model.y_ref[:, None])
 

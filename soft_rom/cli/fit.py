@@ -84,11 +84,11 @@ def _add_size_and_lopinf_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--solver', choices=('fast', 'cvxpy'), default='fast',
                         help='LOpInf operator solver (default fast)')
     parser.add_argument('--forces', choices=('linear', 'cubic', 'auto'), default='linear',
-                        help='LOpInf restoring force: linear (K q), cubic (quartic potential, '
-                             'energy-consistent integrator; --cubic-reg/--cubic-eps4 chosen on '
-                             'held-out training data, linear kept when cubic does not pay), or '
-                             'auto (the learning-curve rule: cubic only when 10 %% better on '
-                             'held-out episodes; in memory); default linear')
+                        help='LOpInf restoring force: linear (K q); cubic (quartic potential, '
+                             'energy-consistent integrator; the best of a grid of --cubic-reg '
+                             'on held-out training episodes, compared with linear); or auto '
+                             '(cubic only when at least 10 %% better than linear held out, on 4 '
+                             'or more folds of training episodes, else linear); default linear')
     parser.add_argument('--cubic-reg', type=finite_float(0.0, lo_open=True), default=None,
                         help='cubic forces: Tikhonov weight of the nonlinear tensors, fixed '
                              '(with --cubic-eps4; default chosen on held-out data)')
@@ -327,13 +327,7 @@ def _run(args: argparse.Namespace, clients: list[Any]) -> int:
     layout = ts.output_layout.to_dict() if getattr(ts, 'output_layout', None) else None
     reducer = _reducer(args, clients)
     fitted: list[FittedModel] = []
-    verdict_lines: list[str] = []
     for method in args.method:
-        if method == 'lopinf' and args.forces == 'auto':
-            got, lines = _fit_auto(args, data, settings, reducer, layout)
-            fitted += got
-            verdict_lines += lines
-            continue
         fitted += fit_method(data, method, args.r, settings, reducer, layout=layout,
                              progress=not args.quiet)
     rows, models = _rows(fitted, data, outdir, prefix)
@@ -356,34 +350,7 @@ def _run(args: argparse.Namespace, clients: list[Any]) -> int:
     for row in rows:
         for note in row['notes']:
             print(f'  {Path(row["path"]).name}: {note}')
-    for line in verdict_lines:
-        print(line)
     return 0
-
-
-def _fit_auto(args: argparse.Namespace, data: Any, settings: FitSettings, reducer: Any,
-              layout: dict[str, Any] | None) -> tuple[list[FittedModel], list[str]]:
-    """``--forces auto``: the learning-curve study's verdict (linear or cubic per ``r``)."""
-    import dataclasses
-
-    from soft_rom.pipeline.data import choose_coordinates
-    from soft_rom.study.curve.select import fit_with_verdict
-    if reducer is not None:
-        raise ConfigError('--forces auto is fitted in memory; drop --streaming/--dask')
-    data_dt: dict[int, float | None] = {}
-
-    def fit(r_values: Any, forces: str, cubic_options: Any = None) -> list[tuple[Any, float]]:
-        s = dataclasses.replace(settings, forces=forces, cubic_options=cubic_options)
-        got = fit_method(data, 'lopinf', r_values, s, None, layout=layout,
-                         progress=not args.quiet)
-        for f in got:
-            data_dt[id(f.model)] = f.data_dt
-        return [(f.model, f.seconds) for f in got]
-
-    pairs, lines = fit_with_verdict(
-        fit, data.episodes, getattr(data, 'q_ref', None), data.y_ref, args.r, asked='auto',
-        energy=args.energy, coordinates=choose_coordinates(data.episodes, args.coordinates))
-    return [FittedModel(m, sec, data_dt=data_dt.get(id(m))) for m, sec in pairs], lines
 
 
 def _rows(fitted: list[FittedModel], data: Any, outdir: Path, prefix: str

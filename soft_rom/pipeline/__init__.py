@@ -5,8 +5,9 @@
   per ``r``, each model's metadata finalized in one place (:func:`finalize_model`);
 * :mod:`~soft_rom.pipeline.settings` -- :class:`FitSettings`, the defaults of every choice,
   and :func:`fit_method`, one method as ``soft-rom fit`` fits it;
-* :mod:`~soft_rom.pipeline.cubic` -- the cubic LOpInf's settings chosen on held-out training
-  data (:class:`HeldOutCubicSelection`).
+* :mod:`~soft_rom.pipeline.cubic` -- the one held-out selection of the cubic LOpInf: its
+  settings, and whether it beats the linear model (:class:`HeldOutCubicSelection`), used by
+  ``soft-rom fit --forces cubic|auto`` and the studies.
 
 >>> data = open_training_data('eel.zarr', episodes='ep1,ep2')         # doctest: +SKIP
 >>> fitted = fit_method(data, 'lopinf', (4, 8))                      # doctest: +SKIP
@@ -15,7 +16,7 @@
 
 from __future__ import annotations
 
-from soft_rom.pipeline.cubic import CUBIC_GRID, CubicChoice, HeldOutCubicSelection
+from soft_rom.pipeline.cubic import CUBIC_GRID, CubicVerdict, folds_of, HeldOutCubicSelection
 from soft_rom.pipeline.data import (
     choose_coordinates,
     COORDINATES,
@@ -33,7 +34,8 @@ from soft_rom.pipeline.fit import (
 )
 from soft_rom.pipeline.settings import fit_method, FitSettings, make_learner, replace_learner
 
-__all__ = ['COORDINATES', 'CUBIC_GRID', 'CubicChoice', 'FitSettings', 'FittedModel',
+__all__ = ['COORDINATES', 'CUBIC_GRID', 'CubicVerdict', 'FitSettings', 'FittedModel',
            'HeldOutCubicSelection', 'Reducer', 'choose_coordinates', 'finalize_model',
-           'fit_method', 'fit_models', 'for_orders', 'held_out_by_order', 'make_learner',
-           'open_training_data', 'output_coordinates', 'replace_learner', 'select_episodes']
+           'fit_method', 'fit_models', 'folds_of', 'for_orders', 'held_out_by_order',
+           'make_learner', 'open_training_data', 'output_coordinates', 'replace_learner',
+           'select_episodes']

@@ -13,15 +13,15 @@ into a configured learner, with the defaults that depend on the data:
   error is biased by noise on the coordinates), none on states.
 
 :func:`fit_method` runs one method of ``soft-rom fit``: training data in the chosen
-coordinates, the reducer, the learner and, for cubic forces whose settings are not given,
-the held-out selection of :mod:`soft_rom.pipeline.cubic`.
+coordinates, the reducer, the learner and, for cubic forces whose settings are not given and
+for ``forces='auto'``, the one held-out selection of :mod:`soft_rom.pipeline.cubic`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 import copy
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import sys
 import time
 from typing import Any
@@ -58,15 +58,17 @@ class FitSettings:
         ``--ddt-order`` (8).
     coordinates : {'state', 'outputs'}, optional
         ``--coordinates``; default states when every episode has them.
-    forces : {'linear', 'cubic'}
-        ``--forces``.
+    forces : {'linear', 'cubic', 'auto'}
+        ``--forces``: ``'cubic'`` fits the best cubic candidate of the held-out selection
+        (unless ``cubic_options`` are given), ``'auto'`` keeps linear or cubic forces as the
+        selection's verdict says (:mod:`soft_rom.pipeline.cubic`).
     mass, refine : str, optional
         ``--mass``, ``--refine`` (defaults in the module docstring).
     cubic_options : dict, optional
         ``reg`` and ``eps4`` of the cubic forces, fixed; default chosen on held-out training
         data (:class:`~soft_rom.pipeline.cubic.HeldOutCubicSelection`).
     cubic_selection : HeldOutCubicSelection, optional
-        The selection used when ``cubic_options`` is not given (default grid and scheme).
+        The selection used when ``cubic_options`` is not given (default grid and rule).
     lopinf : dict
         More LOpInf keywords (``regularization``, ``min_damping_ratio``).
     dmdc_p : int, optional
@@ -81,7 +83,8 @@ class FitSettings:
         Record each model's held-out error (``metadata['held_out']``, from which the
         predictor sets its monitor thresholds): the fit is repeated on part of the training
         data (:func:`~soft_rom.pipeline.fit.held_out_by_order`). In memory only, and not
-        for cubic forces chosen on held-out data (their selection already refits).
+        for LOpInf with ``forces='auto'`` or cubic forces chosen on held-out data (their
+        selection already refits).
     """
 
     energy: float | None = None
@@ -121,7 +124,8 @@ def make_learner(method: str, settings: FitSettings | None = None,
             raise ConfigError(f"--refine must be 'none' or 'output-error' (linear forces "
                               f'only); got {refine!r} with --forces {s.forces}.')
         if s.forces not in ('linear', 'cubic'):
-            raise ConfigError(f"--forces must be 'linear' or 'cubic'; got {s.forces!r}.")
+            raise ConfigError(f"--forces must be 'linear', 'cubic' or 'auto'; got "
+                              f'{s.forces!r}.')
         if mass == 'learned' and not linear:
             raise ConfigError('--mass learned goes with --forces linear only; drop --mass or '
                               'use --forces linear.')
@@ -161,12 +165,21 @@ def fit_method(data: TrainingData, method: str, r_values: Sequence[int] | None,
         if coords == 'outputs':
             data = output_coordinates(data)
     data.provenance.setdefault('coordinates', coords)
-    learner = make_learner(method, s, coords)
+    selected = method == 'lopinf' and (s.forces == 'auto' or (
+        s.forces == 'cubic' and s.cubic_options is None))
+    if method == 'lopinf' and s.forces == 'auto' and s.cubic_options is not None:
+        raise ConfigError('--cubic-reg and --cubic-eps4 need --forces cubic')
+    if selected and s.forces == 'auto':     # the cubic candidates: their own defaults
+        learner = make_learner(method, replace(s, forces='cubic', mass=None, refine=None),
+                               coords)
+    else:
+        learner = make_learner(method, s, coords)
     if notes:
         _say_choices(method, learner, coords, s)
     extra = {'coordinates': coords}
-    if method == 'lopinf' and s.forces == 'cubic' and s.cubic_options is None:
-        return _fit_cubic(data, learner, r_values, s, reducer, layout, extra)
+    if selected:
+        linear = make_learner(method, replace(s, forces='linear'), coords)
+        return _fit_selected(data, learner, linear, r_values, s, reducer, layout, extra)
     if method == 'era' and len(data.episodes) > 1 and s.era.get('episode') is None and notes:
         print(f'note: ERA/OKID fits one episode; using {data.episodes[0].name!r} '
               '(choose with --era-episode).', file=sys.stderr)
@@ -188,10 +201,14 @@ def _say_choices(method: str, learner: Any, coords: str, s: FitSettings) -> None
         print('note: lopinf learns an SPD mass matrix (--mass learned).', file=sys.stderr)
 
 
-def _fit_cubic(data: TrainingData, learner: Any, r_values: Sequence[int] | None,
-               s: FitSettings, reducer: Reducer | None, layout: dict[str, Any] | None,
-               extra: dict[str, Any]) -> list[FittedModel]:
-    """Cubic forces: each ``r`` with its settings chosen on held-out data (or linear)."""
+def _fit_selected(data: TrainingData, cubic: Any, linear: Any,
+                  r_values: Sequence[int] | None, s: FitSettings, reducer: Reducer | None,
+                  layout: dict[str, Any] | None, extra: dict[str, Any]) -> list[FittedModel]:
+    """``forces='cubic'`` (the best cubic candidate) or ``'auto'`` (the verdict), per ``r``.
+
+    The verdict of the held-out selection is recorded in ``metadata['forces_selection']``
+    (with ``asked`` and ``kept``) and said in the fit table's notes.
+    """
     reducer = reducer if reducer is not None else InMemoryPOD()
     selection = s.cubic_selection or HeldOutCubicSelection()
     rs = list(r_values) if r_values else None
@@ -201,16 +218,17 @@ def _fit_cubic(data: TrainingData, learner: Any, r_values: Sequence[int] | None,
     out = []
     for r in rs or [reduced.n_coordinates]:
         t1 = time.perf_counter()
-        choice = selection.select(reduced, learner, int(r))
-        final = replace_learner(learner, r=int(r), forces=choice.forces,
-                                cubic_options=choice.options if choice.forces == 'cubic'
-                                else None)
+        verdict = selection.select(reduced, cubic, int(r), linear=linear)
+        kept = verdict.forces if s.forces == 'auto' else (
+            'cubic' if verdict.choice is not None else 'linear')
+        final = (replace_learner(cubic, r=int(r), cubic_options=verdict.cubic_options)
+                 if kept == 'cubic' else replace_learner(linear, r=int(r)))
         model = final.fit(reduced).model_
-        model.metadata['cubic_selection'] = choice.to_dict()
-        model.metadata['forces_requested'] = 'cubic'
+        model.metadata['forces_selection'] = {**verdict.as_dict(), 'asked': s.forces,
+                                              'kept': kept}
         finalize_model(model, reduced, reducer, layout=layout, extra=extra)
-        out.append(FittedModel(model, shared + time.perf_counter() - t1, [choice.note],
-                               data_dt=reduced.dt))
+        out.append(FittedModel(model, shared + time.perf_counter() - t1,
+                               verdict.lines(s.forces), data_dt=reduced.dt))
     return out
 
 

@@ -23,8 +23,9 @@ ERA_EEL_OPTIONS: dict[str, Any] = {'decimation': 1, 'output_rank': 4, 'observer_
 #: data-driven defaults, ``'eel'`` :data:`ERA_EEL_OPTIONS`.
 ERA_PRESETS: dict[str, dict[str, Any]] = {'auto': {}, 'eel': ERA_EEL_OPTIONS}
 
-#: Cubic LOpInf settings hand-tuned on the eel (a stronger quartic floor than the learner's
-#: default keeps the fitted potential from developing distant wells the test inputs can
-#: reach); one of the candidates of the held-out selection
-#: (:data:`soft_rom.pipeline.cubic.CUBIC_GRID`), which the study and ``soft-rom fit`` use.
+#: Cubic LOpInf settings hand-tuned on the eel before the held-out selection (a stronger
+#: quartic floor than the learner's default), for a study with fixed ``cubic_options``. The
+#: study and ``soft-rom fit`` choose from :data:`soft_rom.pipeline.cubic.CUBIC_GRID` instead:
+#: on held-out eel episodes this floor was worse than the learner's at every ``reg``
+#: (``docs/methods_variants.md``).
 CUBIC_EEL_OPTIONS: dict[str, Any] = {'reg': 1e-3, 'eps4': 1e-2}

@@ -181,9 +181,9 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
     if 'lopinf_cubic' in models:
         result['cubic_vs_linear'] = _cubic_vs_linear(models['lopinf_cubic'], swept, tests,
                                                      train_eps, ts, y_ref)
-        selection = models['lopinf_cubic'].metadata.get('cubic_selection')
+        selection = models['lopinf_cubic'].metadata.get('forces_selection')
         if selection is not None:
-            result['cubic_selection'] = selection
+            result['forces_selection'] = selection
     result['long_inputs'] = {m: _long_inputs(models[m], tests, train_eps, y_ref)
                              for m in ('lopinf', 'lopinf_cubic') if m in models}
     return result

@@ -1,4 +1,8 @@
-"""`soft-rom fit --forces cubic|auto` on simulated eel episodes: the study's held-out verdict."""
+"""`soft-rom fit --forces cubic|auto` on simulated eel episodes: one held-out selection.
+
+The CLI (both flags) and the learning-curve study run the pipeline's one
+``HeldOutCubicSelection``: the same candidates, errors and verdict on the same episodes.
+"""
 
 from __future__ import annotations
 
@@ -67,7 +71,7 @@ def test_auto_reports_the_held_out_comparison_the_study_makes(eel_sets, tmp_path
     sel = row['forces_selection']
     kept = sel['kept']
     assert sel['asked'] == 'auto' and kept in ('linear', 'cubic')
-    assert row['method'] == ('lopinf_cubic' if kept == 'cubic' else 'lopinf')
+    assert row['path'].endswith('_cubic_r4.npz' if kept == 'cubic' else 'eel_lopinf_r4.npz')
     assert sel['episodes'] == 3 and sorted(sum(sel['folds'], [])) == [0, 1, 2]
     assert math.isfinite(sel['linear_error']) and math.isfinite(sel['choice']['error'])
     assert sel['ratio'] == pytest.approx(sel['choice']['error'] / sel['linear_error'])
@@ -96,8 +100,25 @@ def test_auto_reports_the_held_out_comparison_the_study_makes(eel_sets, tmp_path
     assert point['held_out_linear'] == pytest.approx(sel['linear_error'], rel=1e-3)
     assert point['forces_auto'] == kept
 
-    # auto keeps what the rule says: cubic only when at least 10 % better held out.
-    assert kept == ('cubic' if sel['ratio'] <= 0.9 else 'linear')
+    # auto keeps what the rule says: cubic only from 4 folds on and when at least 10 % better
+    # held out; 3 episodes make 3 folds, so linear, and the console says why.
+    assert len(sel['folds']) == 3 and sel['min_folds'] == 4 and kept == 'linear'
+    assert 'on 3 folds only; a cubic model is kept from 4 folds on' in text
+
+    # --forces cubic: the same selection (same verdict), the best cubic candidate fitted.
+    rows, text = _fit(path, tmp_path / 'cubic50', 'cubic', capsys)
+    (row,) = rows
+    cub = row['forces_selection']
+    assert row['path'].endswith('eel_lopinf_cubic_r4.npz') and 'cubic' in row['model']
+    assert cub['asked'] == 'cubic' and cub['kept'] == 'cubic'
+    assert {k: v for k, v in cub.items() if k not in ('asked', 'kept')} == \
+        {k: v for k, v in sel.items() if k not in ('asked', 'kept')}
+    model = load_model(tmp_path / 'cubic50' / 'eel_lopinf_cubic_r4.npz')
+    info = model.metadata['diagnostics']['solver_info']
+    assert (info['reg'], info['eps4']) == (cub['choice']['reg'], cub['choice']['eps4'])
+    said = ('the linear model held out better' if cub['ratio'] > 1 else
+            'cubic as asked; --forces auto would keep linear')
+    assert said in text
 
 
 def test_auto_keeps_the_linear_model_on_a_nearly_linear_eel(eel_sets, tmp_path, capsys):
@@ -114,14 +135,17 @@ def test_auto_keeps_the_linear_model_on_a_nearly_linear_eel(eel_sets, tmp_path, 
     assert 'forces_selection' in load_model(tmp_path / 'auto' / 'eel_lopinf_r4.npz').metadata
 
 
-@pytest.mark.parametrize('argv, message', [
-    (['--forces', 'auto', '--episodes', 'ep1'], 'needs at least 2 training episodes'),
-    (['--forces', 'auto', '--coordinates', 'outputs'], 'it needs the full states'),
-    (['--forces', 'auto', '--streaming'], '--forces auto is fitted in memory'),
-])
-def test_auto_refuses_what_it_cannot_compare(eel_sets, tmp_path, capsys, argv, message):
+def test_auto_on_one_episode_and_streamed(eel_sets, tmp_path, capsys):
     path, _ = eel_sets['a05']
-    rc = main(['fit', str(path), '--r', '4', '-o', str(tmp_path / 'm'), '--no-progress', *argv])
-    err = capsys.readouterr().err
-    assert rc == 2 and message in err and 'Traceback' not in err
-    assert not (tmp_path / 'm').exists() or not list((tmp_path / 'm').iterdir())
+    # One episode: its tail is held out (one fold), so auto keeps linear and says why.
+    rows, text = _fit(path, tmp_path / 'one', 'auto', capsys, '--episodes', 'ep1')
+    (row,) = rows
+    sel = row['forces_selection']
+    assert sel['scheme'] == 'tails' and sel['kept'] == 'linear' and row['method'] == 'lopinf'
+    assert 'the last 20% of 1 training episode' in text and 'on 1 fold only' in text
+    # Streamed (the exact Gram POD at this size): the same verdict as in memory.
+    rows, _ = _fit(path, tmp_path / 'mem', 'auto', capsys)
+    streamed, _ = _fit(path, tmp_path / 'str', 'auto', capsys, '--streaming')
+    a, b = rows[0]['forces_selection'], streamed[0]['forces_selection']
+    assert a['kept'] == b['kept'] == 'linear' and a['choice']['reg'] == b['choice']['reg']
+    assert b['linear_error'] == pytest.approx(a['linear_error'], rel=1e-6)

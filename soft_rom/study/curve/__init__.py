@@ -8,8 +8,5 @@ test scores), :mod:`~soft_rom.study.curve.run` (data and the run), and
 
 from soft_rom.study.curve.core import CurveConfig, CurveData, learning_curve, score
 from soft_rom.study.curve.run import run_learning_curve
-from soft_rom.study.curve.select import choose_forces, CUBIC_GRID, ForcesVerdict
 
-__all__ = ['CUBIC_GRID', 'CurveConfig', 'CurveData', 'ForcesVerdict', 'choose_forces',
-           'learning_curve', 'run_learning_curve',
-           'score']
+__all__ = ['CurveConfig', 'CurveData', 'learning_curve', 'run_learning_curve', 'score']

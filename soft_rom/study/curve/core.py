@@ -8,9 +8,11 @@ training episodes) each method is fitted with its settings chosen **on the train
 episodes only** and scored on the fixed test episodes:
 
 * **LOpInf** (linear forces): ``r`` by K-fold held-out error over training episodes;
-* **LOpInf cubic**: at the same ``r``, the cubic settings (``reg``, ``eps4``) chosen on the
-  same folds; the cubic model is kept by ``forces='auto'`` only when its held-out error
-  beats the linear one (else the linear model is the answer);
+* **LOpInf cubic**: at the same ``r``, the fit pipeline's one held-out selection
+  (:class:`~soft_rom.pipeline.cubic.HeldOutCubicSelection`, what ``soft-rom fit --forces
+  cubic|auto`` runs) on the same folds: the best ``(reg, eps4)``, scored on the tests, and
+  its verdict (what ``--forces auto`` keeps: cubic only from 4 folds on and when clearly
+  better than linear held out);
 * **DMDc** (paper and stable variants): ``r`` by the same folds;
 * **ERA/OKID**, which fits one episode: on one episode of the same total duration
   ``n * duration`` (the first part of a long episode recorded with seed ``seed + 2``), its
@@ -30,24 +32,18 @@ from dataclasses import dataclass, field
 import logging
 import math
 import time
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from soft_rom.data import Episode
 from soft_rom.errors import ConfigError, SoftRomError
+from soft_rom.learners.lopinf import LOpInf
 from soft_rom.metrics import relative_deviation_error
 from soft_rom.models import LinearROM
-from soft_rom.study.curve.select import (
-    _tied_pick,
-    AUTO_MARGIN,
-    CUBIC_GRID,
-    FOLDS,
-    folds_of,
-    forces_verdict,
-    held_out,
-    Reduction,
-)
+from soft_rom.pipeline import FitSettings, HeldOutCubicSelection, make_learner, replace_learner
+from soft_rom.pipeline.cubic import CUBIC_GRID, FOLDS, MARGIN
+from soft_rom.study.curve.select import _tied_pick, folds_of, held_out, Reduction
 
 __all__ = ['CUBIC_GRID', 'CurveConfig', 'CurveData', 'METHODS', 'folds_of', 'held_out',
            'learning_curve', 'score']
@@ -89,7 +85,8 @@ class CurveConfig:
     folds : int
         Held-out folds over the training episodes (at most ``n``; interleaved groups).
     cubic_grid : tuple of (float, float)
-        Candidate ``(reg, eps4)`` of the cubic LOpInf.
+        Candidate ``(reg, eps4)`` of the cubic LOpInf (default the selection's,
+        :data:`~soft_rom.pipeline.cubic.CUBIC_GRID`).
     dmdc_coordinates : int
         DMDc runs on this many POD coordinates of the training states (its SVDs then have
         this many rows instead of the full state's; the POD keeps the modes DMDc keeps).
@@ -98,8 +95,8 @@ class CurveConfig:
         episode (test inputs chained) to check they stay bounded.
     auto_margin : float
         ``forces='auto'`` keeps the cubic model only when its held-out error is at most
-        ``1 - auto_margin`` times the linear model's: a cubic model that is not clearly
-        better carries the risk of its extrapolation and a costlier step for nothing.
+        ``1 - auto_margin`` times the linear model's (and there are 4 folds or more;
+        :mod:`soft_rom.pipeline.cubic` says why).
     """
 
     sizes: tuple[int, ...] = (2, 4, 8, 16)
@@ -118,7 +115,7 @@ class CurveConfig:
     cubic_grid: tuple[tuple[float, float], ...] = CUBIC_GRID
     dmdc_coordinates: int = 40
     long_factor: int = 10
-    auto_margin: float = AUTO_MARGIN
+    auto_margin: float = MARGIN
 
     def __post_init__(self) -> None:
         if not self.sizes or min(self.sizes) < 1 or list(self.sizes) != sorted(set(self.sizes)):
@@ -217,8 +214,7 @@ def _point(data: CurveData, n: int, cfg: CurveConfig) -> dict[str, Any]:
         out['seconds']['lopinf'] = time.perf_counter() - t0
         if 'lopinf_cubic' in cfg.methods:
             t0 = time.perf_counter()
-            out['lopinf_cubic'] = _cubic_point(red, data, n, r_lin, table.get(r_lin, math.inf),
-                                               linear, folds, cfg)
+            out['lopinf_cubic'] = _cubic_point(red, data, n, r_lin, linear, cfg)
             out['seconds']['lopinf_cubic'] = time.perf_counter() - t0
     for variant in ('paper', 'stable'):
         key = 'dmdc' if variant == 'paper' else 'dmdc_stable'
@@ -247,35 +243,37 @@ def _point(data: CurveData, n: int, cfg: CurveConfig) -> dict[str, Any]:
     return out
 
 
-def _cubic_point(red: Reduction, data: CurveData, n: int, r: int, linear_error: float,
-                 linear: LinearROM, folds: list[list[int]], cfg: CurveConfig
-                 ) -> dict[str, Any]:
-    """The cubic LOpInf at the linear model's ``r``: the CLI's verdict, test, fallback."""
+def _cubic_point(red: Reduction, data: CurveData, n: int, r: int, linear: LinearROM,
+                 cfg: CurveConfig) -> dict[str, Any]:
+    """The cubic LOpInf at the linear model's ``r``: the CLI's selection, test, fallback."""
     y_ref = data.y_ref
     train = data.train[:n]
-    verdict = forces_verdict(red, r, folds, linear_error, grid=cfg.cubic_grid,
-                             margin=cfg.auto_margin)
+    reduced = red.reduced(range(n), r)
+    cubic = cast(LOpInf, make_learner('lopinf', FitSettings(forces='cubic'), 'state'))
+    selection = HeldOutCubicSelection(cfg.cubic_grid, folds=cfg.folds, margin=cfg.auto_margin)
+    verdict = selection.select(reduced, cubic, r)
     pick = verdict.choice
     res: dict[str, Any] = {
-        'r': r, 'held_out': verdict.cubic, 'held_out_linear': linear_error, 'choice': None,
-        'forces_auto': 'linear', 'reason': verdict.reason()}
+        'r': r, 'held_out': verdict.candidates, 'held_out_linear': verdict.linear_error,
+        'choice': None, 'forces_auto': verdict.forces, 'reason': verdict.reason(),
+        'verdict': verdict.as_dict()}
     lin_test = score(linear, data.test, y_ref)
-    if pick is None:
-        res.update(test=[math.inf] * len(data.test), test_auto=lin_test,
-                   ratio=[math.inf] * len(lin_test), ratio_auto=[1.0] * len(lin_test),
-                   long_inputs=None, note='every cubic candidate failed or blew up')
-        return res
-    key = (pick['reg'], pick['eps4'])
-    model = red.cubic(range(n), r, [key]).get(key)
-    res['choice'] = pick
+    model = None
+    if pick is not None:
+        res['choice'] = pick
+        try:
+            model = replace_learner(cubic, r=r, cubic_options=verdict.cubic_options).fit(
+                reduced).model_
+        except (SoftRomError, np.linalg.LinAlgError) as err:
+            LOG.info('the chosen cubic fit failed: %s', err)
     if model is None:
         res.update(test=[math.inf] * len(data.test), test_auto=lin_test,
                    ratio=[math.inf] * len(lin_test), ratio_auto=[1.0] * len(lin_test),
-                   long_inputs=None, note='the chosen cubic fit failed on all episodes')
+                   long_inputs=None, note=('every cubic candidate failed or blew up'
+                                           if pick is None else 'the chosen cubic fit failed'))
         return res
     test = score(model, data.test, y_ref)
     keep = verdict.forces == 'cubic'
-    res['forces_auto'] = verdict.forces
     res['test'] = test
     res['test_auto'] = test if keep else lin_test
     res['ratio'] = [c / lo if lo > 0 else math.inf for c, lo in zip(test, lin_test)]
