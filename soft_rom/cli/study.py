@@ -45,7 +45,8 @@ def add_study_options(parser: argparse.ArgumentParser, *, default_output: Path) 
     parser.add_argument('--bags', type=Path, default=None,
                         help='reuse (or write) the episode bags in this folder')
     parser.add_argument('--jobs', type=int_range(1, 512), default=2,
-                        help='processes for simulating episodes (default: %(default)s)')
+                        help='processes for simulating episodes, and for study 2 (DMDc beside '
+                             'the other methods from 2 on) (default: %(default)s)')
     add_quiet(parser)
 
 

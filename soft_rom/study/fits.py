@@ -102,7 +102,7 @@ def _choose_models(ts: Any, cfg: StudyConfig, train_eps: list[Episode], tests: l
 
     ``fit_seconds`` receives each method's fitting time (all its sweeps). Linear and cubic
     LOpInf share one POD. With ``cfg.jobs`` >= 2, DMDc (its sweep and its held-out error,
-    two thirds of the study's SVD time) runs in a second process beside the others
+    more than half of the study's SVD time) runs in a second process beside the others
     (:func:`_dmdc_beside`); its model comes back as a model file, never as a pickle.
     """
     grids = _grids(cfg)
