@@ -32,6 +32,7 @@ def export(rev: str, dest: Path) -> Path:
     """The package of ``rev`` under ``dest`` (``git archive``); returns the tree's root."""
     archive = subprocess.run(['git', '-C', str(REPO), 'archive', rev, 'soft_rom'],
                              capture_output=True, check=True).stdout
+    dest.mkdir(parents=True, exist_ok=True)
     subprocess.run(['tar', '-x', '-C', str(dest)], input=archive, check=True)
     return dest
 
