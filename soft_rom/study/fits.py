@@ -176,8 +176,8 @@ def _pick(method: str, eps: Sequence[Episode], ts: Any, cfg: StudyConfig,
 class _DMDcBeside:
     """DMDc of study 2 in a spawned process (:func:`_dmdc_beside`); ``running`` if started."""
 
-    def __init__(self, pool: Any, future: Any, folder: str, grid: Sequence[int]) -> None:
-        self.pool, self.future, self.folder, self.grid = pool, future, folder, grid
+    def __init__(self, future: Any, grid: Sequence[int]) -> None:
+        self.future, self.grid = future, grid
 
     @property
     def running(self) -> bool:
@@ -211,7 +211,7 @@ def _dmdc_beside(ts: Any, cfg: StudyConfig, train_eps: Sequence[Episode]
     path = getattr(ts, 'path', None)
     if (cfg.jobs < 2 or cfg.streaming or not cfg.r_dmdc or path is None
             or not all(isinstance(ep.Q, np.ndarray) for ep in train_eps)):
-        yield _DMDcBeside(None, None, '', ())
+        yield _DMDcBeside(None, ())
         return
     from concurrent.futures import ProcessPoolExecutor
     import multiprocessing
@@ -223,7 +223,7 @@ def _dmdc_beside(ts: Any, cfg: StudyConfig, train_eps: Sequence[Episode]
         future = pool.submit(_dmdc_job, str(path), cfg, [ep.name for ep in train_eps],
                              str(Path(folder) / 'dmdc.npz'))
         try:
-            yield _DMDcBeside(pool, future, folder, cfg.r_dmdc)
+            yield _DMDcBeside(future, cfg.r_dmdc)
         except BaseException:
             future.cancel()
             raise
