@@ -21,8 +21,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
-__all__ = ['CODEC_ID', 'CRC_BYTES', 'chunk_crc_problem', 'codec', 'crc32c', 'register']
+__all__ = ['CODEC_ID', 'CRC_BYTES', 'chunk_crc_problem', 'codec', 'crc32c',
+           'read_checked', 'register']
 
 #: numcodecs id of the checksum filter.
 CODEC_ID = 'crc32c'
@@ -94,29 +96,33 @@ def codec() -> Any:
     return get_codec({'id': CODEC_ID})
 
 
-def chunk_crc_problem(path: Path, raw_size: int | None = None) -> str | None:
-    """Why the stored chunk file ``path`` fails its checksum, or ``None`` if it passes.
+def read_checked(path: Path, buf: NDArray[np.uint8]) -> str | None:
+    """Fill ``buf`` with the chunk file ``path`` and check its CRC-32C (its last 4 bytes).
 
-    For an uncompressed chunk (``raw_size``: its bytes without the checksum) the file must
-    be ``raw_size + 4`` bytes and end with the CRC-32C of the rest; a compressed chunk is
-    checked by decoding it (the caller does that).
+    Returns why the file fails (not ``buf.nbytes`` long, shorter while read, a checksum that
+    does not match), or ``None`` if it passes.
     """
     with open(path, 'rb', buffering=0) as f:
         size = os.fstat(f.fileno()).st_size
-        if raw_size is not None and size != raw_size + CRC_BYTES:
-            return (f'is truncated or overwritten ({size} bytes; a chunk has '
-                    f'{raw_size + CRC_BYTES})')
-        data = np.empty(size, dtype=np.uint8)
-        view = data.data
+        if size != buf.nbytes:
+            return f'is truncated or overwritten ({size} bytes; a chunk has {buf.nbytes})'
+        view = buf.data
         got = 0
         while got < size:
             n = f.readinto(view[got:])
             if not n:
                 return f'is truncated while it is read ({got} of {size} bytes)'
             got += n
-    if size < CRC_BYTES:
-        return f'is too short to hold its checksum ({size} bytes)'
-    expect = int(data[-CRC_BYTES:].view('<u4')[0])
-    if crc32c(data[:-CRC_BYTES]) != expect:
+    expect = int(buf[-CRC_BYTES:].view('<u4')[0])
+    if crc32c(buf[:-CRC_BYTES]) != expect:
         return 'fails its CRC-32C checksum (its bytes changed on disk)'
     return None
+
+
+def chunk_crc_problem(path: Path, raw_size: int) -> str | None:
+    """Why the uncompressed chunk file ``path`` fails its checksum, or ``None`` if it passes.
+
+    The file must be ``raw_size`` (the chunk's bytes) + 4 bytes long and end with the
+    CRC-32C of the rest.
+    """
+    return read_checked(path, np.empty(raw_size + CRC_BYTES, dtype=np.uint8))

@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import DTypeLike, NDArray
 
 from soft_rom.dataset.checksum import chunk_crc_problem, CODEC_ID, CRC_BYTES, register
+from soft_rom.dataset.direct import basic_bounds, ChunkUnreadable, read_region
 from soft_rom.errors import dask_worker, DatasetError, one_line, SoftRomError
 
 __all__ = ['BadMetadata', 'StoredArray', 'chunk_problem', 'dask_worker', 'one_line',
@@ -239,6 +240,7 @@ class StoredArray:
         self.dtype = np.dtype(array.dtype)
         self._checked = False
         self._layout: tuple[str, bool, int | None] | None = None
+        self._stored: tuple[np.dtype, str] | None = None  # raw checksummed: read_region
 
     def __getstate__(self) -> dict[str, Any]:
         state = dict(self.__dict__)
@@ -299,6 +301,8 @@ class StoredArray:
                 raw = int(np.prod(self.chunks)) * self.dtype.itemsize
             self._layout = (meta.get('dimension_separator') or '.',
                             {'id': CODEC_ID} in filters, raw)
+            if raw is not None and self._layout[1] and meta.get('order') in ('C', 'F'):
+                self._stored = (np.dtype(meta.get('dtype')), meta['order'])
         return self._layout
 
     def check(self) -> None:
@@ -345,33 +349,13 @@ class StoredArray:
 
     def _touched(self, key: Any) -> list[tuple[int, ...]] | None:
         """Chunk indices a basic-slicing ``key`` reads (``None``: another kind of key)."""
-        key = key if isinstance(key, tuple) else (key,)
-        ell = [i for i, k in enumerate(key) if k is Ellipsis]
-        if len(ell) > 1:
+        found = basic_bounds(key, self.shape)
+        if found is None:
             return None
-        if ell:
-            i = ell[0]
-            key = key[:i] + (slice(None),) * (self.ndim - len(key) + 1) + key[i + 1:]
-        if len(key) > self.ndim:
-            return None
-        key = key + (slice(None),) * (self.ndim - len(key))
-        ranges = []
-        for k, size, c in zip(key, self.shape, self.chunks):
-            if isinstance(k, slice):
-                start, stop, step = k.indices(size)
-                if step != 1:
-                    return None
-                if stop <= start:
-                    return []
-                ranges.append(range(start // c, (stop - 1) // c + 1))
-            elif isinstance(k, (int, np.integer)) and not isinstance(k, bool):
-                v = int(k) + (size if k < 0 else 0)
-                if not 0 <= v < size:
-                    return None
-                ranges.append(range(v // c, v // c + 1))
-            else:
-                return None
-        return list(itertools.product(*ranges))
+        if any(b <= a for a, b in found[0]):
+            return []
+        return list(itertools.product(*(range(a // c, (b - 1) // c + 1)
+                                        for (a, b), c in zip(found[0], self.chunks))))
 
     def _name(self, idx: tuple[int, ...]) -> str:
         return self._chunk_layout()[0].join(str(i) for i in idx) or '0'
@@ -455,10 +439,21 @@ class StoredArray:
 
     def __getitem__(self, key: Any) -> Any:
         self.check()
+        found = basic_bounds(key, self.shape)
         touched = self._touched(key)
         self._require(touched)
         try:
+            self._chunk_layout()
+            if self._stored is not None and touched and found and not all(found[1]):
+                out = read_region(self.directory, self.chunks, *self._stored, self.dtype,
+                                  found[0], self._name)
+                return out.reshape([n for n, i in zip(out.shape, found[1]) if not i])
             return self.array[key]
+        except ChunkUnreadable as err:
+            raise DatasetError(f'{self.label}: {err}{_on_worker()}; {self.advice}') from err
+        except FileNotFoundError as err:     # removed since the check above
+            self._require(touched)
+            raise self._located(err) from err
         except PASS_THROUGH as err:
             located = self._located(err)
             if located is err:

@@ -13,6 +13,8 @@ from pathlib import Path
 import re
 import shutil
 
+from hypothesis import given, HealthCheck, settings
+from hypothesis import strategies as st
 import numpy as np
 import pytest
 
@@ -382,3 +384,52 @@ def test_cli_exit_2_with_one_line(damaged, tmp_path, capsys, target, damage, ver
     assert len(lines) == 1 and 'Traceback' not in err, err
     assert re.search(f'corrupt or incomplete: .*{words}', lines[0])
     assert not (tmp_path / 'o').exists()
+
+
+# -- direct reads of the checksummed Q chunks --------------------------------------------
+_bound = st.one_of(st.none(), st.integers(-45, 45))
+_index = st.one_of(st.builds(slice, _bound, _bound, st.sampled_from([None, 1, 2, 3])),
+                   st.integers(-40, 39), st.just(Ellipsis))   # zarr has no negative steps
+
+
+@settings(max_examples=300, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(key=st.one_of(_index, st.tuples(_index, _index)))
+def test_any_key_reads_as_zarr_and_numpy_read_it(intact, key):
+    # Q's raw checksummed chunks are read by read_region (one read, the CRC, the region
+    # copied), every other key by zarr: either way, bit for bit what zarr and numpy give.
+    ts = TrainingSet.open(intact)
+    q, ref = ts.q_array('ep1'), _episodes()[0].Q
+    try:
+        want = ref[key]
+    except IndexError:
+        with pytest.raises(IndexError):
+            q[key]
+        return
+    if isinstance(key, tuple) and key.count(Ellipsis) > 1:
+        return                              # numpy allows one ellipsis; zarr raises its own
+    got = q[key]
+    assert q._stored is not None            # read directly where the key allows it
+    assert isinstance(got, np.ndarray) or np.ndim(want) == 0
+    assert np.shape(got) == np.shape(want)
+    np.testing.assert_array_equal(got, want)
+    zarr_read = q.array[key]
+    np.testing.assert_array_equal(got, zarr_read)
+    if np.ndim(got) == 2:                   # in the stored order, as zarr gives it
+        assert got.flags.f_contiguous == zarr_read.flags.f_contiguous
+
+
+def test_chunk_overwritten_after_the_check_is_refused_with_its_name(damaged):
+    ts = TrainingSet.open(damaged)
+    q = ts.q_array('ep1')
+    np.asarray(q[:, 0:8])                   # the first read checks every chunk
+    name = _chunks(damaged / 'episodes/ep1/Q')[4].name
+    _truncate(damaged / 'episodes/ep1/Q' / name, 40)
+    with pytest.raises(DatasetError, match=rf'array Q: chunk {re.escape(name)} is truncated '
+                                           r'or overwritten \(40 bytes; a chunk has 260\)'):
+        q[...]
+    flip_low_mantissa_bits(damaged / 'episodes/ep1/Q' / _chunks(damaged / 'episodes/ep1/Q')[0]
+                           .name, values=1, bits=1)
+    with pytest.raises(DatasetError, match=r'chunk 0\.0 fails its CRC-32C checksum'):
+        q[0, 0]                             # one value of a chunk: the whole chunk is checked
+    np.testing.assert_array_equal(q[4:8, 8:16], _episodes()[0].Q[4:8, 8:16])   # others read
