@@ -19,8 +19,10 @@ array :class:`~soft_rom.dataset.TrainingSet` reads is a :class:`StoredArray`, wh
   do; on a Dask worker every message (and an operating-system error such as a permission
   denied) also names the worker.
 
-Sets of format version 3 end every chunk with its CRC-32C (:mod:`soft_rom.dataset.checksum`):
-zarr verifies it at every read, so bytes changed on disk are refused (the chunk named).
+Sets of format version 3 end every chunk with its CRC-32C (:mod:`soft_rom.dataset.checksum`),
+verified at every read, so bytes changed on disk are refused (the chunk named): the raw
+chunks of ``Q`` by :func:`~soft_rom.dataset.direct.read_region` (one read per chunk file,
+no extra copy), the compressed arrays by zarr.
 Older sets have no checksums: bytes overwritten in place by as many other bytes are not
 detected there.
 """

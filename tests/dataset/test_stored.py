@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 import re
 import shutil
+from unittest import mock
 
 from hypothesis import given, HealthCheck, settings
 from hypothesis import strategies as st
@@ -20,7 +21,7 @@ import pytest
 
 from soft_rom.cli import main
 from soft_rom.data import Episode
-from soft_rom.dataset import StoredArray, TrainingSet
+from soft_rom.dataset import direct, StoredArray, TrainingSet
 from soft_rom.errors import DatasetError
 
 K, N = 40, 9
@@ -392,6 +393,15 @@ _index = st.one_of(st.builds(slice, _bound, _bound, st.sampled_from([None, 1, 2,
                    st.integers(-40, 39), st.just(Ellipsis))   # zarr has no negative steps
 
 
+def _whole_reads(*args):
+    """direct._read_into, which must fill its buffers with the whole file (no fallback)."""
+    assert _READ_INTO(*args)
+    return True
+
+
+_READ_INTO = direct._read_into
+
+
 @settings(max_examples=300, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(key=st.one_of(_index, st.tuples(_index, _index)))
@@ -408,15 +418,20 @@ def test_any_key_reads_as_zarr_and_numpy_read_it(intact, key):
         return
     if isinstance(key, tuple) and key.count(Ellipsis) > 1:
         return                              # numpy allows one ellipsis; zarr raises its own
-    got = q[key]
-    assert q._stored is not None            # read directly where the key allows it
-    assert isinstance(got, np.ndarray) or np.ndim(want) == 0
-    assert np.shape(got) == np.shape(want)
-    np.testing.assert_array_equal(got, want)
     zarr_read = q.array[key]
-    np.testing.assert_array_equal(got, zarr_read)
-    if np.ndim(got) == 2:                   # in the stored order, as zarr gives it
-        assert got.flags.f_contiguous == zarr_read.flags.f_contiguous
+    for scatter_min, threads in ((direct.SCATTER_MIN, direct.CONCURRENCY), (0, 1), (0, 3)):
+        # straight into the result (scatter_min 0: every run) or through a buffer; threads
+        with mock.patch.object(direct, 'SCATTER_MIN', scatter_min), \
+                mock.patch.object(direct, 'CONCURRENCY', threads), \
+                mock.patch.object(direct, '_read_into', _whole_reads):
+            got = q[key]
+        assert q._stored is not None        # read directly where the key allows it
+        assert isinstance(got, np.ndarray) or np.ndim(want) == 0
+        assert np.shape(got) == np.shape(want)
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(got, zarr_read)
+        if np.ndim(got) == 2:               # in the stored order, as zarr gives it
+            assert got.flags.f_contiguous == zarr_read.flags.f_contiguous
 
 
 def test_chunk_overwritten_after_the_check_is_refused_with_its_name(damaged):
@@ -432,4 +447,7 @@ def test_chunk_overwritten_after_the_check_is_refused_with_its_name(damaged):
                            .name, values=1, bits=1)
     with pytest.raises(DatasetError, match=r'chunk 0\.0 fails its CRC-32C checksum'):
         q[0, 0]                             # one value of a chunk: the whole chunk is checked
+    with mock.patch.object(direct, 'SCATTER_MIN', 0), \
+            pytest.raises(DatasetError, match=r'chunk 0\.0 fails its CRC-32C checksum'):
+        q[0:4, 0:8]                         # read straight into the result: refused too
     np.testing.assert_array_equal(q[4:8, 8:16], _episodes()[0].Q[4:8, 8:16])   # others read
