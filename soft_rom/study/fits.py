@@ -266,7 +266,7 @@ def _record_held_out(method: str, model: LinearROM, chosen: dict[str, Any],
 
     def refit(episodes: Sequence[Episode]) -> LinearROM:
         return sweep(method, [r], episodes, ts, era_options=cfg.era_options,
-                     cubic_options=cfg.cubic_options)[r]
+                     cubic_options=cfg.cubic_options, streaming=cfg.streaming)[r]
 
     try:
         model.metadata['held_out'] = held_out_errors(refit, eps, ts.y_ref)

@@ -180,7 +180,7 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
               'shapes_png': shapes_png, 'fit_seconds': fit_seconds}
     if 'lopinf_cubic' in models:
         result['cubic_vs_linear'] = _cubic_vs_linear(models['lopinf_cubic'], swept, tests,
-                                                     train_eps, ts, y_ref)
+                                                     train_eps, ts, y_ref, cfg.streaming)
         selection = models['lopinf_cubic'].metadata.get('forces_selection')
         if selection is not None:
             result['forces_selection'] = selection
@@ -215,12 +215,12 @@ def _ep(name: str) -> str:
 
 def _cubic_vs_linear(cubic: LinearROM, swept: dict[str, dict[int, LinearROM]],
                      tests: Sequence[Episode], train: Sequence[Episode], ts: Any,
-                     y_ref: np.ndarray) -> dict[str, Any]:
+                     y_ref: np.ndarray, streaming: bool = False) -> dict[str, Any]:
     """Deviation errors of the cubic and the linear LOpInf at the same ``r`` per test episode."""
     r = cubic.r
     linear = swept.get('lopinf', {}).get(r)
     if linear is None:
-        linear = sweep('lopinf', [r], train, ts)[r]
+        linear = sweep('lopinf', [r], train, ts, streaming=streaming)[r]
     lin = {ep.name: relative_deviation_error(ep.Y, _predict(linear, ep), y_ref) for ep in tests}
     cub = {ep.name: relative_deviation_error(ep.Y, _predict(cubic, ep), y_ref) for ep in tests}
     ratio = {e: cub[e] / lin[e] if lin[e] > 0 else float('inf') for e in lin}

@@ -94,3 +94,44 @@ def test_refinement_runs_on_streamed_coordinates(tmp_path):
         assert model.stability_margin() > 0
         errs.append(evaluate(model, eps).get()['relative_deviation_error'])
     assert errs[1] <= 1.1 * errs[0] + 1e-6
+
+
+@pytest.mark.parametrize('method', ['lopinf', 'dmdc', 'era'])
+def test_a_streamed_study_streams_its_held_out_refits_too(tmp_path, monkeypatch, method):
+    # The paper-scale study 2 (cfg.streaming) records each model's held-out error by
+    # refitting it on each training episode left out (ERA/OKID: on the first 80 % of its
+    # one episode). Those refits loaded the snapshots into memory (24 GB at resolution 4,
+    # killed by the kernel): they must stream as the fit does, and ERA/OKID read no state.
+    from soft_rom.basis import POD
+    from soft_rom.dataset import StoredArray
+    from soft_rom.study.config import StudyConfig
+    from soft_rom.study.fits import _record_held_out, sweep
+
+    eps = spring_chain_episodes(n_dof=30, m=2, p=4, k=300, dt=1e-2, seed=5, stiffness=50.0,
+                                drive_nodes=(10, 20), input_gain=1.0, amplitude=1.0, hold=20,
+                                q_span=1.0)
+    eps = [Episode(t=e.t, U=e.U, Y=e.Y, Q=e.Q, name=f'ep{i + 1}') for i, e in enumerate(eps)]
+    ts = training_set(tmp_path, eps, eps[0].Q[:, 0], eps[0].Y[:, 0], chunks=(16, 32))
+    stored = [ts[e.name] for e in eps[:2]]
+    assert isinstance(stored[0].Q, StoredArray)             # lazy, as at paper scale
+
+    def in_memory_svd(*args, **kw):
+        raise AssertionError('the snapshots were loaded for an in-memory SVD')
+
+    monkeypatch.setattr(POD, 'fit', in_memory_svd)
+    era = {'n_markov': 40, 'decimation': 1}
+    cfg = StudyConfig(streaming=True, r_cubic=(), era_options=era)
+    chosen = {'r': 4, 'episode': 'ep1'} if method == 'era' else {'r': 4}
+    train = stored[:1] if method == 'era' else stored
+    model = sweep(method, [4], train, ts, streaming=True, era_options=era)[4]
+    if method == 'era':
+        read = StoredArray.__getitem__
+
+        def one_column_at_most(self, key):          # a reference state, not the snapshots
+            got = read(self, key)
+            assert got.ndim < 2 or got.shape[1] <= 1, f'ERA/OKID read the states {key}'
+            return got
+        monkeypatch.setattr(StoredArray, '__getitem__', one_column_at_most)
+    _record_held_out(method, model, chosen, stored, ts, cfg)
+    held = model.metadata['held_out']                       # recorded, by streamed refits
+    assert held['samples'] > 0 and 0 < held['deviation_error'] < 1
