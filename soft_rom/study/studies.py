@@ -30,6 +30,7 @@ from soft_rom.study import figures, paper
 from soft_rom.study.config import StudyConfig
 from soft_rom.study.fits import (
     _choose_models,
+    _head,
     _in_memory,
     _predict,
     _record_held_out,
@@ -68,7 +69,7 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
                              tick: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Study 1: fit on Ep 1 up to ``t_train``, test on the rest; errors vs r; traces."""
     ep1 = _in_memory(ts['ep1'])
-    train = ep1.time_slice(None, cfg.t_train)
+    train = _head(ep1, cfg.t_train)
     k_train = train.n_samples
     y_ref = ts.y_ref
     curves: dict[str, dict[str, list[float]]] = {}

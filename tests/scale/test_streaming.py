@@ -135,3 +135,22 @@ def test_a_streamed_study_streams_its_held_out_refits_too(tmp_path, monkeypatch,
     _record_held_out(method, model, chosen, stored, ts, cfg)
     held = model.metadata['held_out']                       # recorded, by streamed refits
     assert held['samples'] > 0 and 0 < held['deviation_error'] < 1
+
+
+def test_study_1_training_head_keeps_a_stored_q_on_disk(tmp_path):
+    # Study 1 fits on the head of Ep 1. Episode.time_slice read a stored Q into memory
+    # (3 GB at resolution 4, peak RSS 4.17 GB for a stage whose fits stream): _head keeps
+    # it on disk and gives the same samples.
+    from soft_rom.reduce import ColumnWindow
+    from soft_rom.study.fits import _head
+
+    eps, q_ref, y_ref = system_episodes(ks=(200,))
+    ts = training_set(tmp_path, eps, q_ref, y_ref, chunks=(16, 32))
+    stored = ts[ts.episode_names[0]]
+    head, want = _head(stored, 1.2), eps[0].time_slice(None, 1.2)
+    assert isinstance(head.Q, ColumnWindow) and head.Q.shape == want.Q.shape
+    for key in ('t', 'U', 'Y'):
+        np.testing.assert_array_equal(getattr(head, key), getattr(want, key))
+    np.testing.assert_array_equal(head.Q[:, 0:head.n_samples], want.Q)
+    in_memory = eps[0]                              # an array is sliced as before
+    np.testing.assert_array_equal(_head(in_memory, 1.2).Q, want.Q)
