@@ -189,6 +189,9 @@ def test_the_staged_run_end_to_end(tmp_path: Path) -> None:
     assert scale['disk']['bag_bytes'] > 0 and scale['disk']['training_set_bytes'] > 0
     fit = scale['streaming_fit_vs_cold_read']
     assert fit['bytes'] > 0 and fit['ratio'] > 0
+    assert fit['passes'] >= 1 and 0 < fit['pod_s'] <= fit['lopinf_fit_s']     # per pass too
+    per_pass = fit['pod_s'] / fit['passes']
+    assert fit['per_pass_ratio'] == pytest.approx(per_pass / fit['cold_read_s'])
     assert summary['study1']['best']['lopinf']['test'] < 0.01
     assert set(summary['study2']['test']) >= {'lopinf', 'dmdc'}
     assert (out / 'report.md').is_file() and (out / 'bars.png').is_file()

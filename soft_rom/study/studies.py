@@ -179,6 +179,9 @@ def study_unseen_inputs(ts: Any, cfg: StudyConfig, out: Path,
     result = {'chosen': chosen, 'era_episode': era_episode, 'test': test, 'test_dev': test_dev,
               'shape_episode': tests[0].name, 'shape_times': list(cfg.shape_times),
               'shapes_png': shapes_png, 'fit_seconds': fit_seconds}
+    scale = models['lopinf'].metadata.get('scale') if 'lopinf' in models else None
+    if scale:                                    # the streamed POD (the paper-scale run)
+        result['streaming_pod'] = {k: scale.get(k) for k in ('pod_method', 'passes', 'seconds')}
     if 'lopinf_cubic' in models:
         result['cubic_vs_linear'] = _cubic_vs_linear(models['lopinf_cubic'], swept, tests,
                                                      train_eps, ts, y_ref, cfg.streaming)
