@@ -486,6 +486,49 @@ def test_pauses_with_fixed_stepping_publish_every_step(client, tmp_path) -> None
         node.kill()
 
 
+def test_a_sensor_held_up_across_a_pause_is_counted_late_and_warned(client, tmp_path) -> None:
+    # The node stopped for 150 ms took every input at its own step above. Here the last
+    # chamber's sensor is held up across that pause too: it sends nothing for 250 ms, then
+    # its held samples in order, beyond max_lag_s (0.1 s) behind the other chambers, which
+    # moved the model on. The late ones are counted, on that topic only, and diagnostics WARN.
+    m = model()
+    k = 1200
+    ep = episode(m, k=k)
+    node = NodeProcess(tmp_path, params(m.save(tmp_path / 'm.npz'), publish_rate_hz=50.0))
+    held: list[int] = []
+    window = range(800, 1050)                       # PAUSES: the node stops at 800 for 150 ms
+    try:
+        out = Outputs(client, node.fqn)
+        pubs = _publishers(client)
+        _connected(client, pubs, out)
+
+        def send(j: int) -> None:
+            for i, p in enumerate(pubs[:-1]):
+                p.publish(pressure(ep.U[i, j], T0_NS + j * MS))
+            if j == window.stop:                    # ... and sends them, in order, 250 ms on
+                for h in held:
+                    pubs[-1].publish(pressure(ep.U[len(pubs) - 1, h], T0_NS + h * MS))
+            if j in window:
+                held.append(j)                      # the last sensor holds its samples ...
+            else:
+                pubs[-1].publish(pressure(ep.U[len(pubs) - 1, j], T0_NS + j * MS))
+
+        _stream(node, k, send)
+        pred = _counters(client, out, 3 * k)
+        late = {tp: int(out.status(f': input {tp}')['late']) for tp in TOPICS}
+        assert late[TOPICS[-1]] > 0 and all(late[tp] == 0 for tp in TOPICS[:-1]), late
+        assert int(pred['late']) == sum(late.values())
+        warned = [st for arr in out.diagnostics for st in arr.status
+                  if 'arrived after their step was taken' in st.message]
+        assert warned, [st.message for arr in out.diagnostics for st in arr.status]
+        level = warned[0].level
+        assert (level[0] if isinstance(level, bytes) else level) == 1          # WARN
+        assert node.stop(signal.SIGINT) == 0
+    finally:
+        node.proc.send_signal(signal.SIGCONT)
+        node.kill()
+
+
 @pytest.mark.parametrize('executor', ['events', 'single_threaded'])
 def test_a_pause_makes_late_inputs_counted_and_warned(client, tmp_path, executor) -> None:
     m = model()
