@@ -383,9 +383,8 @@ def _report(out: Path, cfg: StudyConfig, bag_dir: Path, progress: bool) -> dict[
 def _fit_vs_read(s2: dict[str, Any] | None, cold: dict[str, Any] | None) -> dict[str, Any]:
     """The study-2 LOpInf sweep (one streamed POD of ep1 + ep2) against one cold read.
 
-    ``ratio``: the whole sweep (every pass and every fit) over one read; ``per_pass_ratio``:
-    the POD's time per pass over one read, the measure ``benchmarks/bench_scale.py`` uses
-    (its throughput against the raw read).
+    ``ratio``: the whole sweep over one read; ``per_pass_ratio``: the POD's time per pass
+    over one read (``benchmarks/bench_scale.py``'s measure: throughput against a raw read).
     """
     if not s2 or not cold or not cold.get('seconds'):
         return {}
