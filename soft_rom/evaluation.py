@@ -33,7 +33,7 @@ from soft_rom.data import Episode
 from soft_rom.errors import ConfigError, DimensionError
 from soft_rom.metrics import relative_error_from_squares
 from soft_rom.models import DiscreteModel, LinearROM, run_states, SecondOrderModel
-from soft_rom.reduce import ColumnWindow
+from soft_rom.reduce import episode_head
 
 __all__ = ['Evaluation', 'evaluate', 'held_out_errors', 'predict']
 
@@ -249,11 +249,7 @@ def held_out_errors(fit: Any, episodes: Sequence[Episode], y_ref: Array, *,
     else:
         ep = eps[0]
         k = int(round(ep.n_samples * (1.0 - tail)))
-        head = Episode(t=ep.t[:k], U=ep.U[:, :k], Y=ep.Y[:, :k],
-                       Q=None if ep.Q is None else (ep.Q[:, :k] if isinstance(ep.Q, np.ndarray)
-                                                    else ColumnWindow(ep.Q, k)),  # lazy: lazy
-                       name=ep.name,
-                       metadata=ep.metadata)
+        head = episode_head(ep, k)          # a stored Q stays on disk
         Yh = predict(fit([head]), ep)
         pairs.append((np.asarray(ep.Y)[:, k:], Yh[:, k:]))
         data = (f'the last {tail:.0%} of {ep.name}, predicted by the model fitted on the rest')

@@ -349,9 +349,8 @@ class StoredArray:
         except Exception:  # noqa: BLE001 - an OSError subclass with another signature
             return err
 
-    def _touched(self, key: Any) -> list[tuple[int, ...]] | None:
-        """Chunk indices a basic-slicing ``key`` reads (``None``: another kind of key)."""
-        found = basic_bounds(key, self.shape)
+    def _touched(self, found: Any) -> list[tuple[int, ...]] | None:
+        """Chunk indices a key reads, from its :func:`basic_bounds` (``None``: another kind)."""
         if found is None:
             return None
         if any(b <= a for a, b in found[0]):
@@ -442,7 +441,7 @@ class StoredArray:
     def __getitem__(self, key: Any) -> Any:
         self.check()
         found = basic_bounds(key, self.shape)
-        touched = self._touched(key)
+        touched = self._touched(found)
         self._require(touched)
         try:
             self._chunk_layout()

@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike
 
 from soft_rom.data import Episode
 from soft_rom.errors import ConfigError, DatasetError
-from soft_rom.reduce import ColumnWindow, TrainingData
+from soft_rom.reduce import episode_head, TrainingData
 
 __all__ = ['CHANNEL_KEYS', 'COORDINATES', 'choose_coordinates', 'open_training_data',
            'output_coordinates', 'select_episodes']
@@ -147,10 +147,7 @@ def _cut(ep: Episode, t_max: float) -> Episode:
                            f'{t_max} s.')
     if k >= ep.n_samples:
         return ep
-    q = None if ep.Q is None else (ep.Q[:, :k] if isinstance(ep.Q, np.ndarray)
-                                   else ColumnWindow(ep.Q, k))
-    return Episode(t=ep.t[:k], U=ep.U[:, :k], Y=ep.Y[:, :k], Q=q, name=ep.name,
-                   metadata=dict(ep.metadata))
+    return episode_head(ep, k)
 
 
 def choose_coordinates(episodes: Sequence[Episode], coordinates: str | None) -> str:

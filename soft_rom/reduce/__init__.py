@@ -18,7 +18,7 @@ from __future__ import annotations
 
 from soft_rom.reduce.data import BASES, ReducedData, TrainingData
 from soft_rom.reduce.memory import InMemoryPOD, training_data
-from soft_rom.reduce.streaming import ColumnWindow, StreamingReducer
+from soft_rom.reduce.streaming import ColumnWindow, episode_head, StreamingReducer
 
-__all__ = ['BASES', 'ColumnWindow', 'InMemoryPOD', 'ReducedData', 'StreamingReducer',
-           'TrainingData', 'training_data']
+__all__ = ['BASES', 'ColumnWindow', 'episode_head', 'InMemoryPOD', 'ReducedData',
+           'StreamingReducer', 'TrainingData', 'training_data']

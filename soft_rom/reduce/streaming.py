@@ -35,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from soft_rom.data import Episode
 from soft_rom.errors import DimensionError
 from soft_rom.reduce.data import ReducedData, TrainingData
 from soft_rom.scale.blocks import (
@@ -46,7 +47,7 @@ from soft_rom.scale.blocks import (
 )
 from soft_rom.scale.pod import StreamingPOD
 
-__all__ = ['GRAM_MEMORY', 'ColumnWindow', 'StreamingReducer', 'make_executor']
+__all__ = ['GRAM_MEMORY', 'ColumnWindow', 'StreamingReducer', 'episode_head', 'make_executor']
 
 #: Largest memory (bytes) the ``'auto'`` POD method lets the exact ``'gram'`` method hold
 #: (the Gram matrix and two row blocks); beyond, ``'randomized'``.
@@ -93,6 +94,18 @@ def make_executor(client: Any = None,
         return LocalExecutor(progress)
     from soft_rom.scale.dask_backend import DaskExecutor
     return DaskExecutor(client)
+
+
+def episode_head(ep: Episode, k: int) -> Episode:
+    """The first ``k`` samples of ``ep``; a stored (lazy) ``Q`` stays on disk (ColumnWindow).
+
+    ``Episode.slice`` reads a stored ``Q`` into memory: at paper scale gigabytes that a
+    streaming fit never reads.
+    """
+    if ep.Q is None or isinstance(ep.Q, np.ndarray):
+        return ep.slice(0, k)
+    return Episode(t=ep.t[:k], U=ep.U[:, :k], Y=ep.Y[:, :k], Q=ColumnWindow(ep.Q, k),
+                   name=ep.name, metadata=dict(ep.metadata))
 
 
 class StreamingReducer:

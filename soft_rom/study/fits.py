@@ -23,7 +23,7 @@ from soft_rom.models import LinearROM
 from soft_rom.pipeline import fit_method, FitSettings, open_training_data
 from soft_rom.pipeline.data import CHANNEL_KEYS
 from soft_rom.pipeline.fit import Reducer
-from soft_rom.reduce import ColumnWindow, InMemoryPOD
+from soft_rom.reduce import episode_head, InMemoryPOD
 from soft_rom.study.config import blas_threads, StudyConfig
 
 __all__ = ['HELD_OUT_METHODS', 'sweep']
@@ -90,16 +90,8 @@ def _in_memory(ep: Episode, limit_bytes: float = 2e9) -> Episode:
 
 
 def _head(ep: Episode, t_stop: float) -> Episode:
-    """``ep.time_slice(None, t_stop)`` that keeps a lazy ``Q`` lazy (a ColumnWindow).
-
-    ``Episode.slice`` reads a stored ``Q`` into memory: at paper scale study 1's training
-    head of Ep 1 (1,500 of 246,075-DOF snapshots, 3 GB) that the streaming fits never read.
-    """
-    if ep.Q is None or isinstance(ep.Q, np.ndarray):
-        return ep.time_slice(None, t_stop)
-    k = int(np.searchsorted(ep.t, t_stop - 1e-12, 'left'))
-    return Episode(t=ep.t[:k], U=ep.U[:, :k], Y=ep.Y[:, :k], Q=ColumnWindow(ep.Q, k),
-                   name=ep.name, metadata=ep.metadata)
+    """``ep.time_slice(None, t_stop)`` that keeps a stored ``Q`` on disk (study 1's head)."""
+    return episode_head(ep, int(np.searchsorted(ep.t, t_stop - 1e-12, 'left')))
 
 
 def _predict(model: LinearROM, episode: Episode) -> np.ndarray:
