@@ -55,11 +55,14 @@ def test_bad_messages_are_dropped_and_commands_stay_safe(tmp_path, model_path, c
             DiagnosticArray, '/diagnostics',
             lambda m: diags.extend({kv.key: kv.value for kv in s.values} | {'msg': s.message}
                                    for s in m.status), 100)
+        shapes: list[PoseArray] = []
+        client.node.create_subscription(PoseArray, '/ctl/reference', shapes.append, 100)
         pub_meas = client.node.create_publisher(PoseArray, '/t/meas', 100)
         pub_ref = client.node.create_publisher(PoseArray, '/t/ref', 100)
         pub_state = client.node.create_publisher(JointState, '/t/state', 100)
         assert client.spin_until(lambda: len(commands) >= 12, 60), node.log()
-        assert any(d['status'] == 'missing' for d in diags)
+        # diagnostics come at 1 Hz (and at once on a change of status, before we listened)
+        assert client.spin_until(lambda: any(d['status'] == 'missing' for d in diags), 5)
         now = client.node.get_clock().now().nanoseconds * 1e-9
         pub_meas.publish(_poses(rest[:19], now))                          # wrong size
         bad = rest.copy()
@@ -92,6 +95,12 @@ def test_bad_messages_are_dropped_and_commands_stay_safe(tmp_path, model_path, c
         assert any(d['status'] == 'ok' for d in diags[-20:]), diags[-3:]
         ticks = [float(d['tick_ms']) for d in diags[-20:]]     # the previous whole tick
         assert all(math.isfinite(v) and v > 0 for v in ticks), diags[-3:]
+        longest = [float(d['tick_max_ms']) for d in diags[-20:]]   # since the last message
+        assert all(a >= b > 0 for a, b in zip(longest, ticks)), diags[-3:]
+        # ~/reference (30 Hz while subscribed): the reference topic's shape, 20 points
+        assert len(shapes) >= 10 and len(shapes[-1].poses) == 20
+        got = np.array([[p.position.x, p.position.y, p.position.z] for p in shapes[-1].poses])
+        assert np.allclose(got, target, atol=1e-9)
         # silence: the state goes stale and the command is held
         assert client.spin_until(lambda: diags and diags[-1]['status'] == 'stale', 10)
         assert node.proc.poll() is None
@@ -149,13 +158,17 @@ def test_array_mode_publishes_one_scaled_float64multiarray(tmp_path, model_path,
         node.kill()
 
 
-def test_bad_input_mode_is_one_line_and_exit_1(tmp_path, model_path) -> None:
-    node = NodeProcess(tmp_path, {'model_path': str(model_path), 'input_mode': 'bus'},
+@pytest.mark.parametrize('params, message', [
+    ({'input_mode': 'bus'}, "input_mode 'bus' is not one of per_chamber, array"),
+    ({'diagnostics_rate_hz': 0.0}, 'diagnostics_rate_hz must be between 0.01 and 100; got 0.0'),
+])
+def test_bad_parameter_is_one_line_and_exit_1(tmp_path, model_path, params, message) -> None:
+    node = NodeProcess(tmp_path, {'model_path': str(model_path), **params},
                        name='ctl_bad', exe='controller')
     try:
         assert node.wait(60) == 1
         log = node.log()
-        assert "input_mode 'bus' is not one of per_chamber, array" in log, log
+        assert message in log, log
         assert 'Traceback' not in log
     finally:
         node.kill()

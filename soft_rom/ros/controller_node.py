@@ -18,9 +18,13 @@ in-process loop (``soft-rom control``) runs. The node:
   ``sensor_msgs/FluidPressure`` per chamber stamped with the control time
   (``per_chamber``), or all chambers in one ``std_msgs/Float64MultiArray`` on
   ``array_topic`` (``array``; no header: the receiver stamps it on arrival), as
-  ``(u - input_offset) / input_scale`` so that the predictor reads back ``u``; and the
-  reference shape on ``~/reference`` (``PoseArray``) and ``/diagnostics`` (status, solve and
-  step time, the whole previous tick's time, tracking error, saturation, counters);
+  ``(u - input_offset) / input_scale`` so that the predictor reads back ``u``;
+* publishes ``/diagnostics`` (status, solve and step time, the previous tick's time and the
+  longest since the last message, tracking error, saturation, counters) at
+  ``diagnostics_rate_hz`` (default 1 Hz, as the predictor) and at once when the status
+  changes, and the reference shape on ``~/reference`` (``PoseArray``) at
+  ``reference_rate_hz`` (default 30 Hz) while someone subscribes: both on timers of their
+  own, so that the control tick only estimates, solves and publishes the commands;
 * on shutdown logs the whole control tick's time (estimate, solve, publish), p50 / p99 /
   max in wall and thread CPU time, and p99 as a fraction of the control step.
 
@@ -82,10 +86,12 @@ class ControllerNode(Node):
         self.t0: float | None = None
         self.samples: list[tuple[float, np.ndarray]] = []
         self._create_entities()
-        self.last: Any = None
+        self.last: Any = None      # (stamp, command) of the last tick, for diagnostics
         self.callback_errors = 0
-        # the whole tick (estimate, solve, publish), wall and thread CPU seconds
-        self.ticks: deque[tuple[float, float]] = deque(maxlen=100_000)
+        # the whole tick (estimate, solve, publish): wall and thread CPU seconds, and the CPU
+        # seconds of the estimate and solve alone
+        self.ticks: deque[tuple[float, float, float]] = deque(maxlen=100_000)
+        self.tick_max = 0.0        # the longest tick (wall s) since the last diagnostics
         self._prepare_reference_message()
 
     def _declare_parameters(self) -> dict[str, Any]:
@@ -128,6 +134,10 @@ class ControllerNode(Node):
         core['duration'] = float(declare('reference_duration_s', 60.0,
                                          'length of a built-in one'))
         self.frame_id = str(declare('frame_id', 'world', 'frame of ~/reference'))
+        self.diag_rate = float(declare('diagnostics_rate_hz', 1.0, 'rate of /diagnostics '
+                                       '(and at once when the status changes)'))
+        self.ref_rate = float(declare('reference_rate_hz', 30.0, 'rate of ~/reference while '
+                                      'someone subscribes'))
         self.ref_t0 = float(declare('reference_t0_s', -1.0, "clock time of the reference's "
                                     't = 0 (< 0: the first control tick)'))
         return core
@@ -145,6 +155,10 @@ class ControllerNode(Node):
             if self.input_mode not in INPUT_MODES:
                 raise ValueError(f'input_mode {self.input_mode!r} is not one of '
                                  f'{", ".join(INPUT_MODES)}')
+            for name, rate in (('diagnostics_rate_hz', self.diag_rate),
+                               ('reference_rate_hz', self.ref_rate)):
+                if not 0.01 <= rate <= 100.0:
+                    raise ValueError(f'{name} must be between 0.01 and 100; got {rate!r}')
             if not (math.isfinite(self.input_scale) and self.input_scale != 0
                     and math.isfinite(self.input_offset)):
                 raise ValueError(f'input_scale ({self.input_scale!r}) must be finite and not 0 '
@@ -184,6 +198,8 @@ class ControllerNode(Node):
         if self.reference_topic:
             self.create_subscription(PoseArray, self.reference_topic, self._on_reference, qos)
         self.create_timer(self.core.h, self._on_tick)
+        self.create_timer(1.0 / self.diag_rate, self._on_diagnostics_timer)
+        self.create_timer(1.0 / self.ref_rate, self._publish_reference)
 
     def _prepare_reference_message(self) -> None:
         """``~/reference`` reused at every publish, and where the model's outputs go in it."""
@@ -258,7 +274,10 @@ class ControllerNode(Node):
             self._guard('reference', err)
 
     def _on_tick(self) -> None:
+        """Estimate, solve and publish the commands (and diagnostics if the status changed)."""
         w0, c0 = time.perf_counter(), time.thread_time()
+        c_core = math.nan
+        changed = False
         try:
             now = self._now()
             if self.t0 is None:
@@ -267,6 +286,7 @@ class ControllerNode(Node):
                     f = self.fixed_ref
                     self.core.set_reference(Reference(t=f.t + self.t0, Y=f.Y, label=f.label))
             cmd = self.core.step(now)
+            c_core = time.thread_time() - c0
             sec, nsec = ns_to_stamp(int(round(now * 1e9)))
             stamp = TimeMsg(sec=sec, nanosec=nsec)
             wire = (cmd.u - self.input_offset) / self.input_scale
@@ -277,30 +297,53 @@ class ControllerNode(Node):
                 msg.header.stamp = stamp
                 msg.fluid_pressure = value
                 pub.publish(msg)
-            ref = self.core.reference
-            if ref is not None:
-                y = ref.at([now])[:, 0]
-                pts = np.zeros((len(self.ref_positions), 3))
-                pts[self.ref_where] = y[self.ref_rows]
-                self.ref_msg.header.stamp = stamp
-                set_points(self.ref_positions, pts)
-                self.pub_ref.publish(self.ref_msg)
-            self._diagnostics(stamp, cmd)
+            changed = self.last is None or self.last[1].status != cmd.status
+            self.last = (stamp, cmd)
         except Exception as err:  # noqa: BLE001
             self._guard('control step', err)
-        self.ticks.append((time.perf_counter() - w0, time.thread_time() - c0))
+        wall = time.perf_counter() - w0
+        self.ticks.append((wall, time.thread_time() - c0, c_core))
+        self.tick_max = max(self.tick_max, wall)
+        if changed:
+            self._on_diagnostics_timer()
+
+    def _publish_reference(self) -> None:
+        """``~/reference`` at the node's clock time, while someone subscribes."""
+        ref = self.core.reference
+        if ref is None or self.pub_ref.get_subscription_count() == 0:
+            return
+        try:
+            now = self._now()
+            y = ref.at([now])[:, 0]
+            pts = np.zeros((len(self.ref_positions), 3))
+            pts[self.ref_where] = y[self.ref_rows]
+            sec, nsec = ns_to_stamp(int(round(now * 1e9)))
+            self.ref_msg.header.stamp = TimeMsg(sec=sec, nanosec=nsec)
+            set_points(self.ref_positions, pts)
+            self.pub_ref.publish(self.ref_msg)
+        except Exception as err:  # noqa: BLE001
+            self._guard('reference publish', err)
+
+    def _on_diagnostics_timer(self) -> None:
+        if self.last is not None:
+            try:
+                self._diagnostics(*self.last)
+            except Exception as err:  # noqa: BLE001
+                self._guard('diagnostics', err)
 
     def tick_summary(self) -> str:
         """One line: the whole control tick's time, p50 / p99 / max, wall and CPU."""
         if not self.ticks:
             return 'no control tick ran'
-        wall, cpu = (np.array(v) * 1e3 for v in zip(*self.ticks))
+        wall, cpu, core = (np.array(v) * 1e3 for v in zip(*self.ticks))
         w50, w99, c50, c99 = (float(np.percentile(a, q)) for a in (wall, cpu)
                               for q in (50, 99))
+        k50, k99 = (float(np.nanpercentile(core, q)) if np.isfinite(core).any() else math.nan
+                    for q in (50, 99))
         period = self.core.h * 1e3
         return (f'{len(wall)} control ticks (estimate, solve, publish): p50/p99/max '
                 f'{w50:.3f}/{w99:.3f}/{wall.max():.3f} ms wall, CPU p50/p99 {c50:.3f}/'
-                f'{c99:.3f} ms; p99 = {100 * w99 / period:.1f} % (wall), '
+                f'{c99:.3f} ms (estimate + solve {k50:.3f}/{k99:.3f}); p99 = {100 * w99 / period:.1f} % (wall), '
                 f'{100 * c99 / period:.1f} % (CPU) of the {period:g} ms step')
 
     def _diagnostics(self, stamp: TimeMsg, cmd: Any) -> None:
@@ -309,9 +352,11 @@ class ControllerNode(Node):
         if cmd.status in ('failed', 'infeasible'):
             level = DiagnosticStatus.ERROR
         last_tick = self.ticks[-1][0] * 1e3 if self.ticks else float('nan')
+        longest, self.tick_max = self.tick_max * 1e3, 0.0
         values = {
             'status': cmd.status, 'solve_ms': f'{cmd.solve_s * 1e3:.3f}',
             'step_ms': f'{cmd.step_s * 1e3:.3f}', 'tick_ms': f'{last_tick:.3f}',
+            'tick_max_ms': f'{longest:.3f}',
             'tracking_error_m': f'{cmd.tracking_error:.6g}',
             'saturated_inputs': str(cmd.saturated), 'qp_infeasible': str(c.qp_infeasible),
             'qp_failed': str(c.qp_failed), 'held': str(c.held),
