@@ -343,8 +343,9 @@ class ControllerNode(Node):
         period = self.core.h * 1e3
         return (f'{len(wall)} control ticks (estimate, solve, publish): p50/p99/max '
                 f'{w50:.3f}/{w99:.3f}/{wall.max():.3f} ms wall, CPU p50/p99 {c50:.3f}/'
-                f'{c99:.3f} ms (estimate + solve {k50:.3f}/{k99:.3f}); p99 = {100 * w99 / period:.1f} % (wall), '
-                f'{100 * c99 / period:.1f} % (CPU) of the {period:g} ms step')
+                f'{c99:.3f} ms (estimate + solve {k50:.3f}/{k99:.3f}); p99 = '
+                f'{100 * w99 / period:.1f} % (wall), {100 * c99 / period:.1f} % (CPU) of the '
+                f'{period:g} ms step')
 
     def _diagnostics(self, stamp: TimeMsg, cmd: Any) -> None:
         c = self.core.counters
