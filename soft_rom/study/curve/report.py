@@ -154,9 +154,11 @@ def curve_section(summary: Mapping[str, Any]) -> list[str]:
                                     'auto / linear, worst', '10× inputs'], cub), '']
     if summary.get('timings'):
         out += ['Run time and peak memory:', '', markdown_table(
-            ['stage', 'seconds'], [[k, v] for k, v in summary['timings'].items()]), '']
+            ['stage', 'seconds'], [[k, f'{v:,.0f}'] for k, v in summary['timings'].items()]),
+            '']
         out += [markdown_table(['peak memory', 'MB'],
-                               [[k, v] for k, v in summary.get('peak_memory_mb', {}).items()]),
+                               [[k, f'{v:,.0f}']
+                                for k, v in summary.get('peak_memory_mb', {}).items()]),
                 '']
     return out
 
