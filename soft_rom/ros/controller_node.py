@@ -325,6 +325,7 @@ class ControllerNode(Node):
             self._guard('reference publish', err)
 
     def _on_diagnostics_timer(self) -> None:
+        """``/diagnostics`` for the last tick (its timer, or a tick whose status changed)."""
         if self.last is not None:
             try:
                 self._diagnostics(*self.last)
@@ -353,7 +354,9 @@ class ControllerNode(Node):
         if cmd.status in ('failed', 'infeasible'):
             level = DiagnosticStatus.ERROR
         last_tick = self.ticks[-1][0] * 1e3 if self.ticks else float('nan')
-        longest, self.tick_max = self.tick_max * 1e3, 0.0
+        # the longest tick since the last message (the last tick if none ran since)
+        longest = self.tick_max * 1e3 if self.tick_max > 0 else last_tick
+        self.tick_max = 0.0
         values = {
             'status': cmd.status, 'solve_ms': f'{cmd.solve_s * 1e3:.3f}',
             'step_ms': f'{cmd.step_s * 1e3:.3f}', 'tick_ms': f'{last_tick:.3f}',
