@@ -287,8 +287,7 @@ class ControllerNode(Node):
                     self.core.set_reference(Reference(t=f.t + self.t0, Y=f.Y, label=f.label))
             cmd = self.core.step(now)
             c_core = time.thread_time() - c0
-            sec, nsec = ns_to_stamp(int(round(now * 1e9)))
-            stamp = TimeMsg(sec=sec, nanosec=nsec)
+            stamp = _time_msg(now)
             wire = (cmd.u - self.input_offset) / self.input_scale
             if self.input_mode == 'array':
                 self.array_msg.data = array_to_data(wire)
@@ -317,8 +316,7 @@ class ControllerNode(Node):
             y = ref.at([now])[:, 0]
             pts = np.zeros((len(self.ref_positions), 3))
             pts[self.ref_where] = y[self.ref_rows]
-            sec, nsec = ns_to_stamp(int(round(now * 1e9)))
-            self.ref_msg.header.stamp = TimeMsg(sec=sec, nanosec=nsec)
+            self.ref_msg.header.stamp = _time_msg(now)
             set_points(self.ref_positions, pts)
             self.pub_ref.publish(self.ref_msg)
         except Exception as err:  # noqa: BLE001
@@ -375,6 +373,12 @@ class ControllerNode(Node):
                                   hardware_id=self.get_name(),
                                   values=[KeyValue(key=k, value=v) for k, v in values.items()])
         self.pub_diag.publish(DiagnosticArray(header=_header(stamp), status=[status]))
+
+
+def _time_msg(t: float) -> TimeMsg:
+    """A ROS time message for ``t`` seconds on the node's clock."""
+    sec, nsec = ns_to_stamp(int(round(t * 1e9)))
+    return TimeMsg(sec=sec, nanosec=nsec)
 
 
 def _header(stamp: TimeMsg) -> Header:
