@@ -248,16 +248,16 @@ def bag_storage(path: str | Path) -> str:
     if p.is_file() and p.name.endswith('.zstd') and _file_storage(p) is not None:
         raise BagError(f'{p} is one file of a file-compressed bag: give its folder (the one '
                        'with metadata.yaml), or decompress it (zstd -d).')
-    if p.is_dir() and (p / 'metadata.yaml').is_file():
-        kind = _metadata_storage(p)
-        if kind is not None:
-            return kind
+    kind = _metadata_storage(p) if p.is_dir() and (p / 'metadata.yaml').is_file() else None
+    if kind is not None:
+        return kind
     files = [p] if p.is_file() else list(p.iterdir()) if p.is_dir() else []
     kinds = {_file_storage(f) for f in files} - {None}
     for kind in ('mcap', 'sqlite3'):
         if kind in kinds:
             return kind
-    raise BagError(f'{p} holds no .mcap or .db3 file: not a ROS 2 bag.')
+    where = f'; to take every bag in {p.parent}, give that folder' if p.is_file() else ''
+    raise BagError(f'{p} is not a ROS 2 bag (no .mcap or .db3 file){where}.')
 
 
 def _open_advice(why: str, storage: str) -> str:

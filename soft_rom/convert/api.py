@@ -4,11 +4,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
+import re
 from typing import Any
 
 import numpy as np
 
 from soft_rom import outputs
+from soft_rom.bags.reader import is_bag
 from soft_rom.convert.mapping import BagMapping
 from soft_rom.convert.report import ConversionReport
 from soft_rom.convert.stream import (
@@ -33,14 +35,29 @@ MEMORY_LIMIT = 4 << 30
 DISK_CHECK_EVERY = 4096
 
 
+def _natural(p: Path) -> list[Any]:
+    """Sort key: ``ep2`` before ``ep10``."""
+    return [int(t) if t.isdigit() else t for t in re.split(r'(\d+)', p.name)]
+
+
 def _paths(bags: Iterable[str | Path]) -> list[Path]:
-    out = [Path(b) for b in bags]
-    if not out:
+    """The bags given, each checked to exist and given once.
+
+    A folder that is no bag but holds bags (``soft-rom simulate -o``'s) stands for its bags,
+    in natural order (``ep2`` before ``ep10``).
+    """
+    given = [Path(b) for b in bags]
+    if not given:
         raise BagError('no bag given.')
-    seen: dict[Path, Path] = {}
-    for p in out:
+    out: list[Path] = []
+    for p in given:
         if not p.exists():
             raise FileNotFoundError(f'bag {p} does not exist.')
+        inner = [] if not p.is_dir() or is_bag(p) else sorted(
+            (c for c in p.iterdir() if c.is_dir() and is_bag(c)), key=_natural)
+        out.extend(inner or [p])
+    seen: dict[Path, Path] = {}
+    for p in out:
         first = seen.setdefault(p.resolve(), p)
         if first is not p:
             raise BagError(f'bag {p} is given twice (also as {first}); it would become two '
@@ -170,7 +187,9 @@ def convert(bags: Sequence[str | Path], out: str | Path, mapping: BagMapping | N
     Parameters
     ----------
     bags : sequence of path
-        rosbag2 directories (or ``.mcap`` / ``.db3`` files), in episode order.
+        rosbag2 directories (or ``.mcap`` / ``.db3`` files), in episode order. A folder
+        that is no bag but holds bag directories (``soft-rom simulate -o``'s) gives its
+        bags in natural order (``ep2`` before ``ep10``); other files in it are left out.
     out : path
         Training set to write (``*.zarr``); written atomically.
     mapping : BagMapping, optional

@@ -3,6 +3,8 @@
 The sequence of issue 23, on ``soft-rom simulate --episodes 4 --seed 11`` data:
 
 * ``fit`` on a bag says to convert it, ``--r 8:4`` says the range is empty;
+* ``convert`` takes the folder ``simulate`` wrote; a sidecar caught by a glob is refused
+  with the advice to give that folder;
 * ERA/OKID with ``--r 10,20,30`` and with ``--r 4:12:4`` (the README's shape) exits 0, every
   model at one time step;
 * ``--forces cubic`` with its defaults (train ep1, ep2) predicts ep3 and ep4 with a deviation
@@ -49,8 +51,10 @@ def test_a_new_users_sequence(session, capsys):
     sim, data = root / 'sim', root / 'eel.zarr'
     code, text = _run(capsys, ['fit', str(sim / 'ep1'), '-o', str(root / 'm0')])
     assert code == 2 and 'soft-rom convert' in text and 'not a training set' in text
-    code, text = _run(capsys, ['convert', *(str(sim / f'ep{i}') for i in range(1, 5)),
-                               '-o', str(data), '--quiet'])
+    code, text = _run(capsys, ['convert', str(sim / 'ep1'), str(sim / 'ep1.json'),
+                               '-o', str(data), '--quiet'])     # what `sim/ep1*` expands to
+    assert code == 2 and 'give that folder' in text and not data.exists(), text
+    code, text = _run(capsys, ['convert', str(sim), '-o', str(data), '--quiet'])
     assert code == 0, text
     code, text = _run(capsys, ['fit', str(data), '--r', '8:4', '-o', str(root / 'm0')])
     assert code == 2 and 'range 8:4 is empty: start must be below stop' in text

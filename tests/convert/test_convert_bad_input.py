@@ -97,6 +97,22 @@ def test_missing_bag_path(tmp_path):
         read_episode(tmp_path / 'nope')
 
 
+def test_a_folder_of_bags_gives_its_bags_in_natural_order(tmp_path):
+    """``soft-rom simulate -o sim`` writes ``sim/ep1 … sim/ep10`` and a JSON sidecar beside
+    each: ``convert sim`` takes the bags (ep2 before ep10) and leaves the sidecars out; a
+    sidecar given by a glob is refused with the advice to give the folder."""
+    sim = tmp_path / 'sim'
+    for name in ('ep10', 'ep2', 'ep1'):
+        _write(sim / name, storage='sqlite3' if name == 'ep2' else 'mcap')
+        (sim / f'{name}.json').write_text('{}')
+    ts, reports = convert([sim], tmp_path / 'o.zarr', progress=False)
+    assert ts.episode_names == ['ep1', 'ep2', 'ep10']
+    assert [len(r.episodes) for r in reports] == [1, 1, 1]
+    with pytest.raises(BagError, match=r'ep1\.json is not a ROS 2 bag .*give that folder'):
+        convert([sim / 'ep1', sim / 'ep1.json'], tmp_path / 'p.zarr', progress=False)
+    _nothing_left(tmp_path, tmp_path / 'p.zarr')
+
+
 def test_all_outputs_too_short_stops(tmp_path):
     bag = tmp_path / 'b'
 
