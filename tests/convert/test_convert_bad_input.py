@@ -98,9 +98,12 @@ def test_missing_bag_path(tmp_path):
 
 
 def test_a_folder_of_bags_gives_its_bags_in_natural_order(tmp_path):
-    """``soft-rom simulate -o sim`` writes ``sim/ep1 … sim/ep10`` and a JSON sidecar beside
-    each: ``convert sim`` takes the bags (ep2 before ep10) and leaves the sidecars out; a
-    sidecar given by a glob is refused with the advice to give the folder."""
+    """``convert sim`` takes the bags of the folder ``soft-rom simulate -o sim`` wrote.
+
+    ``sim`` holds ``ep1 … ep10`` and a JSON sidecar beside each: the bags come in natural
+    order (ep2 before ep10), the sidecars are left out, and a sidecar given by a glob is
+    refused with the advice to give the folder.
+    """
     sim = tmp_path / 'sim'
     for name in ('ep10', 'ep2', 'ep1'):
         _write(sim / name, storage='sqlite3' if name == 'ep2' else 'mcap')
