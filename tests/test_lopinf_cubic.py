@@ -7,7 +7,7 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from soft_rom.data import Episode
-from soft_rom.errors import ConfigError, DimensionError, ModelFileError
+from soft_rom.errors import ConfigError, DimensionError, ModelFileError, SolverError
 from soft_rom.learners.lopinf import LOpInf
 from soft_rom.learners.lopinf.cubic import fit_cubic
 from soft_rom.metrics import relative_error
@@ -116,6 +116,49 @@ def test_constraints_enforced_when_data_violate_them() -> None:
     for d in rng.standard_normal((20, 3)):
         d /= np.linalg.norm(d)
         assert model.potential(2 * radius * d) > model.potential(radius * d) > 0
+
+
+def test_conic_solve_retried_with_other_settings_then_one_line(monkeypatch) -> None:
+    """A numerical error of Clarabel is retried without equilibration, then one line.
+
+    Clarabel stops on a numerical error on ill-conditioned data, depending on round-off; the
+    retried result is certified like the first. When every setting fails, one line says so
+    and what to try.
+    """
+    import cvxpy as cp
+    Q, Qd, Qdd, U, _base, _rng = unstable_quartic_data(3, 400, 0.3, seed=3)
+    first = fit_cubic(Q, Qd, Qdd, U, reg=1e-6)
+    assert first.info['conic_settings'] == 0
+    solve = cp.Problem.solve
+    calls = []
+
+    def failing(self, *args, **kwargs):
+        if 'iterative_refinement_reltol' not in kwargs:      # not the fit's conic problem
+            return solve(self, *args, **kwargs)
+        calls.append(kwargs.get('equilibrate_enable', True))
+        if kwargs.get('equilibrate_enable', True):
+            raise cp.error.SolverError("Solver 'CLARABEL' failed. Try another solver, or "
+                                       'solve with verbose=True for more information.')
+        return solve(self, *args, **kwargs)
+
+    monkeypatch.setattr(cp.Problem, 'solve', failing)
+    sol = fit_cubic(Q, Qd, Qdd, U, reg=1e-6)
+    assert calls == [True, False] and sol.info['conic_settings'] == 1
+    assert np.linalg.eigvalsh(sol.C)[0] >= 0.999e-6 and sol.info['quartic_lower_bound'] > 0
+    # the same optimum (H itself sits on the quartic floor here, poorly determined)
+    assert sol.info['objective'] == pytest.approx(first.info['objective'], rel=1e-7)
+
+    def always(self, *args, **kwargs):
+        if 'iterative_refinement_reltol' not in kwargs:
+            return solve(self, *args, **kwargs)
+        raise cp.error.SolverError("Solver 'CLARABEL' failed. Try another solver.")
+
+    monkeypatch.setattr(cp.Problem, 'solve', always)
+    with pytest.raises(SolverError) as err:
+        fit_cubic(Q, Qd, Qdd, U, reg=1e-6)
+    msg = str(err.value)
+    assert '\n' not in msg and 'numerical error' in msg and '--cubic-reg' in msg
+    assert 'verbose=True' not in msg
 
 
 def test_energy_never_increases_without_input() -> None:

@@ -79,6 +79,11 @@ _VERBOSE = False
 #: and the default refinement stalls the interior point early.
 _CLARABEL_REFINE = {'iterative_refinement_reltol': 1e-14, 'iterative_refinement_abstol': 1e-14,
                     'iterative_refinement_max_iter': 30}
+#: Clarabel settings tried in turn. On ill-conditioned data (a small ``reg``) the interior
+#: point can stop on a numerical error with one and converge with the other, and which one
+#: depends on round-off (two reductions of the same data that differ by 1e-14); the result
+#: is certified either way (:func:`fit_cubic`).
+_CLARABEL_SETTINGS = (_CLARABEL_REFINE, {**_CLARABEL_REFINE, 'equilibrate_enable': False})
 
 
 class CubicSolution(NamedTuple):
@@ -320,14 +325,7 @@ def _constrained(N: Array, g: Array, lay: _Layout, eps: float, t4: float
             0.5 * (Kx + Kx.T) - eps * np.eye(r) >> 0, 0.5 * (Cx + Cx.T) - eps * np.eye(r) >> 0,
             X - t4 * np.eye(ns) >> 0]
     prob = cp.Problem(cp.Minimize(cp.sum_squares(Lc.T @ th - c) / scale ** 2), cons)
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter('ignore', UserWarning)      # 'may be inaccurate': checked below
-            prob.solve(solver='CLARABEL', verbose=_VERBOSE, **_CLARABEL_REFINE)
-    except Exception as err:
-        raise SolverError(f'the conic cubic LOpInf problem failed: {err}') from err
-    if prob.status not in ('optimal', 'optimal_inaccurate') or th.value is None:
-        raise SolverError(f'the conic cubic LOpInf problem ended {prob.status}.')
+    settings = _solve_conic(prob, th)
     Xv = np.asarray(X.value)
     Xv = 0.5 * (Xv + Xv.T)
     th_s = np.asarray(th.value, dtype=np.float64).copy()
@@ -337,9 +335,32 @@ def _constrained(N: Array, g: Array, lay: _Layout, eps: float, t4: float
     full[F] = W[:, -1] - W[:, :-1] @ th_s
     K, C, G, H, B = lay.unpack(full)
     info = {'conic_status': str(prob.status), 'conic_seconds': time.perf_counter() - t0,
+            'conic_settings': settings,
             'conic_unknowns': int(len(S) + ns * (ns + 1) // 2),
             'certificate': float(np.linalg.eigvalsh(Xv)[0])}
     return K, C, G, H, B, info
+
+
+def _solve_conic(prob: Any, th: Any) -> int:
+    """Solve ``prob`` with each of :data:`_CLARABEL_SETTINGS` until one ends optimal.
+
+    Returns the index of the settings that worked; raises :class:`SolverError` (one line,
+    with the last reason) when none did.
+    """
+    why = ''
+    for i, opts in enumerate(_CLARABEL_SETTINGS):
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter('ignore', UserWarning)  # 'may be inaccurate': certified
+                prob.solve(solver='CLARABEL', verbose=_VERBOSE, **opts)
+        except Exception as err:  # noqa: BLE001 - cvxpy's SolverError, or a failure inside
+            why = 'it stopped on a numerical error' if 'failed' in str(err) else str(err)
+            continue
+        if prob.status in ('optimal', 'optimal_inaccurate') and th.value is not None:
+            return i
+        why = f'it ended {prob.status}'
+    raise SolverError(f'the conic cubic LOpInf problem failed ({why}, with each of '
+                      f'{len(_CLARABEL_SETTINGS)} solver settings); try a larger --cubic-reg.')
 
 
 def fit_scaled(Q: Array, Qd: Array, Qdd: Array, U: Array, state_scale: float,
