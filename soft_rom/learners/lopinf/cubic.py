@@ -354,7 +354,8 @@ def _solve_conic(prob: Any, th: Any) -> int:
                 warnings.simplefilter('ignore', UserWarning)  # 'may be inaccurate': certified
                 prob.solve(solver='CLARABEL', verbose=_VERBOSE, **opts)
         except Exception as err:  # noqa: BLE001 - cvxpy's SolverError, or a failure inside
-            why = 'it stopped on a numerical error' if 'failed' in str(err) else str(err)
+            text = ' '.join(str(err).split())                 # one line
+            why = 'it stopped on a numerical error' if 'failed' in text else text
             continue
         if prob.status in ('optimal', 'optimal_inaccurate') and th.value is not None:
             return i
