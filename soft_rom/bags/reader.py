@@ -256,8 +256,7 @@ def bag_storage(path: str | Path) -> str:
     for kind in ('mcap', 'sqlite3'):
         if kind in kinds:
             return kind
-    where = f'; to take every bag in {p.parent}, give that folder' if p.is_file() else ''
-    raise BagError(f'{p} is not a ROS 2 bag (no .mcap or .db3 file){where}.')
+    raise BagError(f'{p} is not a ROS 2 bag (no .mcap or .db3 file).')
 
 
 def _open_advice(why: str, storage: str) -> str:

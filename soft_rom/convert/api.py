@@ -53,6 +53,9 @@ def _paths(bags: Iterable[str | Path]) -> list[Path]:
     for p in given:
         if not p.exists():
             raise FileNotFoundError(f'bag {p} does not exist.')
+        if p.is_file() and not is_bag(p):       # most often a sidecar caught by a glob
+            raise BagError(f'{p} is not a ROS 2 bag (no .mcap or .db3 file); to convert '
+                           f'every bag in {p.parent}, give that folder.')
         inner = [] if not p.is_dir() or is_bag(p) else sorted(
             (c for c in p.iterdir() if c.is_dir() and is_bag(c)), key=_natural)
         out.extend(inner or [p])

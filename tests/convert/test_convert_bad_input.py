@@ -111,7 +111,8 @@ def test_a_folder_of_bags_gives_its_bags_in_natural_order(tmp_path):
     ts, reports = convert([sim], tmp_path / 'o.zarr', progress=False)
     assert ts.episode_names == ['ep1', 'ep2', 'ep10']
     assert [len(r.episodes) for r in reports] == [1, 1, 1]
-    with pytest.raises(BagError, match=r'ep1\.json is not a ROS 2 bag .*give that folder'):
+    with pytest.raises(BagError, match=r'ep1\.json is not a ROS 2 bag .*convert every bag in '
+                                       r'.*sim, give that folder'):
         convert([sim / 'ep1', sim / 'ep1.json'], tmp_path / 'p.zarr', progress=False)
     _nothing_left(tmp_path, tmp_path / 'p.zarr')
 
