@@ -28,7 +28,10 @@ Measured (2 cores, shared machine, load average ~4-6 from other jobs, cold cache
             total 266 s, peak RSS 1015 MiB
     medium  raw read 811 MB/s; randomized 17.0 s (ratio 0.70), Gram 21.9 s (ratio 0.36,
             CPU-bound); Dask LocalCluster (2 workers) 29.7 s, coordinates equal to the
-            local ones to 6.5e-16 relative
+            local ones to 6.5e-16 relative; ``--pod gram --compare-memory``, streamed
+            against in memory (predicted outputs, relative to their deviations): LOpInf
+            6.7e-13, learned mass 6.7e-13, cubic r=8 3.1e-13, DMDc 3.2e-12 (small preset:
+            6.5e-13, 6.5e-13, 3.8e-13, 9.0e-13)
 
 Checksums (``--checksum-ab``): the POD is run on the set as written (format version 3, a
 CRC-32C verified at every chunk read) and on a copy of it without checksums (the chunk files

@@ -32,7 +32,9 @@ conic problem is solved with cvxpy/Clarabel: the same objective, ``K, C ⪰ eps`
 with the free unknowns (``G``, ``B``) eliminated first and the objective compressed to a
 square factor (see :func:`_constrained`: the uncompressed problem is many times slower;
 ``docs/methods_variants.md``). The certificate of the result is the smallest
-eigenvalue of the solver's Gram matrix (``H`` is rebuilt from it exactly).
+eigenvalue of the solver's Gram matrix (``H`` is rebuilt from it exactly). A quartic has
+many Gram matrices, so the objective also carries a small tie-break on ``‖X‖_F²``
+(:data:`_GRAM_WEIGHT`) that picks the smallest and makes the problem strictly convex.
 
 When the data come from a model of this class with exact derivatives and the constraints
 are inactive, the least-squares solution is the truth.
@@ -84,6 +86,14 @@ _CLARABEL_REFINE = {'iterative_refinement_reltol': 1e-14, 'iterative_refinement_
 #: depends on round-off (two reductions of the same data that differ by 1e-14); the result
 #: is certified either way (:func:`fit_cubic`).
 _CLARABEL_SETTINGS = (_CLARABEL_REFINE, {**_CLARABEL_REFINE, 'equilibrate_enable': False})
+#: Weight of the tie-break ``‖X‖_F² / s²`` in the conic objective (which is 1 at ``θ = 0``),
+#: ``s`` the larger of the least-squares ``H``'s norm and the smallest feasible ``X``'s
+#: (``t √n``). A quartic has many Gram matrices ``X``: without the term the problem is not
+#: strictly convex in ``X``, and the interior point's answer moved by 1e-6 (predictions) when
+#: the data moved by 1e-14 (two reductions of the same set, streamed and in memory). With it
+#: the smallest Gram matrix is chosen and those fits agree to 1e-12 on the scale benchmark;
+#: docs/methods_variants.md has the measurements. 0 turns it off.
+_GRAM_WEIGHT = 1e-8
 
 
 class CubicSolution(NamedTuple):
@@ -225,7 +235,8 @@ def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT
         lin = FastSPDSolver() if linear_solver is None else linear_solver
         K0 = lin.solve(Q, Qd, Qdd, U, eps=eps).K
         target = target_of(K0)
-        K, C, G, H, B, sdp_info = _constrained(N, g, lay, eps, target)
+        h_ls = float(np.linalg.norm(theta[lay.t_off['H']:lay.t_off['C']]))
+        K, C, G, H, B, sdp_info = _constrained(N, g, lay, eps, target, h_ls)
         info.update(sdp_info)
         info['method'] = 'conic (K, C ⪰ eps, sum-of-squares quartic)'
         t_low, how = quartic_lower_bound(H, target=target, sdp=False)
@@ -287,9 +298,12 @@ def _sym_map(r: int) -> Array:
     return M
 
 
-def _constrained(N: Array, g: Array, lay: _Layout, eps: float, t4: float
+def _constrained(N: Array, g: Array, lay: _Layout, eps: float, t4: float, h_ls: float
                  ) -> tuple[Array, Array, Array, Array, Array, dict[str, Any]]:
     """``min θᵀNθ - 2gᵀθ`` s.t. ``K, C ⪰ eps``, ``H = Gram(X)``, ``X ⪰ t4 I``.
+
+    Plus the tie-break :data:`_GRAM_WEIGHT` ``· ‖X‖_F² / s²``, ``s = max(h_ls, t4 √ns)`` with
+    ``h_ls`` the norm of the least-squares ``H`` entries.
 
     ``N = AᵀA + diag(ridge)`` and ``g = Aᵀb`` are the normal equations of the least squares.
 
@@ -324,7 +338,11 @@ def _constrained(N: Array, g: Array, lay: _Layout, eps: float, t4: float
     cons = [th[nK:nK + nH] == Tg @ cp.vec(X, order='C'),
             0.5 * (Kx + Kx.T) - eps * np.eye(r) >> 0, 0.5 * (Cx + Cx.T) - eps * np.eye(r) >> 0,
             X - t4 * np.eye(ns) >> 0]
-    prob = cp.Problem(cp.Minimize(cp.sum_squares(Lc.T @ th - c) / scale ** 2), cons)
+    objective = cp.sum_squares(Lc.T @ th - c) / scale ** 2
+    if _GRAM_WEIGHT:
+        s_x = max(h_ls, t4 * math.sqrt(ns), 1e-300)
+        objective = objective + _GRAM_WEIGHT * cp.sum_squares(X) / s_x ** 2
+    prob = cp.Problem(cp.Minimize(objective), cons)
     settings = _solve_conic(prob, th)
     Xv = np.asarray(X.value)
     Xv = 0.5 * (Xv + Xv.T)
