@@ -258,9 +258,16 @@ def test_hostile_messages_reset_and_diagnostics(client, tmp_path) -> None:
         assert np.all(np.isfinite(out.stamped[last]))
         assert np.max(np.abs(out.stamped[last] - m.y_ref)) < 10.0
         assert node.proc.poll() is None
-        # per-input diagnostics: stable names, rate and stamp age, the hardware id
-        assert client.spin_until(lambda: int(out.status(': prediction').get('nonfinite', 0))
-                                 >= 3, timeout=10.0), out.status(': prediction')
+        # per-input diagnostics: stable names, rate and stamp age, the hardware id. The
+        # diagnostics are a snapshot at the timer's tick, which may fall amid the last
+        # batch: wait for one taken after every message was received.
+        def reported() -> bool:
+            return (int(out.status(': prediction').get('nonfinite', 0)) >= 3
+                    and all(int(out.status(f': input {tp}').get('received', 0)) >= 40
+                            for tp in TOPICS))
+
+        assert client.spin_until(reported, timeout=10.0), [
+            out.status(': prediction'), *(out.status(f': input {tp}') for tp in TOPICS)]
         pred = out.status(': prediction')
         assert pred['hardware_id'] == 'eel_1'
         assert int(pred['nonfinite']) >= 3
