@@ -15,6 +15,21 @@ __all__ = ['SequenceClock']
 #: Messages after which a sequence trailing the reception clock must show that it catches up
 #: (a burst after a stall of the node) or is moved to the reception time (the sender paused).
 _CATCH_UP_MESSAGES = 32
+#: Arrivals that an estimate of the window needs (the window is widened to hold them).
+_WINDOW_ARRIVALS = 64
+#: Steps within which a period is taken as whole steps: estimated from the 8 start-up
+#: intervals (each end off by up to a step of jitter, or a few in sim time), early (the
+#: first 24 arrivals or more), and from a full window.
+_START_TOL = 0.2
+_EARLY_TOL = 0.1
+_WINDOW_TOL = 0.02
+#: Relative change of a period in ns that an estimate makes at once (a refinement, not a
+#: change of rate, which needs 3 votes).
+_REFINE = 0.02
+#: Counts at which the period and phase of a sender of 2 steps or more are also checked
+#: before the window is full (the start-up stamps follow the reception clock, and the
+#: start-up period is a mean of 8 jittered intervals, a few % off at 300 Hz).
+_EARLY = (17, 25, 33, 65, 129)
 
 
 class SequenceClock:
@@ -25,14 +40,34 @@ class SequenceClock:
     bunches them: after a pause of the node (a GC pause, a busy CPU, ``SIGSTOP``) the
     messages sent meanwhile arrive in a burst and still take one period each.
 
-    The period is the sender's, in whole steps ``h``: one step until 8 intervals are seen,
-    then the mean of those 8 (start-up), then re-estimated from the arrivals over the last
-    :attr:`window_ns` of reception time (so a stall shorter than half of it cannot move the
-    rounded period) and changed only when 3 estimates in a row agree on another value (a
-    real rate change, counted in :attr:`resyncs`).
+    The period is the sender's, in whole steps ``h`` (or in ns, below). Until 8 intervals
+    are seen (start-up) it is not known, and a message takes the whole steps that the
+    reception clock has moved since the previous stamp, at least one, and one once a stamp
+    was after its reception (a burst, or a sender faster than the model): a
+    burst still takes one step per message, as does a 1 kHz sender on a 1 kHz model with up
+    to a step of jitter, while a sender slower than the model is not compressed into one
+    step per message (which left its whole sequence trailing the reception clock: 72 ms for
+    a 100 Hz sender on a 1 kHz model).
+    Then the period is the mean of those 8, then re-estimated from the arrivals over the last
+    :attr:`window_ns` of reception time (and at least 64 arrivals), as the slope of their
+    lower envelope (the first quartiles of its first and last thirds: a stall or a burst
+    only delays arrivals), and changed only when 3 estimates in a row agree on another value
+    (a real rate change, counted in :attr:`resyncs`).
 
-    The sequence leaves the reception clock only in two cases, each counted in
-    :attr:`resyncs`:
+    A sender whose period is not a whole number of steps (120 Hz on a 1 kHz model: 8.33 ms)
+    gets a period in ns, refined by each estimate, and its stamps leave the model's grid.
+    Rounding it to whole steps drifted the stamps from the sender's by a third of a step per
+    message, until they were ``resync_ns`` off and jumped back (a saw-tooth of 0 to 110 ms at
+    120 Hz). A sender of 2 steps or more is also kept in phase: when the first quartile of a
+    window's arrivals less their stamps is a step or more off (half a step for a period in
+    ns: a start-up stamp taken from a late reception, a period in ns slightly off), the next
+    stamps move by that much (in whole steps for a period in whole steps), spread so that
+    they stay a step apart (counted in :attr:`resyncs`). A quartile, not the
+    earliest arrival: in sim time a message can be taken before the ``/clock`` of the step
+    it was sent in, a step early.
+
+    Beyond those phase steps, the sequence leaves the reception clock only in two cases,
+    each counted in :attr:`resyncs`:
 
     * it trails the reception clock by more than ``resync_ns`` and does not catch up over
       the next 32 messages (by at least 2 periods; the backlog of a stalled node catches
@@ -73,42 +108,99 @@ class SequenceClock:
     def _start(self) -> None:
         self.last = None
         self.period = self.h_ns
-        self._arrivals: deque[tuple[int, int]] = deque()     # (count, reception time)
+        self._arrivals: deque[tuple[int, int, int]] = deque()   # (count, reception, stamp)
         self._count = 0
         self._votes = 0
         self._since = 0                                      # messages since an estimate
         self._late: tuple[int, int] | None = None            # (count, lag) while behind
+        self._shift = 0                                      # phase step of the next stamp
+        self._burst = False                # start-up: a stamp was after its reception
 
-    def _estimate(self, now_ns: int) -> None:
+    def _estimate(self, now_ns: int, stamp_ns: int) -> None:
         """Update the period from the arrivals (start-up, then the window, with votes)."""
         arr = self._arrivals
         if arr and now_ns - arr[-1][1] > self.window_ns // 4:
             arr.clear()                 # a gap (the sender paused): no evidence of its rate
-        arr.append((self._count, now_ns))
-        while len(arr) > 2 and now_ns - arr[1][1] >= self.window_ns:
+        arr.append((self._count, now_ns, stamp_ns))
+        while len(arr) > _WINDOW_ARRIVALS and now_ns - arr[1][1] >= self.window_ns:
             arr.popleft()
         if self._count == 9:                                  # start-up: 8 intervals
-            c0, t0 = arr[0]
-            self.period = self._rounded((now_ns - t0) / (self._count - c0))
+            c0, t0, _ = arr[0]
+            if self._count > c0:
+                self.period = self._rounded((now_ns - t0) / (self._count - c0), _START_TOL)
             return
         self._since += 1
-        c0, t0 = arr[0]
-        if self._count < 9 or now_ns - t0 < self.window_ns or self._since < 16 \
-                or len(arr) < 64 or self._late is not None:
+        early = self.period >= 2 * self.h_ns and self._count in _EARLY and len(arr) >= 15 \
+            and self._late is None
+        if not early and (self._count < 9 or now_ns - arr[0][1] < self.window_ns
+                          or self._since < 16 or len(arr) < _WINDOW_ARRIVALS
+                          or self._late is not None):
             return
         self._since = 0
-        estimate = self._rounded((now_ns - t0) / (self._count - c0))
+        if early and len(arr) < 24 or self._update_period(early):     # 16: the phase only
+            self._keep_in_phase()
+
+    def _update_period(self, early: bool) -> bool:
+        """A window's estimate: refine a period in ns, or vote for a new one (False)."""
+        estimate = self._rounded(self._envelope_slope(), _EARLY_TOL if early else _WINDOW_TOL)
         if estimate == self.period:
             self._votes = 0
-            return
-        self._votes += 1
-        if self._votes >= 3:                                   # a real rate change
-            self.period = estimate
+        elif (estimate % self.h_ns or self.period % self.h_ns) \
+                and abs(estimate - self.period) <= _REFINE * self.period:
+            self.period = estimate                            # a period in ns, refined
             self._votes = 0
-            self.resyncs += 1
+        elif early:
+            return False
+        else:
+            self._votes += 1
+            if self._votes >= 3:                              # a real rate change
+                self.period = estimate
+                self._votes = 0
+                self.resyncs += 1
+            return False
+        return True
 
-    def _rounded(self, interval: float) -> int:
-        return max(1, round(interval / self.h_ns)) * self.h_ns
+    def _keep_in_phase(self) -> None:
+        """Move the sequence when a quarter of the window's arrivals are a step or more off."""
+        if self.period < 2 * self.h_ns:
+            return                      # one step a message: a phase step would drop one
+        arr = self._arrivals
+        offsets = sorted(t - st for _, t, st in arr)
+        offset = offsets[len(offsets) // 4]
+        whole = self.period % self.h_ns == 0
+        if abs(offset) >= (self.h_ns if whole else self.h_ns // 2):
+            # whole steps for a sequence on the model's grid, which it keeps
+            self._shift = round(offset / self.h_ns) * self.h_ns if whole else offset
+            self.resyncs += 1
+            arr.clear()
+
+    def _envelope_slope(self) -> float:
+        """The sender's period: the slope between the first quartiles of the window's thirds.
+
+        The arrivals less the current period's sequence, ``t - p c``: a stall or a burst only
+        delays arrivals, and the first quartile of each third is where the undelayed ones
+        are (not the earliest one: in sim time a message can be taken a step early).
+        """
+        arr = list(self._arrivals)
+        third = len(arr) // 3
+        p = self.period
+
+        def anchor(part: list[tuple[int, int, int]]) -> tuple[float, float]:
+            u = sorted(t - p * c for c, t, _ in part)
+            return sum(c for c, _, _ in part) / len(part), u[len(u) // 4]
+
+        ca, ua = anchor(arr[:third])
+        cb, ub = anchor(arr[-third:])
+        return p + (ub - ua) / (cb - ca)
+
+    def _rounded(self, interval: float, tol: float) -> int:
+        """The period for a mean ``interval``: whole steps within ``tol`` steps, else ns."""
+        steps = interval / self.h_ns
+        if steps < 1.5:
+            return self.h_ns                       # one step: at or faster than the model
+        if abs(steps - round(steps)) <= tol:
+            return round(steps) * self.h_ns
+        return int(round(interval))
 
     def stamp(self, now_ns: int) -> int:
         """The stamp of a message received at ``now_ns``."""
@@ -117,19 +209,28 @@ class SequenceClock:
             self._start()
             self.resyncs += 1
         self._count += 1
-        self.last_received = now_ns
+        previous, self.last_received = self.last_received, now_ns
         if self.last is None:
-            self._estimate(now_ns)
+            self._estimate(now_ns, now_ns)
             self.last = now_ns
             return now_ns
-        t = self._sequence(now_ns)
-        self._estimate(now_ns)
+        if self._count <= 9:                                  # start-up: period unknown
+            self._burst = self._burst or (previous is not None and self.last > previous)
+            t = self.last + (1 if self._burst else max(1, (now_ns - self.last) // self.h_ns)) \
+                * self.h_ns
+        else:
+            t = self._sequence(now_ns)
+        self._estimate(now_ns, t)
         self.last = t
         return t
 
     def _sequence(self, now_ns: int) -> int:
         assert self.last is not None
         candidate = self.last + self.period
+        if self._shift:         # a phase step, spread so that stamps stay a step apart
+            moved = max(self.last + self.h_ns, candidate + self._shift)
+            self._shift -= moved - candidate
+            candidate = moved
         lag = now_ns - candidate
         if lag < -self.resync_ns:       # far ahead of the reception clock: never backwards;
             # the next step while that stays within the bound, else join the current step
@@ -149,6 +250,7 @@ class SequenceClock:
                     t = now_ns                           # behind and not catching up
                     self.resyncs += 1
                     self._late = None
+                    self._shift = 0
         else:
             t = candidate
             self._late = None
