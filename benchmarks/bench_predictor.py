@@ -159,6 +159,19 @@ def main() -> None:
 
     _row('runtime loop: array message -> Publish', _best(loop_array, 10000),
          _best(naive_update, 10000))
+    loop_u = RuntimeLoop(Predictor(model), LoopSettings())
+    tu = [T0]
+    recv = np.round(rng.uniform(0.05e6, 0.9e6, 64)).astype(int).tolist()
+
+    def loop_unstamped() -> None:       # no stamp: the sender's sequence (SequenceClock)
+        tu[0] += h_ns
+        pub = loop_u.on_array(u, 0, tu[0] + recv[cnt[0] % 64])
+        cnt[0] += 1
+        for _t, _y in pub.outputs:
+            pass
+
+    _row('runtime loop: un-stamped array (1 kHz, jittered reception) -> Publish',
+         _best(loop_unstamped, 10000), _best(naive_update, 10000))
     loop_c = RuntimeLoop(Predictor(model), LoopSettings())
     tlc = [T0]
 
