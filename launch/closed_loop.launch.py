@@ -7,8 +7,10 @@ Usage::
         reference:=step:u=20e3/-20e3/0/0/0/0 rviz:=true
 
 The plant (``ros2 run soft_rom plant``) steps the embedded FOM and publishes ``/clock``,
-the measured centerline and nothing else; the predictor runs the model on the controller's
-pressure commands (open loop: it is the controller's internal model) and publishes
+the measured centerline and nothing else, from when the controller publishes and the
+predictor listens on the pressure topics (``wait_for_subscribers: 1``); the predictor runs
+the model on the controller's pressure commands (open loop: it is the controller's
+internal model) and publishes
 ``~/state``; the controller (``ros2 run soft_rom controller``) tracks ``reference`` (time 0
 = sim time 0) and publishes the commands. ``input_mode:=array`` carries the commands in one
 ``Float64MultiArray`` (``/soft_robot/pressures``) instead of one ``FluidPressure`` topic per
@@ -39,7 +41,7 @@ def _actions(context, *args, **kwargs):
     model = value['model_path']
     mode = {'input_mode': value['input_mode'] or 'per_chamber'}
     plant = {'duration_s': float(value['duration_s'] or 0.0),
-             'record_path': value['record_path'], **mode}
+             'record_path': value['record_path'], 'wait_for_subscribers': 1, **mode}
     actions = [
         Node(package='soft_rom', executable='plant', name='soft_rom_plant',
              parameters=[plant], output='screen', emulate_tty=True, additional_env=_ENV),

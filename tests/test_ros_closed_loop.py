@@ -74,30 +74,21 @@ def test_ros_loop_tracks_like_the_in_process_loop(setup, input_mode) -> None:
         states[msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec] = np.array(msg.position)
 
     client.node.create_subscription(JointState, '/soft_rom_predictor/state', on_state, 1000)
-    # the plant (the clock) starts once the predictor and the controller see each other:
-    # otherwise a slow discovery can make the predictor miss the controller's first
-    # commands, which the plant applies (seen in 2 of about 20 runs)
-    cmd = '/soft_robot/pressures' if input_mode == 'array' else '/soft_robot/pressure/chamber_1'
-    state = '/soft_rom_predictor/state'
     nodes = [
+        # lockstep: the plant waits for each command (up to 60 s of wall time: a loaded
+        # CI machine must not change the loop), and its first step for the predictor
+        # (wait_for_subscribers, as closed_loop.launch.py sets it): started together, the
+        # predictor missed the controller's first commands in 2 of about 20 runs
+        NodeProcess(tmp, {'duration_s': DURATION, 'record_path': str(record),
+                          'command_timeout_s': 60.0, 'wait_for_subscribers': 1, **mode},
+                    name='soft_rom_plant', exe='plant'),
         NodeProcess(tmp, {'model_path': str(model_path), 'use_sim_time': True, **mode},
                     name='soft_rom_predictor'),
         NodeProcess(tmp, {'model_path': str(model_path), 'use_sim_time': True,
                           'reference': str(ref_path), 'reference_t0_s': 0.0,
-                          'state_topic': state, **mode},
+                          'state_topic': '/soft_rom_predictor/state', **mode},
                     name='soft_rom_controller', exe='controller'),
     ]
-    g = client.node
-    assert client.spin_until(lambda: g.count_publishers(cmd) >= 1 and g.count_subscribers(cmd)
-                             >= 1 and g.count_publishers(state) >= 1
-                             and g.count_subscribers(state) >= 2, timeout=120.0), \
-        [n.log() for n in nodes]
-    client.spin_for(1.0)
-    # lockstep: the plant waits for each command (up to 60 s of wall time: a loaded CI
-    # machine must not change the loop)
-    nodes.insert(0, NodeProcess(tmp, {'duration_s': DURATION, 'record_path': str(record),
-                                      'command_timeout_s': 60.0, **mode},
-                                name='soft_rom_plant', exe='plant'))
     try:
         end = time.monotonic() + 900
         while not record.exists() and time.monotonic() < end:

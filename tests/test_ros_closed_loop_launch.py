@@ -66,6 +66,7 @@ def test_starts_plant_predictor_controller_in_sim_time(launch_module) -> None:
     assert [n.kwargs['executable'] for n in (plant, predictor, controller)] == [
         'plant', 'predictor', 'controller']
     assert plant.kwargs['parameters'] == [{'duration_s': 2.0, 'record_path': '/r.npz',
+                                           'wait_for_subscribers': 1,
                                            'input_mode': 'per_chamber'}]
     assert predictor.kwargs['parameters'][0]['use_sim_time'] is True
     assert predictor.kwargs['parameters'][0]['kalman'] is False

@@ -15,6 +15,11 @@ time on every chamber, so a slow or loaded machine does not change the loop. Aft
 ``duration_s`` (0: none) of sim time it stops stepping; ``record_path`` then gets an
 ``.npz`` with ``t``, ``U`` (applied) and ``Y`` (noise-free centerline, ``x`` then ``z``
 rows), as ``soft-rom control`` records it.
+
+The first step waits until a publisher (the controller) is on every pressure topic and,
+with ``wait_for_subscribers`` = N, N subscribers besides the plant (the predictor: 1, as
+``closed_loop.launch.py`` sets), then 1 s for the connections to match: a predictor that
+joined late missed the controller's first commands, which the plant applied.
 """
 
 from __future__ import annotations
@@ -75,6 +80,9 @@ class PlantNode(Node):
         self.timeout = float(declare('command_timeout_s', 2.0, 'wall seconds to wait'))
         self.duration = float(declare('duration_s', 0.0, 'sim seconds to run (0: no end)'))
         self.record_path = str(declare('record_path', '', '.npz written at the end'))
+        self.wait_for_subscribers = int(declare(
+            'wait_for_subscribers', 0, 'other subscribers of every pressure topic (the '
+            'predictor: 1) to wait for, besides a publisher, before the first step'))
         from soft_rom.sim import EelModel
         self.eel = EelModel(resolution=self.resolution)
         self.stepper = self.eel.stepper(self.dt)
@@ -205,10 +213,17 @@ def main(args: list[str] | None = None) -> int:
         def spin(timeout: float) -> None:
             executor.spin_once(timeout_sec=timeout)
 
-        # start when a commander (the controller) publishes on every pressure topic
+        # start when a commander (the controller) publishes on every pressure topic, and
+        # (wait_for_subscribers) the predictor listens, so that it sees the first commands
+        others = 1 + node.wait_for_subscribers
         while not stop.is_set() and rclpy.ok() and not all(
-                node.count_publishers(topic) for topic in node.command_topics):
+                node.count_publishers(topic) and node.count_subscribers(topic) >= others
+                for topic in node.command_topics):
             spin(0.05)
+        if node.wait_for_subscribers:
+            end = time.monotonic() + 1.0      # the graph shows them: let the endpoints match
+            while not stop.is_set() and time.monotonic() < end:
+                spin(0.05)
 
         while not stop.is_set() and rclpy.ok():
             if not node.step(spin):
