@@ -142,3 +142,25 @@ def test_plant_and_controller_need_ros_or_say_so() -> None:
     for exe in ('plant', 'controller'):
         from _ros import predictor_exe
         assert Path(predictor_exe(exe)).exists()
+
+
+def test_a_plant_alone_says_what_it_waits_for(tmp_path) -> None:
+    """A plant without a controller and a predictor says what it waits for, once.
+
+    It does not step; after 5 s it logs one line naming the topics and the subscriber it
+    waits for (``wait_for_subscribers``), and it exits 0 on SIGINT.
+    """
+    plant = NodeProcess(tmp_path, {'wait_for_subscribers': 1, 'duration_s': 0.5},
+                        name='soft_rom_plant', exe='plant')
+    try:
+        end = time.monotonic() + 60
+        while 'waiting for' not in plant.log() and time.monotonic() < end:
+            assert plant.proc.poll() is None, plant.log()
+            time.sleep(0.5)
+        log = plant.log()
+        assert 'waiting for a controller publishing on /soft_robot/pressure/chamber_1' in log
+        assert '1 more subscriber(s) there (the predictor)' in log, log
+        assert plant.stop(signal.SIGINT, timeout=20) == 0
+        assert not no_noise(plant.log()), plant.log()
+    finally:
+        plant.kill()

@@ -216,9 +216,17 @@ def main(args: list[str] | None = None) -> int:
         # start when a commander (the controller) publishes on every pressure topic, and
         # (wait_for_subscribers) the predictor listens, so that it sees the first commands
         others = 1 + node.wait_for_subscribers
+        say = time.monotonic() + 5.0
         while not stop.is_set() and rclpy.ok() and not all(
                 node.count_publishers(topic) and node.count_subscribers(topic) >= others
                 for topic in node.command_topics):
+            if say and time.monotonic() > say:
+                say = 0.0
+                node.get_logger().info(
+                    f'waiting for a controller publishing on {", ".join(node.command_topics)}'
+                    + (f' and {node.wait_for_subscribers} more subscriber(s) there (the '
+                       'predictor)' if node.wait_for_subscribers else '')
+                    + ' before the first step')
             spin(0.05)
         if node.wait_for_subscribers:
             end = time.monotonic() + 1.0      # the graph shows them: let the endpoints match
