@@ -164,3 +164,19 @@ def test_a_plant_alone_says_what_it_waits_for(tmp_path) -> None:
         assert not no_noise(plant.log()), plant.log()
     finally:
         plant.kill()
+
+
+@pytest.mark.parametrize('params, message', [
+    ({'dt': 'abc'}, 'parameter dt must be of type DOUBLE; got STRING abc'),
+    ({'sensor_rate_hz': 0.0}, 'sensor_rate_hz must be finite and positive; got 0.0'),
+    ({'resolution': 99}, 'resolution must be 1 to 4 (a plant steps in real time); got 99'),
+])
+def test_a_bad_plant_parameter_is_one_line_and_exit_1(tmp_path, params, message) -> None:
+    plant = NodeProcess(tmp_path, params, name='soft_rom_plant', exe='plant')
+    try:
+        assert plant.wait(60) == 1
+        log = plant.log()
+        assert f'soft_rom plant: cannot start: {message}' in log, log
+        assert 'Traceback' not in log and len(log.strip().splitlines()) == 1, log
+    finally:
+        plant.kill()

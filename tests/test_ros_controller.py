@@ -161,6 +161,8 @@ def test_array_mode_publishes_one_scaled_float64multiarray(tmp_path, model_path,
 @pytest.mark.parametrize('params, message', [
     ({'input_mode': 'bus'}, "input_mode 'bus' is not one of per_chamber, array"),
     ({'diagnostics_rate_hz': 0.0}, 'diagnostics_rate_hz must be between 0.01 and 100; got 0.0'),
+    ({'rate_weight': 'abc'}, 'parameter rate_weight must be of type DOUBLE; got STRING abc'),
+    ({'stale_after_s': -1.0}, 'stale_after must be a positive number of seconds; got -1.0'),
 ])
 def test_bad_parameter_is_one_line_and_exit_1(tmp_path, model_path, params, message) -> None:
     node = NodeProcess(tmp_path, {'model_path': str(model_path), **params},

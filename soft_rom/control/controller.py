@@ -111,6 +111,9 @@ class Controller:
         self.mpc = MPC(model, mpc)
         self.estimator = OffsetFreeEstimator(model, estimator)
         self.stale_after = float(stale_after)
+        if not (math.isfinite(self.stale_after) and self.stale_after > 0):
+            raise ValueError(f'stale_after must be a positive number of seconds; got '
+                             f'{stale_after!r}.')
         self.reference: Reference | None = None
         self.u = self.mpc.fallback(np.zeros(self.mpc.m))
         self.t_measured: float | None = None

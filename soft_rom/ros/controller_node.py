@@ -50,6 +50,7 @@ from geometry_msgs.msg import Pose, PoseArray
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor
 import rclpy
+from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -66,6 +67,7 @@ from soft_rom.predictor.conversions import (
     set_points,
     stamp_to_ns,
 )
+from soft_rom.ros.node_params import rclpy_reason
 
 __all__ = ['ControllerNode', 'main']
 
@@ -82,7 +84,12 @@ class ControllerNode(Node):
 
     def __init__(self, node_name: str = 'soft_rom_controller', **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
-        self._start_core(self._declare_parameters())
+        try:
+            core = self._declare_parameters()
+        except ParameterException as err:       # a value of the wrong type
+            self.get_logger().error(f'cannot start: parameter {rclpy_reason(err)}')
+            raise StartupError(rclpy_reason(err)) from None
+        self._start_core(core)
         self.t0: float | None = None
         self.samples: list[tuple[float, np.ndarray]] = []
         self._create_entities()

@@ -25,6 +25,7 @@ joined late missed the controller's first commands, which the plant applied.
 from __future__ import annotations
 
 import functools
+import math
 import signal
 import sys
 import threading
@@ -36,6 +37,7 @@ from geometry_msgs.msg import Pose, PoseArray
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor
 import rclpy
+from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -46,6 +48,7 @@ from sensor_msgs.msg import FluidPressure
 from std_msgs.msg import Float64MultiArray
 
 from soft_rom.predictor.conversions import data_to_array, ns_to_stamp, set_points, stamp_to_ns
+from soft_rom.ros.node_params import rclpy_reason
 
 __all__ = ['PlantNode', 'main']
 
@@ -83,6 +86,7 @@ class PlantNode(Node):
         self.wait_for_subscribers = int(declare(
             'wait_for_subscribers', 0, 'other subscribers of every pressure topic (the '
             'predictor: 1) to wait for, besides a publisher, before the first step'))
+        self._check_values()
         from soft_rom.sim import EelModel
         self.eel = EelModel(resolution=self.resolution)
         self.stepper = self.eel.stepper(self.dt)
@@ -186,6 +190,22 @@ class PlantNode(Node):
         self.stepper.step(self.value.copy())
         return True
 
+    def _check_values(self) -> None:
+        """Refuse values the loop cannot run with (ValueError naming the parameter)."""
+        if not 1 <= self.resolution <= 4:
+            raise ValueError(f'resolution must be 1 to 4 (a plant steps in real time); '
+                             f'got {self.resolution}')
+        for name, value, low in (('sensor_rate_hz', self.sensor_rate, 'positive'),
+                                 ('command_timeout_s', self.timeout, 'positive'),
+                                 ('sensor_noise', self.noise, 'zero or positive'),
+                                 ('lockstep_s', self.lockstep, 'zero or positive'),
+                                 ('duration_s', self.duration, 'zero or positive')):
+            if not (math.isfinite(value) and (value > 0 or (value == 0 and low != 'positive'))):
+                raise ValueError(f'{name} must be finite and {low}; got {value!r}')
+        if self.wait_for_subscribers < 0:
+            raise ValueError(f'wait_for_subscribers must be 0 or more; got '
+                             f'{self.wait_for_subscribers}')
+
     def save(self) -> None:
         """Write ``record_path`` (when set)."""
         if not self.record_path or not self.t_rec:
@@ -207,6 +227,9 @@ def main(args: list[str] | None = None) -> int:
             node = PlantNode(parameter_overrides=[Parameter('use_sim_time', value=False)])
         except ValueError as err:
             print(f'soft_rom plant: cannot start: {err}', file=sys.stderr)
+            return 1
+        except ParameterException as err:       # a value of the wrong type
+            print(f'soft_rom plant: cannot start: parameter {rclpy_reason(err)}', file=sys.stderr)
             return 1
         executor.add_node(node)
 

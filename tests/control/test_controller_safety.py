@@ -55,6 +55,13 @@ def test_stale_measurement_holds_the_last_command(model) -> None:
     np.testing.assert_array_equal(cmd.u, last.u)
 
 
+@pytest.mark.parametrize('stale_after', [0.0, -1.0, float('nan'), float('inf')])
+def test_a_stale_limit_that_would_hold_every_command_is_refused(model, stale_after) -> None:
+    # <= 0 would call every measurement stale (commands held for ever); inf never would
+    with pytest.raises(ValueError, match='stale_after must be a positive number'):
+        Controller(model, stale_after=stale_after)
+
+
 @pytest.mark.parametrize('bad, why', [
     (np.zeros(39), 'model has 40 outputs'),
     (np.full(40, np.nan), 'NaN/Inf'),
