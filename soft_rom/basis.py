@@ -11,6 +11,12 @@ builder (for data that do not fit in memory, see :mod:`soft_rom.scale`) plugs in
 Snapshots may be lazy arrays (anything with ``.shape`` and numpy-style column slicing
 ``Q[:, a:b]``, e.g. zarr arrays); they are read in column blocks by :func:`project`.
 
+The in-memory POD takes its SVD on the coordinates of the snapshots in a basis of their
+range (:func:`snapshot_range`, to ``RANGE_TOL``) when the snapshots have a decaying spectrum
+(a smooth body: the eel's 4,000 snapshots of 5,145 states have numerical rank 229 at 1e-10),
+and on the snapshots themselves otherwise: the same basis to rounding, at a fraction of the
+cost.
+
 Reference: Sharma et al., *Data-driven Model Reduction for Soft Robots via Lagrangian
 Operator Inference*, section 2.2 (POD of the centred snapshot matrix).
 """
@@ -26,12 +32,16 @@ from numpy.typing import ArrayLike, NDArray
 from soft_rom.data import all_finite
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
 
-__all__ = ['BasisBuilder', 'DEFAULT_BLOCK_COLUMNS', 'POD', 'project', 'reconstruct', 'select_rank']
+__all__ = ['BasisBuilder', 'DEFAULT_BLOCK_COLUMNS', 'POD', 'project', 'RANGE_TOL', 'reconstruct',
+           'select_rank', 'snapshot_range']
 
 Array = NDArray[np.float64]
 
 #: Number of snapshot columns read at a time from (possibly lazy) snapshot arrays.
 DEFAULT_BLOCK_COLUMNS = 2048
+#: Relative Frobenius residual to which :func:`snapshot_range` finds the snapshots' range
+#: for the in-memory SVDs (POD, DMDc): 1e-3 of DMDc's rank guard (1e-10).
+RANGE_TOL = 1e-13
 
 
 @runtime_checkable
@@ -83,6 +93,59 @@ def select_rank(singular_values: ArrayLike, *, r: int | None = None,
         raise ConfigError(f'energy must be in (0, 1]; got {energy!r}.')
     cum = np.cumsum(s ** 2) / np.sum(s ** 2)
     return int(min(np.searchsorted(cum, energy - 1e-12) + 1, s.size))
+
+def snapshot_range(arrays: Sequence[Array], tol: float, *, start: int = 512,
+                   seed: int = 0) -> Array | None:
+    """An orthonormal basis of the columns of ``arrays``, to relative precision ``tol``.
+
+    A randomized range finder (Halko, Martinsson & Tropp, *SIAM Review* 53(2), 2011,
+    algorithm 4.1, without power iterations): ``W = orth(A Ω)`` with a Gaussian ``Ω`` of
+    ``k`` columns from a fixed seed, grown by half until the residual
+    ``‖A - W Wᵀ A‖_F ≤ tol ‖A‖_F`` is checked to hold. Snapshots of a smooth body have a
+    fast-decaying spectrum (the eel's 4,000 snapshots of 5,145 states: numerical rank 229
+    at 1e-10, residual 2e-14 with 640 columns), so the SVDs can then be taken on ``Wᵀ A``
+    at a fraction of their cost on ``A``.
+
+    Parameters
+    ----------
+    arrays : sequence of ndarray, each shape (n, k_i)
+        The snapshots (columns of ``A``), e.g. one array per episode.
+    tol : float
+        Relative Frobenius residual to reach.
+    start : int
+        Columns of the first try.
+    seed : int
+        Seed of ``Ω`` (fixed: the same basis on every run).
+
+    Returns
+    -------
+    W : ndarray, shape (n, k), or None
+        ``None`` when ``A`` is too small to gain (``min(n, K) < 2 start``) or the residual
+        needs more than half of ``min(n, K)`` columns: take the SVDs of ``A`` itself.
+    """
+    n = int(arrays[0].shape[0])
+    K = sum(int(a.shape[1]) for a in arrays)
+    norm2 = sum(float(np.vdot(a, a)) for a in arrays)
+    if min(n, K) < 2 * start or norm2 == 0.0:
+        return None
+    rng = np.random.default_rng(seed)
+    k = int(start)
+    while k <= min(n, K) // 2:
+        sketch = np.zeros((n, k))
+        for a in arrays:
+            sketch += a @ rng.standard_normal((a.shape[1], k))
+        W = np.linalg.qr(sketch)[0]
+        residual2 = 0.0
+        for a in arrays:
+            for j in range(0, a.shape[1], 512):
+                block = a[:, j:j + 512]
+                r = block - W @ (W.T @ block)
+                residual2 += float(np.vdot(r, r))
+        if residual2 <= tol * tol * norm2:
+            return W
+        k += k // 2
+    return None
+
 
 
 def project(Q: Any, basis: ArrayLike, q_ref: ArrayLike, *,
@@ -230,8 +293,14 @@ class POD:
         X = np.concatenate(blocks, axis=1)
         if not all_finite(X):
             raise DimensionError('snapshots contain NaN or Inf; clean them before POD.')
-        V, s, _ = np.linalg.svd(X, full_matrices=False)
-        return V, s
+        W = snapshot_range([X], RANGE_TOL)
+        if W is None:
+            V, s, _ = np.linalg.svd(X, full_matrices=False)
+            return V, s
+        # the SVD of the coordinates on a basis of the range (snapshot_range): the same
+        # singular values and vectors, to ~RANGE_TOL, without an SVD of the n rows
+        Vw, s, _ = np.linalg.svd(W.T @ X, full_matrices=False)
+        return W @ Vw, s
 
     def fit_svd(self, V: ArrayLike, s: ArrayLike, q_ref: ArrayLike) -> POD:
         """The basis from a thin SVD of the centred snapshots, already computed.

@@ -115,3 +115,31 @@ def test_shared_svd_gives_the_same_pod_bit_for_bit_and_only_for_the_same_arrays(
     other_ref = training_data(copies.episodes, q_ref=np.full(40, 0.5))
     a = shared.reduce(other_ref, r=3)
     assert np.array_equal(a.modes, InMemoryPOD().reduce(other_ref, r=3).modes)
+
+
+def test_many_states_give_the_pod_of_the_full_svd(monkeypatch):
+    """A POD taken on the snapshots' range is the POD of the full thin SVD.
+
+    1,300 states, 1,200 snapshots with a decaying spectrum and noise at 1e-17; to 1e-10.
+    """
+    import soft_rom.basis as basis_module
+    rng = np.random.default_rng(6)
+    n, k, s = 1300, 1200, 10.0 ** (-np.arange(300) / 15.0)
+    Ul, Vr = (np.linalg.qr(rng.standard_normal((d, 300)))[0] for d in (n, k))
+    q_ref = rng.standard_normal(n)
+    Q = (Ul * s) @ Vr.T + 1e-17 * rng.standard_normal((n, k)) + q_ref[:, None]
+    used = []
+    real = basis_module.snapshot_range
+    monkeypatch.setattr(basis_module, 'snapshot_range',
+                        lambda arrays, tol: used.append(real(arrays, tol)) or used[-1])
+    fast = POD(r=12).fit([Q[:, :700], Q[:, 700:]], q_ref)
+    assert used and used[0] is not None and used[0].shape[1] == 512
+    monkeypatch.setattr(basis_module, 'snapshot_range', lambda arrays, tol: None)
+    full = POD(r=12).fit([Q[:, :700], Q[:, 700:]], q_ref)
+    np.testing.assert_allclose(fast.basis_, full.basis_, atol=1e-10)
+    np.testing.assert_allclose(fast.singular_values_[:12], full.singular_values_[:12],
+                               rtol=1e-12)
+    assert fast.energy_[11] == pytest.approx(full.energy_[11], rel=1e-12)
+    # known truth: the span of the leading 12 singular vectors (gaps of 10^(1/15))
+    np.testing.assert_allclose(np.abs(np.sum(fast.basis_ * Ul[:, :12], axis=0)), 1.0,
+                               atol=1e-9)

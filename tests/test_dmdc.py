@@ -210,3 +210,65 @@ def test_stable_variant_on_a_linear_chain():
     assert err <= 1e-6
     with pytest.raises(ConfigError, match='variant'):
         DMDc(r=2, variant='lagged').fit(eps[:1])
+
+
+def _embedded(n=1500, k=700, seed=3):
+    """The 8-state system seen through n = 1500 full states (``q = Φ x``, Φ orthonormal)."""
+    A, B, E, rng = _system()
+    Phi = np.linalg.qr(rng.standard_normal((n, 8)))[0]
+    q_ref, y_ref = rng.standard_normal(n), rng.standard_normal(5)
+    eps = []
+    for i in range(2):
+        U = rng.standard_normal((3, k))
+        ep = _episode(A, B, E, U, rng.standard_normal(8), np.zeros(8), y_ref, name=f'ep{i}')
+        eps.append(Episode(t=ep.t, U=U, Y=ep.Y, Q=Phi @ ep.Q + q_ref[:, None], name=ep.name))
+    return A, Phi, q_ref, y_ref, eps
+
+
+def test_many_states_fit_on_their_range_and_give_the_full_svd_model(monkeypatch):
+    """Many states: the SVDs are taken on a basis of the snapshots' range, same model.
+
+    n = 1500 states and 1,400 snapshots: ``snapshot_range`` finds the range, and the model
+    is the one of the SVDs of the full snapshots.
+    """
+    import soft_rom.learners.dmdc as dmdc_module
+    A, Phi, q_ref, y_ref, eps = _embedded()
+    calls = []
+    real = dmdc_module.snapshot_range
+
+    def spy(arrays, tol):
+        calls.append(real(arrays, tol))
+        return calls[-1]
+
+    monkeypatch.setattr(dmdc_module, 'snapshot_range', spy)
+    fast = DMDc(r=8).fit(eps, q_ref=q_ref, y_ref=y_ref)
+    assert calls and calls[0] is not None and calls[0].shape == (1500, 512)
+    monkeypatch.setattr(dmdc_module, 'snapshot_range', lambda arrays, tol: None)
+    full = DMDc(r=8).fit(eps, q_ref=q_ref, y_ref=y_ref)
+    for dmd in (fast, full):          # known truth: Φᵀ V Ã Vᵀ Φ = A
+        T = Phi.T @ dmd.basis_
+        np.testing.assert_allclose(T @ dmd.model_.A @ T.T, A, atol=1e-10)
+    U = np.random.default_rng(9).standard_normal((3, 500))
+    np.testing.assert_allclose(fast.model_.simulate(U), full.model_.simulate(U), rtol=0,
+                               atol=1e-10 * np.abs(full.model_.simulate(U)).max())
+    assert fast.state_scale_ == pytest.approx(full.state_scale_, rel=1e-13)
+    np.testing.assert_allclose(fast.singular_values_qp_[:8], full.singular_values_qp_[:8],
+                               rtol=1e-12)
+
+
+def test_snapshot_range_reaches_its_tolerance_or_declines():
+    from soft_rom.basis import snapshot_range
+    rng = np.random.default_rng(4)
+    # a decaying spectrum (singular values 10^(-j/20)) and noise at 1e-14 of the largest
+    n, K = 1200, 1100
+    Ul, Vr = (np.linalg.qr(rng.standard_normal((d, 600)))[0] for d in (n, K))
+    A = (Ul * 10.0 ** (-np.arange(600) / 20.0)) @ Vr.T + 1e-16 * rng.standard_normal((n, K))
+    parts = [A[:, :500], A[:, 500:]]
+    W = snapshot_range(parts, 1e-12)
+    assert W is not None and W.shape[0] == n and W.shape[1] < 600
+    np.testing.assert_allclose(W.T @ W, np.eye(W.shape[1]), atol=1e-12)
+    assert np.linalg.norm(A - W @ (W.T @ A)) <= 1e-12 * np.linalg.norm(A)
+    np.testing.assert_array_equal(W, snapshot_range(parts, 1e-12))       # a fixed seed
+    # no decay (white noise), or too few columns to gain: the caller takes the full SVDs
+    assert snapshot_range([rng.standard_normal((n, K))], 1e-13) is None
+    assert snapshot_range([A[:, :1000]], 1e-12) is None

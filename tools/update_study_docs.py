@@ -11,7 +11,7 @@ Writes, from the study's ``summary.json`` and figures:
 
 Run from the repository root::
 
-    python tools/update_study_docs.py              # runs `soft-rom study` first (~2.5 min idle)
+    python tools/update_study_docs.py              # runs `soft-rom study` first (< 1 min idle)
     python tools/update_study_docs.py STUDY_DIR    # a folder `soft-rom study -o` wrote
 
 Nothing is written unless the study is complete (both studies, every figure).

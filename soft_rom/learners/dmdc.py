@@ -59,6 +59,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from soft_rom.basis import snapshot_range
 from soft_rom.data import as_signal, Episode
 from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
@@ -278,16 +279,26 @@ class DMDc:
         """The two SVDs (paper sec. 2.3) on the coordinates; every small factor is kept."""
         dt = data.dt
         Qc = list(data.coordinates or ())
+        n_rows, pairs_sq = int(data.n_states or Qc[0].shape[0]), data.pairs_sq_norm
+        Q_full = np.concatenate(Qc, axis=1) if self.output_fit == 'paper' else None
+        # The centred snapshots themselves: their range first, to far below rcond, so that
+        # the SVDs below are taken on a few hundred coordinates instead of n rows (the
+        # operators are unchanged by the orthonormal factor, see the module docstring)
+        W = snapshot_range(Qc, 1e-3 * self.rcond) if data.basis == 'identity' else None
+        if W is not None:
+            n_rows, pairs_sq = Qc[0].shape[0], sum(float(np.vdot(q[:, :-1], q[:, :-1]))
+                                                   for q in Qc)
+            Qc = [W.T @ q for q in Qc]
         l = Qc[0].shape[0]
         X = np.concatenate([q[:, :-1] for q in Qc], axis=1)         # Q   (l, K')
         Xp = np.concatenate([q[:, 1:] for q in Qc], axis=1)         # Q'  (l, K')
         Uc = np.concatenate([u[:, :-1] for u in data.U], axis=1)    # U   (m, K')
         Q_all = np.concatenate(Qc, axis=1)
         Y_all = np.concatenate(data.Y, axis=1) - data.y_ref[:, None]
-        if data.pairs_sq_norm is None:                  # the states themselves: their RMS
+        if pairs_sq is None:                            # the states themselves: their RMS
             s_q = float(channel_scale(X, per_channel=False)[0])
         else:                                           # the RMS over the n full-order rows
-            s_q = float(np.sqrt(data.pairs_sq_norm / (int(data.n_states or l) * X.shape[1])))
+            s_q = float(np.sqrt(pairs_sq / (n_rows * X.shape[1])))
             s_q = s_q if s_q > 0 else 1.0
         s_u = channel_scale(Uc)
         Omega = np.concatenate([X / s_q, Uc / s_u[:, None]], axis=0)
@@ -308,7 +319,7 @@ class DMDc:
         self.n_pairs_ = int(X.shape[1])
         self.dt_ = dt
         # Factors kept for model_for(): all small (at most rank x rank, or rank x K).
-        self._Uh = Uh[:, :rank_h]
+        self._Uh = Uh[:, :rank_h] if W is None else W @ Uh[:, :rank_h]
         self._lift = data.lift
         self._st, self._sh = st[:rank_t], sh[:rank_h]
         self._U1h = Ut[:l, :rank_t].T @ Uh[:, :rank_h]                  # Ũ1ᵀ Û   (pt, ph)
@@ -323,7 +334,7 @@ class DMDc:
             self.rho_max_ = (float(np.exp(-dt / (10.0 * t_long)))
                              if self.max_spectral_radius is None
                              else float(self.max_spectral_radius))
-        self._Q_all = Q_all if self.output_fit == 'paper' else None
+        self._Q_all = Q_full
 
     def _check_fitted(self) -> None:
         if not hasattr(self, '_G'):
