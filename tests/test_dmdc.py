@@ -272,3 +272,18 @@ def test_snapshot_range_reaches_its_tolerance_or_declines():
     # no decay (white noise), or too few columns to gain: the caller takes the full SVDs
     assert snapshot_range([rng.standard_normal((n, K))], 1e-13) is None
     assert snapshot_range([A[:, :1000]], 1e-12) is None
+
+
+def test_snapshot_range_gives_up_early_on_noise(monkeypatch):
+    """A decaying spectrum under noise at 1e-8: no range to 1e-13, said after 2 tries."""
+    from soft_rom.basis import snapshot_range
+    rng = np.random.default_rng(8)
+    n = K = 2600                                           # tries at 512, 768, 1152 allowed
+    Ul, Vr = (np.linalg.qr(rng.standard_normal((n, 300)))[0] for _ in range(2))
+    A = (Ul * 10.0 ** (-np.arange(300) / 20.0)) @ Vr.T + 1e-8 * rng.standard_normal((n, K))
+    tries = []
+    qr = np.linalg.qr
+    monkeypatch.setattr(np.linalg, 'qr', lambda a, *args, **kw: tries.append(a.shape[1])
+                        or qr(a, *args, **kw))
+    assert snapshot_range([A], 1e-13) is None
+    assert tries == [512, 768]
