@@ -94,6 +94,7 @@ def select_rank(singular_values: ArrayLike, *, r: int | None = None,
     cum = np.cumsum(s ** 2) / np.sum(s ** 2)
     return int(min(np.searchsorted(cum, energy - 1e-12) + 1, s.size))
 
+
 def snapshot_range(arrays: Sequence[Array], tol: float, *, start: int = 512,
                    seed: int = 0) -> Array | None:
     """An orthonormal basis of the columns of ``arrays``, to relative precision ``tol``.
@@ -166,7 +167,6 @@ def _reaches(first: tuple[int, float], second: tuple[int, float], target: float,
         return e2 <= target
     per_column = np.log(e2 / e1) / (k2 - k1)
     return bool(k2 + np.log(target / e2) / per_column <= limit)
-
 
 
 def project(Q: Any, basis: ArrayLike, q_ref: ArrayLike, *,
