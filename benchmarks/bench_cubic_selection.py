@@ -68,8 +68,8 @@ def main() -> None:
     ap.add_argument('--baseline', default='6ef4db1')
     args = ap.parse_args()
     print(_load(), flush=True)
-    old = _baseline(args.baseline)
     ts = TrainingSet.open(args.training_set)
+    old = _baseline(args.baseline)
     data = open_training_data(ts, episodes=args.train)
     cubic = make_learner('lopinf', FitSettings(forces='cubic'), 'state')
     linear = make_learner('lopinf', FitSettings(), 'state')
@@ -108,4 +108,5 @@ def main() -> None:
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    from _entry import run
+    run(main)

@@ -81,6 +81,8 @@ def main() -> None:
     ap.add_argument('--json-out', default=None, metavar='FILE',
                     help='also write the figures as JSON')
     args = ap.parse_args()
+    if args.episodes < 1 or args.r < 1 or args.repeat < 1:
+        ap.error('--episodes, --r and --repeat must be at least 1')
     t0 = time.perf_counter()
     eps = episodes(args)
     n, K = eps[0].Q.shape[0], sum(ep.n_samples for ep in eps)
@@ -108,4 +110,5 @@ def main() -> None:
 
 
 if __name__ == '__main__':
-    main()
+    from _entry import run
+    run(main)

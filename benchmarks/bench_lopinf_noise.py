@@ -200,4 +200,5 @@ def main() -> None:
 
 
 if __name__ == '__main__':
-    main()
+    from _entry import run
+    run(main)

@@ -348,4 +348,5 @@ def main() -> int:
 
 
 if __name__ == '__main__':
-    sys.exit(main())
+    from _entry import run
+    run(main)
