@@ -173,6 +173,7 @@ class RuntimeLoop:
         self._restarts = pred.restarts
         pred.take_emitted()
         self._clocks: dict[int, SequenceClock] = {}
+        self._last_clock: SequenceClock | None = None
         if keep_figures and len(self._recv) == pred.model.n_inputs:
             return
         self._measured: Array | None = None
@@ -231,6 +232,7 @@ class RuntimeLoop:
     def _stamp(self, stamp_ns: int, now_ns: int, clock: SequenceClock | None = None) -> int:
         if stamp_ns == 0:
             self.counts['stamp_fallback'] += 1
+            self._last_clock = clock
             return now_ns if clock is None else clock.stamp(now_ns)
         return stamp_ns
 
@@ -244,6 +246,16 @@ class RuntimeLoop:
                                   int(cfg.clock_reset_s * 1e9))
             self._clocks[key] = clock
         return clock
+
+    def taken(self, now_ns: int) -> None:
+        """The node finished taking (and publishing for) the last input at ``now_ns``.
+
+        Un-stamped input only: its sequence clock then knows that a message taken within a
+        step after this waited in the queue (:class:`SequenceClock`).
+        """
+        if self._last_clock is not None:
+            self._last_clock.taken(now_ns)
+            self._last_clock = None
 
     def on_channel(self, index: int, value: float, stamp_ns: int, now_ns: int) -> Publish:
         """One per-chamber value (raw units; scale and offset applied here)."""

@@ -50,6 +50,12 @@ class SequenceClock:
     to a step of jitter, while a sender slower than the model is not compressed into one
     step per message (which left its whole sequence trailing the reception clock: 72 ms for
     a 100 Hz sender on a 1 kHz model).
+    A message taken less than a step after the node finished taking the previous one
+    (:meth:`taken`) waited in the queue while the node was busy (its first callback, which
+    publishes every output for the first time, took 2-3 ms under rclpy): the reception clock
+    then shows the node's delay, not the sender's period, and the message takes one step, as
+    in a burst (before, a 1 kHz sender got a step more at its second array, and its whole
+    sequence stayed a step late).
     Then the period is the mean of those 8, then re-estimated from the arrivals over the last
     :attr:`window_ns` of reception time (and at least 64 arrivals), as the slope of their
     lower envelope (the first quartiles of its first and last thirds: a stall or a burst
@@ -117,6 +123,7 @@ class SequenceClock:
         self._late: tuple[int, int] | None = None            # (count, lag) while behind
         self._shift = 0                                      # phase step of the next stamp
         self._burst = False                # start-up: a stamp was after its reception
+        self._free: int | None = None      # when the node finished the previous message
 
     def _estimate(self, now_ns: int, stamp_ns: int) -> None:
         """Update the period from the arrivals (start-up, then the window, with votes)."""
@@ -219,13 +226,18 @@ class SequenceClock:
             return now_ns
         if self._count <= 9:                                  # start-up: period unknown
             self._burst = self._burst or (previous is not None and self.last > previous)
-            t = self.last + (1 if self._burst else max(1, (now_ns - self.last) // self.h_ns)) \
-                * self.h_ns
+            queued = self._free is not None and now_ns - self._free < self.h_ns
+            t = self.last + (1 if self._burst or queued
+                             else max(1, (now_ns - self.last) // self.h_ns)) * self.h_ns
         else:
             t = self._sequence(now_ns)
         self._estimate(now_ns, t)
         self.last = t
         return t
+
+    def taken(self, now_ns: int) -> None:
+        """The node finished taking the last message at ``now_ns`` (reception clock)."""
+        self._free = int(now_ns)
 
     def _sequence(self, now_ns: int) -> int:
         assert self.last is not None

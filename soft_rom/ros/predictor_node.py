@@ -331,21 +331,21 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, PredictionPublishers, No
                                   throttle_duration_sec=5.0)
 
     def _on_pressure(self, index: int, msg: FluidPressure) -> None:
-        loop = self.loop
-        if loop is None:
+        if (loop := self.loop) is None:
             return
         try:
             self._publish(loop.on_channel(index, msg.fluid_pressure,
                                           stamp_to_ns(msg.header.stamp), self._now_ns()))
+            loop.taken(self._now_ns())
         except Exception as err:  # noqa: BLE001 - the node never dies on a message
             self._guard('pressure', err)
 
     def _on_array(self, msg: Float64MultiArray) -> None:
-        loop = self.loop
-        if loop is None:
+        if (loop := self.loop) is None:
             return
         try:
             self._publish(loop.on_array(data_to_array(msg.data), 0, self._now_ns()))
+            loop.taken(self._now_ns())      # after publishing: the node's own time
         except Exception as err:  # noqa: BLE001
             self._guard('pressures', err)
 
