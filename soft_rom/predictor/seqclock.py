@@ -51,8 +51,8 @@ class SequenceClock:
     step per message (which left its whole sequence trailing the reception clock: 72 ms for
     a 100 Hz sender on a 1 kHz model).
     A message taken less than a step after the node finished taking the previous one
-    (:meth:`taken`) waited in the queue while the node was busy (its first callback, which
-    publishes every output for the first time, took 2-3 ms under rclpy): the reception clock
+    (:meth:`taken`) waited in the queue while the node was busy (its first callback took
+    1.6-2.0 ms under rclpy, most of it the first publish of the outputs): the reception clock
     then shows the node's delay, not the sender's period, and the message takes one step, as
     in a burst (before, a 1 kHz sender got a step more at its second array, and its whole
     sequence stayed a step late).

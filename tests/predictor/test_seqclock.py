@@ -132,8 +132,8 @@ def _taken_behind_a_slow_first_callback(sent, first_ms: float, clock, tell: bool
 
 
 def test_arrays_queued_behind_a_slow_first_callback_take_one_step_each() -> None:
-    # under rclpy the predictor node's first callback (the first publish of every output)
-    # took 2-3 ms: a 1 kHz sender's next arrays waited and were taken right after it
+    # under rclpy the predictor node's first callback took 1.6-2.0 ms (most of it the first
+    # publish of the outputs): a 1 kHz sender's next arrays waited and were taken after it
     # (measured: the 2nd to 4th at 2.64, 2.91 and 3.01 ms after the 1st). Each is still one
     # step; before, the 2nd took two and the whole sequence stayed a step late.
     sent = T0 + np.arange(300) * H
