@@ -103,6 +103,17 @@ class PredictionPublishers:
         """The node clock's time in int ns (the bag's ``/clock`` under ``use_sim_time``)."""
         return self.get_clock().now().nanoseconds  # type: ignore[attr-defined]
 
+    def _taken(self, loop: Any) -> None:
+        """Tell ``loop`` the node finished taking an input (:meth:`RuntimeLoop.taken`).
+
+        Wall time only: in sim time the node's clock can trail ``/clock`` messages queued
+        with the inputs, so a message taken at an unchanged clock did not wait in a queue
+        (a 100 Hz controller's arrays were read so, and compressed to one step each).
+        """
+        clock = self.get_clock()  # type: ignore[attr-defined]
+        if not clock.ros_time_is_active:
+            loop.taken(clock.now().nanoseconds)
+
     def _publish(self, pub: Publish) -> None:
         """Publish what the loop says is due."""
         if not self._active:

@@ -336,7 +336,7 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, PredictionPublishers, No
         try:
             self._publish(loop.on_channel(index, msg.fluid_pressure,
                                           stamp_to_ns(msg.header.stamp), self._now_ns()))
-            loop.taken(self._now_ns())
+            self._taken(loop)
         except Exception as err:  # noqa: BLE001 - the node never dies on a message
             self._guard('pressure', err)
 
@@ -345,7 +345,7 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, PredictionPublishers, No
             return
         try:
             self._publish(loop.on_array(data_to_array(msg.data), 0, self._now_ns()))
-            loop.taken(self._now_ns())      # after publishing: the node's own time
+            self._taken(loop)               # after publishing
         except Exception as err:  # noqa: BLE001
             self._guard('pressures', err)
 
