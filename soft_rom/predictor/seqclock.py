@@ -15,6 +15,9 @@ __all__ = ['SequenceClock']
 #: Messages after which a sequence trailing the reception clock must show that it catches up
 #: (a burst after a stall of the node) or is moved to the reception time (the sender paused).
 _CATCH_UP_MESSAGES = 32
+#: Arrivals in a row, each 2 steps or more behind the sequence and not catching up, that
+#: show a sender back from a pause shorter than ``resync_ns``.
+_PAUSE_MESSAGES = 16
 #: Arrivals that an estimate of the window needs (the window is widened to hold them).
 _WINDOW_ARRIVALS = 64
 #: Steps within which a period is taken as whole steps: estimated from the 8 start-up
@@ -72,15 +75,22 @@ class SequenceClock:
     stamps move by that much (in whole steps for a period in whole steps), spread so that
     they stay a step apart (counted in :attr:`resyncs`). A quartile, not the
     earliest arrival: in sim time a message can be taken before the ``/clock`` of the step
-    it was sent in, a step early.
+    it was sent in, a step early. Each arrival is compared with the sequence as it goes on,
+    not with its own stamp (a start-up stamp taken from a reception a step early agreed with
+    it, and the sequence after it stayed a step early until the 65th message).
 
-    Beyond those phase steps, the sequence leaves the reception clock only in two cases,
+    Beyond those phase steps, the sequence leaves the reception clock only in three cases,
     each counted in :attr:`resyncs`:
 
+    * 16 messages in a row trail it by 2 steps or more and do not catch up (by 2 steps): the
+      sender paused for less than ``resync_ns`` (before, a 1 kHz sender's sequence stayed
+      that far behind for ever, a 100 Hz sender's for up to 2.5 s, its period voted wrong
+      from the pause in the window); the sequence moves by the least of their lags;
     * it trails the reception clock by more than ``resync_ns`` and does not catch up over
       the next 32 messages (by at least 2 periods; the backlog of a stalled node catches
       up, however slowly a loaded machine takes it): the sender paused or slowed, no burst
-      is coming, and the stamps jump to the reception time;
+      is coming, and the stamps jump to the reception time (the arrivals before the pause
+      are no evidence of the rate, and are dropped);
     * it leads the reception clock by more than ``resync_ns`` (a sender faster than its
       period): the next step, or the previous stamp for a sender faster than the model
       (stamps never go backwards).
@@ -121,9 +131,11 @@ class SequenceClock:
         self._votes = 0
         self._since = 0                                      # messages since an estimate
         self._late: tuple[int, int] | None = None            # (count, lag) while behind
+        self._behind: tuple[int, int, int, int] | None = None  # (count, lag, least, most)
         self._shift = 0                                      # phase step of the next stamp
         self._burst = False                # start-up: a stamp was after its reception
         self._free: int | None = None      # when the node finished the previous message
+        self._joined = 0                   # first message of the sequence that goes on
 
     def _estimate(self, now_ns: int, stamp_ns: int) -> None:
         """Update the period from the arrivals (start-up, then the window, with votes)."""
@@ -170,11 +182,21 @@ class SequenceClock:
         return True
 
     def _keep_in_phase(self) -> None:
-        """Move the sequence when a quarter of the window's arrivals are a step or more off."""
-        if self.period < 2 * self.h_ns:
+        """Move the sequence when a quarter of the window's arrivals are a step or more off.
+
+        Each arrival is compared with the sequence as it goes on (the newest stamp less
+        whole periods), not with the stamp it was given: a start-up stamp follows its own
+        reception, so it agreed with it even when the sequence after it was a step off.
+        """
+        if self.period < 2 * self.h_ns or self._shift:
             return                      # one step a message: a phase step would drop one
         arr = self._arrivals
-        offsets = sorted(t - st for _, t, st in list(arr)[::max(1, len(arr) // (4 * _SAMPLE))])
+        c_now, _, st_now = arr[-1]
+        offsets = sorted(t - st_now + (c_now - c) * self.period
+                         for c, t, _ in list(arr)[::max(1, len(arr) // (4 * _SAMPLE))]
+                         if c >= self._joined)
+        if len(offsets) < 8:
+            return
         offset = offsets[len(offsets) // 4]
         whole = self.period % self.h_ns == 0
         if abs(offset) >= (self.h_ns if whole else self.h_ns // 2):
@@ -253,6 +275,7 @@ class SequenceClock:
             t = (self.last + self.h_ns if self.last + self.h_ns <= now_ns + self.resync_ns
                  else self.last)
             self.resyncs += 1
+            self._joined = self._count
             self._late = None
         elif lag > self.resync_ns:
             t = candidate
@@ -264,9 +287,39 @@ class SequenceClock:
                 else:
                     t = now_ns                           # behind and not catching up
                     self.resyncs += 1
+                    self._arrivals.clear()    # the sender paused: no evidence of its rate
                     self._late = None
                     self._shift = 0
         else:
-            t = candidate
+            t = self._after_a_pause(candidate, lag)
             self._late = None
         return t
+
+    def _after_a_pause(self, candidate: int, lag: int) -> int:
+        """The stamp when ``_PAUSE_MESSAGES`` arrivals in a row trail it by 2 steps or more.
+
+        A sender that paused for less than ``resync_ns`` (a controller's GC pause) comes
+        back late by the pause, and stays so: the sequence is moved by the least of their
+        lags (whole steps on a whole-step period). A burst after a stall of the node
+        catches up by a step or more a message, and is not moved.
+        """
+        if lag < 2 * self.h_ns:
+            self._behind = None
+            return candidate
+        if self._behind is None or self._behind[1] - lag >= 2 * self.h_ns:
+            self._behind = (self._count, lag, lag, lag)       # first late one, or catching up
+            return candidate
+        start, first, least, most = self._behind
+        least, most = min(least, lag), max(most, lag)
+        if self._count - start + 1 < _PAUSE_MESSAGES:
+            self._behind = (start, first, least, most)
+            return candidate
+        self._behind = None
+        self.resyncs += 1
+        self._shift = 0
+        if first >= 3 * self.h_ns and most - least < 2 * self.h_ns:
+            # a jump that stayed (not a drift, which crosses 2 steps slowly): the window
+            # across a pause is no evidence of the rate
+            self._arrivals.clear()
+        whole = self.period % self.h_ns == 0
+        return candidate + ((least // self.h_ns) * self.h_ns if whole else least)
