@@ -12,9 +12,6 @@ from collections import deque
 
 __all__ = ['SequenceClock']
 
-#: Messages after which a sequence trailing the reception clock must show that it catches up
-#: (a burst after a stall of the node) or is moved to the reception time (the sender paused).
-_CATCH_UP_MESSAGES = 32
 #: Arrivals in a row, each 2 steps or more behind the sequence and not catching up, that
 #: show a sender back from a pause shorter than ``resync_ns``.
 _PAUSE_MESSAGES = 16
@@ -79,18 +76,17 @@ class SequenceClock:
     not with its own stamp (a start-up stamp taken from a reception a step early agreed with
     it, and the sequence after it stayed a step early until the 65th message).
 
-    Beyond those phase steps, the sequence leaves the reception clock only in three cases,
+    Beyond those phase steps, the sequence leaves the reception clock only in two cases,
     each counted in :attr:`resyncs`:
 
-    * 16 messages in a row trail it by 2 steps or more and do not catch up (by 2 steps): the
-      sender paused for less than ``resync_ns`` (before, a 1 kHz sender's sequence stayed
-      that far behind for ever, a 100 Hz sender's for up to 2.5 s, its period voted wrong
-      from the pause in the window); the sequence moves by the least of their lags;
-    * it trails the reception clock by more than ``resync_ns`` and does not catch up over
-      the next 32 messages (by at least 2 periods; the backlog of a stalled node catches
-      up, however slowly a loaded machine takes it): the sender paused or slowed, no burst
-      is coming, and the stamps jump to the reception time (the arrivals before the pause
-      are no evidence of the rate, and are dropped);
+    * 16 messages in a row trail it by 2 steps or more and do not catch up (by 2 steps; the
+      backlog of a stalled node catches up by nearly a period a message): the sender paused
+      or slowed, no burst is coming, and the sequence moves by the least of their lags, to
+      the sender's phase after the pause. After a jump that stayed (not a slow drift) the
+      arrivals before it are no evidence of the rate, and are dropped. Before, a pause
+      shorter than ``resync_ns`` left a 1 kHz sender's sequence that far behind for ever and
+      a 100 Hz sender's for up to 2.5 s (its period voted wrong from the pause in the
+      window), and a longer one took 32 messages and a jump to one reception time;
     * it leads the reception clock by more than ``resync_ns`` (a sender faster than its
       period): the next step, or the previous stamp for a sender faster than the model
       (stamps never go backwards).
@@ -278,18 +274,10 @@ class SequenceClock:
             self._joined = self._count
             self._late = None
         elif lag > self.resync_ns:
-            t = candidate
-            if self._late is None:
-                self._late = (self._count, lag)
-            elif self._count - self._late[0] >= _CATCH_UP_MESSAGES:
-                if self._late[1] - lag >= 2 * self.period:
-                    self._late = (self._count, lag)     # catching up: a burst after a stall
-                else:
-                    t = now_ns                           # behind and not catching up
-                    self.resyncs += 1
-                    self._arrivals.clear()    # the sender paused: no evidence of its rate
-                    self._late = None
-                    self._shift = 0
+            self._late = self._late or (self._count, lag)
+            t = self._after_a_pause(candidate, lag)
+            if t != candidate:
+                self._late = None
         else:
             t = self._after_a_pause(candidate, lag)
             self._late = None
@@ -300,8 +288,9 @@ class SequenceClock:
 
         A sender that paused for less than ``resync_ns`` (a controller's GC pause) comes
         back late by the pause, and stays so: the sequence is moved by the least of their
-        lags (whole steps on a whole-step period). A burst after a stall of the node
-        catches up by a step or more a message, and is not moved.
+        lags, to the sender's phase after the pause. A burst after a stall of the node
+        catches up by a step or more a message, and is not moved. The same rule, beyond
+        ``resync_ns``, ends a longer pause.
         """
         if lag < 2 * self.h_ns:
             self._behind = None
@@ -321,5 +310,4 @@ class SequenceClock:
             # a jump that stayed (not a drift, which crosses 2 steps slowly): the window
             # across a pause is no evidence of the rate
             self._arrivals.clear()
-        whole = self.period % self.h_ns == 0
-        return candidate + ((least // self.h_ns) * self.h_ns if whole else least)
+        return candidate + least           # the sender's phase after the pause

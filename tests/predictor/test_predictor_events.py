@@ -417,7 +417,7 @@ def test_unstamped_arrays_follow_the_senders_sequence_not_the_reception_jitter()
     kv = dict(loop.diagnostics(int(recv[-1])).values)
     assert kv['stamp_resync'] == '0'
     # the sender pauses for 1 s, then sends at its rate again: no burst catches the sequence
-    # up, so after 32 messages it is re-synchronised to the reception clock, counted once
+    # up, so after 16 messages it is re-synchronised to the reception clock, counted once
     after = int(recv[-1]) + 10 ** 9
     for j in range(50):
         loop.on_array(U[:, 0], 0, after + j * H_NS)
