@@ -81,6 +81,7 @@ def test_convert_real_clocks_to_a_uniform_grid(lab, monkeypatch):
     assert info['t0_ns'] == int(recs[0].cam_ns[0]) > T0_NS     # the epoch stamp, exact
 
 
+@pytest.mark.slow
 def test_user_sequence_lopinf_beats_unconstrained_fit(lab, monkeypatch, capsys):
     root, _ = lab
     monkeypatch.chdir(root)
