@@ -13,7 +13,7 @@ from collections import deque
 __all__ = ['SequenceClock']
 
 #: Arrivals in a row, each 2 steps or more behind the sequence and not catching up, that
-#: show a sender back from a pause shorter than ``resync_ns``.
+#: show a sender back from a pause.
 _PAUSE_MESSAGES = 16
 #: Arrivals that an estimate of the window needs (the window is widened to hold them).
 _WINDOW_ARRIVALS = 64
@@ -126,7 +126,7 @@ class SequenceClock:
         self._count = 0
         self._votes = 0
         self._since = 0                                      # messages since an estimate
-        self._late: tuple[int, int] | None = None            # (count, lag) while behind
+        self._late = False                 # beyond resync_ns behind: no estimates
         self._behind: tuple[int, int, int, int] | None = None  # (count, lag, least, most)
         self._shift = 0                                      # phase step of the next stamp
         self._burst = False                # start-up: a stamp was after its reception
@@ -148,10 +148,10 @@ class SequenceClock:
             return
         self._since += 1
         early = self.period >= 2 * self.h_ns and self._count in _EARLY and len(arr) >= 15 \
-            and self._late is None
+            and not self._late
         if not early and (self._count < 9 or now_ns - arr[0][1] < self.window_ns
                           or self._since < 16 or len(arr) < _WINDOW_ARRIVALS
-                          or self._late is not None):
+                          or self._late):
             return
         self._since = 0
         if early and len(arr) < 24 or self._update_period(early):     # 16: the phase only
@@ -272,15 +272,13 @@ class SequenceClock:
                  else self.last)
             self.resyncs += 1
             self._joined = self._count
-            self._late = None
+            self._late = False
         elif lag > self.resync_ns:
-            self._late = self._late or (self._count, lag)
             t = self._after_a_pause(candidate, lag)
-            if t != candidate:
-                self._late = None
+            self._late = t == candidate
         else:
             t = self._after_a_pause(candidate, lag)
-            self._late = None
+            self._late = False
         return t
 
     def _after_a_pause(self, candidate: int, lag: int) -> int:
