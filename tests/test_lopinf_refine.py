@@ -18,6 +18,7 @@ from soft_rom.errors import ConfigError
 from soft_rom.learners.lopinf import LOpInf
 from soft_rom.learners.lopinf.refine import (
     _frechet_rows,
+    _frechet_rows_direct,
     _Problem,
     initial_states,
     refine_output_error,
@@ -73,6 +74,25 @@ def test_frechet_rows_match_scipy_also_when_nearly_defective():
                 E[R + a, b] = 0.05
                 ref = sla.expm_frechet(M, E, compute_expm=False)[:n]
                 assert np.max(np.abs(dF[a * N + b] - ref)) <= 1e-10 * max(1.0, np.abs(ref).max())
+
+
+def test_frechet_rows_match_scipy_over_many_panels():
+    # ||A||_1 = 45: 45 panels, each node's exponentials as products of whole-panel and
+    # in-panel ones (the direct path takes over above 64)
+    rng = np.random.default_rng(0)
+    r, m = 8, 6
+    n, N = 2 * r, 2 * r + m
+    M = np.zeros((N, N))
+    M[:r, r:n] = np.eye(r)
+    K = np.diag(np.geomspace(1e-3, 900.0, r))
+    M[r:n, :r], M[r:n, r:n] = -K, -(0.1 * np.eye(r) + 0.01 * K)
+    M[r:n, n:] = rng.standard_normal((r, m))
+    M *= 0.05
+    assert 40 < np.linalg.norm(M[:n, :n], 1) < 64
+    F, dF = _frechet_rows(M, r, n, 0.05)
+    F_ref, dF_ref = _frechet_rows_direct(M, r, n, 0.05)
+    assert np.allclose(F, F_ref, rtol=1e-12, atol=1e-14)
+    assert np.abs(dF - dF_ref).max() <= 1e-10 * np.abs(dF_ref).max()
 
 
 def test_gradient_matches_finite_differences():

@@ -28,12 +28,11 @@ unbiased for it. The constraints are kept by the parametrization
 the minimum damping ratio of :mod:`soft_rom.learners.lopinf.margins`, so it is
 asymptotically stable for every iterate. The problem is not convex; it is started from the
 equation-error LOpInf solution (a good and stable start) and solved by Levenberg–Marquardt
-with exact gradients: the sensitivities of the held-input discretization come from
-Fréchet derivatives of the matrix exponential (:func:`scipy.linalg.expm_frechet`) and are
-propagated along the trajectory by the same recursion as the states, in blocks of time,
-so that memory does not grow with the episode length. An iterate is accepted only if it
-lowers the simulation error; the result is never worse on the training episodes than the
-start (``info['improvement']``).
+with exact gradients: the sensitivities of the held-input discretization (Fréchet
+derivatives of the matrix exponential) are propagated along the trajectory by the same
+recursion as the states, in blocks of time, so that memory does not grow with the episode
+length. An iterate is accepted only if it lowers the simulation error; the result is never
+worse on the training episodes than the start (``info['improvement']``).
 """
 
 from __future__ import annotations
@@ -251,10 +250,10 @@ def _frechet_rows(M: Array, r: int, n: int, dt: float) -> tuple[Array, Array]:
     The derivative along ``E`` is ``∫₀¹ e^{sM} E e^{(1-s)M} ds``; for ``E = e_p e_qᵀ`` the
     integrand is the outer product of column ``p`` of ``e^{sM}`` and row ``q`` of
     ``e^{(1-s)M}``, so every direction comes from the same few exponentials. The integral
-    is taken by composite 8-point Gauss–Legendre quadrature on ``⌈‖A‖₁⌉`` panels, ``A =
-    M[:n, :n]`` (the held inputs' columns of ``M`` have zero rows below, so they enter
-    ``e^{sM}`` linearly; on each panel the integrand's Taylor series in ``s`` converges like
-    ``(‖A‖₁/panels)ᵏ/k!``: exact to rounding for these entire functions). No
+    is taken by composite 8-point Gauss–Legendre quadrature on ``P = ⌈‖A‖₁⌉`` panels, ``A =
+    M[:n, :n]``, each ``e^{tM}`` as ``e^{(j/P)M} e^{(s/P)M}`` (``P + 9`` exponentials; the held
+    inputs' columns of ``M`` have zero rows below, so they enter ``e^{sM}`` linearly; on a
+    panel the Taylor series in ``s`` converges like ``(‖A‖₁/P)ᵏ/k!``: exact to rounding). No
     eigendecomposition is involved, so defective or nearly defective ``M`` (a slow mode
     beside the held inputs' zero eigenvalues) is no harder than any other. Above
     ``‖A‖₁ = 64`` the directions are taken one by one by :func:`scipy.linalg.expm_frechet`.
@@ -271,12 +270,13 @@ def _frechet_rows(M: Array, r: int, n: int, dt: float) -> tuple[Array, Array]:
         return _frechet_rows_direct(M, r, n, dt)
     panels = max(1, int(np.ceil(norm)))
     x, w = np.polynomial.legendre.leggauss(8)
-    nodes = ((np.arange(panels)[:, None] + 0.5 * (x[None, :] + 1.0)) / panels).ravel()
     weights = np.tile(0.5 * w / panels, panels)
-    with np.errstate(all='ignore'):
+    with np.errstate(all='ignore'):      # nodes (j + s) / P, s = (x + 1) / 2; 1 - s(x) = s(-x)
         F = sla.expm(M)
-        left = np.stack([sla.expm(t * M)[:n, r:2 * r] for t in nodes])       # (k, n, r)
-        right = np.stack([sla.expm((1.0 - t) * M) for t in nodes])            # (k, N, N)
+        whole = [sla.expm((j / panels) * M) for j in range(panels)]
+        part = [sla.expm((0.5 * (xi + 1.0) / panels) * M) for xi in x]
+        left = np.stack([a[:n] @ b[:, r:2 * r] for a in whole for b in part])    # (k, n, r)
+        right = np.stack([a @ b for a in whole[::-1] for b in part[::-1]])       # (k, N, N)
     dF = np.einsum('k,ksa,kbt->abst', weights * dt, left, right, optimize=True)
     return F, dF.reshape(r * N, n, N)
 
