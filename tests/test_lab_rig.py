@@ -139,7 +139,10 @@ def test_user_sequence_lopinf_beats_unconstrained_fit(lab, monkeypatch, capsys):
     # the refinement is said by info; asked for with cubic forces it is refused, nothing written
     capsys.readouterr()
     assert main(['info', 'm/lab_lopinf_r4.npz']) == 0
-    assert 'refined by output error' in capsys.readouterr().out
+    shown = capsys.readouterr().out
+    assert 'refined by output error' in shown
+    held = load_model('m/lab_lopinf_r4.npz').metadata['held_out']    # the monitor's reference
+    assert f"held-out deviation error {held['deviation_error']:.4g} (" in shown
     assert main(['fit', 'lab.zarr', '--method', 'lopinf', '--r', '2', '--episodes', 'lab1',
                  '-o', 'mc', '--forces', 'cubic', '--refine', 'output-error',
                  '--no-progress']) == 2

@@ -178,11 +178,38 @@ def test_a_method_with_no_fitted_r_draws_no_curve(tmp_path) -> None:
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
 
-    from soft_rom.study.figures import _plot_in_range
+    from soft_rom.study.figures import _plot_in_range, ABOVE
     fig, ax = plt.subplots()
-    assert _plot_in_range(ax, [], [], 1e-3, 1.0, log=True) is False
+    assert _plot_in_range(ax, [], [], 1e-3, 1.0, log=True) == 0
     assert not ax.lines
-    assert _plot_in_range(ax, [2, 4], [0.5, 5.0], 1e-3, 1.0, log=True) is True
+    assert _plot_in_range(ax, [2, 4], [0.5, 5.0], 1e-3, 1.0, log=True) == ABOVE
+    plt.close(fig)
+
+
+def test_points_off_the_scale_are_marked_at_their_own_r() -> None:
+    """An order's point off the axis is marked at its own r, a sampled curve where it leaves.
+
+    errors_vs_r's points above the axis (two in a row included) are marked at their r, not
+    where the line crosses the edge.
+    """
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+
+    from soft_rom.study.figures import _plot_in_range, ABOVE, BELOW
+
+    def marks(ax):
+        return sorted((float(ln.get_xdata()[0]), ln.get_marker()) for ln in ax.lines
+                      if ln.get_marker() in ('^', 'v') and ln.get_zorder() == 5)
+
+    fig, ax = plt.subplots()
+    sides = _plot_in_range(ax, [4, 8, 12, 16], [0.1, 22.3, 30.0, 1e-5], 1e-3, 1.0, log=True,
+                           points=True, marker='o')
+    assert sides == ABOVE | BELOW
+    assert marks(ax) == [(8.0, '^'), (12.0, '^'), (16.0, 'v')]
+    ax.clear()
+    assert _plot_in_range(ax, [0.0, 1.0], [0.0, 2.0], -1.0, 1.0) == ABOVE
+    assert marks(ax) == [(0.5, '^')]              # where the curve leaves the range
     plt.close(fig)
 
 

@@ -174,7 +174,8 @@ def run(args: argparse.Namespace) -> int:
     bar: Any = None
     if not args.quiet:
         from tqdm import tqdm
-        bar = tqdm(total=100, desc='closed loop', unit='%', leave=False)
+        bar = tqdm(total=100, desc='closed loop', leave=False,
+                   bar_format='{desc}: {percentage:3.0f}%|{bar}| [{elapsed}<{remaining}]')
 
     def progress(frac: float) -> None:
         if bar is not None:

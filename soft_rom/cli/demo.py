@@ -51,7 +51,10 @@ def run(args: argparse.Namespace) -> int:
     if s2.get('test'):
         print('study 2, unseen inputs (train Ep 1 + Ep 2; relative output error per test '
               'episode):')
-    for method, per_ep in s2.get('test', {}).items():
+    order = list(s1.get('best', {}))           # study 2 in study 1's order of methods
+    tests = s2.get('test', {})
+    for method in sorted(tests, key=lambda m: order.index(m) if m in order else len(order)):
+        per_ep = tests[method]
         errs = '  '.join(f'{ep} {e:.4f}' for ep, e in per_ep.items())
         print(f'  {s2["chosen"][method].get("label", method):<18s} {errs}')
     if summary.get('replay'):

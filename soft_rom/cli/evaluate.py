@@ -127,7 +127,8 @@ def run(args: argparse.Namespace) -> int:
         write_text_output(args.json, dumps_strict(rows, indent=2) + '\n',
                           overwrite=args.overwrite, what='evaluation summary',
                           is_ours=_EVAL_JSON)
-    print(format_table(rows))
+    # with one episode the pooled rows ('*') repeat it: the table shows them with two or more
+    print(format_table([r for r in rows if len(episodes) > 1 or r['episode'] != '*']))
     for path, model in models:
         if not model.trusted:
             print(f'  {Path(path).name}: NOT TRUSTED: {"; ".join(model.trust_issues())}')

@@ -134,6 +134,11 @@ def format_text(d: dict[str, Any]) -> str:
             lines.append(f"  refined by output error: {ref.get('iterations')} iterations "
                          f"({ref.get('status')}), training simulation error "
                          f"-{100 * float(ref.get('improvement', 0.0)):.1f} %")
+        held = meta.get('held_out') if isinstance(meta, dict) else None
+        if isinstance(held, dict) and 'deviation_error' in held:
+            # what the predictor's monitor thresholds come from (README, Monitoring)
+            lines.append(f"  held-out deviation error {float(held['deviation_error']):.4g} "
+                         f"({held.get('data', 'data it was not fitted on')})")
         if meta:
             text = json.dumps(meta, sort_keys=True, default=str)
             lines.append('  metadata: ' + (text if len(text) <= 400 else text[:400] + ' ...'))

@@ -16,6 +16,12 @@ def _xz(names: list[str], y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return y[xs], y[zs]
 
 
+def _below(ax: Any, ncol: int) -> None:
+    """The panel's legend under its x label, where it covers no trace."""
+    ax.legend(fontsize=8, ncol=ncol, loc='upper center', bbox_to_anchor=(0.5, -0.2),
+              frameon=False)
+
+
 def closed_loop_figure(path: str | Path, res: Any, output_names: list[str], *,
                        title: str = '', open_loop: np.ndarray | None = None) -> Path:
     """Write the figure of a :class:`~soft_rom.control.loop.ClosedLoopResult`.
@@ -29,7 +35,7 @@ def closed_loop_figure(path: str | Path, res: Any, output_names: list[str], *,
     import matplotlib.pyplot as plt
 
     path = Path(path)
-    fig, axes = plt.subplots(3, 1, figsize=(8.0, 9.0), constrained_layout=True)
+    fig, axes = plt.subplots(3, 1, figsize=(8.0, 9.8), constrained_layout=True)
     t = res.t
     times = t[-1] * np.array([0.55, 0.7, 0.85, 1.0])   # not whole periods of a 2 Hz wave
     colors = plt.rcParams['axes.prop_cycle'].by_key()['color']
@@ -46,7 +52,7 @@ def closed_loop_figure(path: str | Path, res: Any, output_names: list[str], *,
     ax.set_xlabel('x [mm]')
     ax.set_ylabel('z [mm]')
     ax.set_title('Centerline: reference (dashed) and achieved (solid)')
-    ax.legend(fontsize=8, ncol=3, loc='upper left')
+    _below(ax, ncol=6)
     ax.grid(alpha=0.3)
     ax = axes[1]
     p = res.Y.shape[0]
@@ -60,18 +66,21 @@ def closed_loop_figure(path: str | Path, res: Any, output_names: list[str], *,
     ax.set_xlabel('t [s]')
     ax.set_ylabel('RMS over outputs [mm]')
     ax.set_title('Tracking error')
-    ax.legend(fontsize=8)
+    _below(ax, ncol=3)
     ax.grid(alpha=0.3)
     ax = axes[2]
     for i in range(res.U.shape[0]):
         ax.plot(t, res.U[i] / 1e3, lw=1.0, color=colors[i % len(colors)], label=f'u{i + 1}')
-    lo, hi = float(np.min(res.u_min)), float(np.max(res.u_max))
-    ax.axhline(lo / 1e3, color='k', lw=0.8, ls='--')
-    ax.axhline(hi / 1e3, color='k', lw=0.8, ls='--', label='bounds')
+    lo = np.broadcast_to(np.asarray(res.u_min, dtype=np.float64), (res.U.shape[0],))
+    hi = np.broadcast_to(np.asarray(res.u_max, dtype=np.float64), (res.U.shape[0],))
+    for i in range(res.U.shape[0]):           # each chamber's own bounds, in its colour
+        c = colors[i % len(colors)]
+        ax.hlines([lo[i] / 1e3, hi[i] / 1e3], t[0], t[-1], colors=c, lw=0.9, ls=(0, (4, 3)))
+    ax.plot([], [], color='0.3', lw=0.9, ls=(0, (4, 3)), label='bounds')
     ax.set_xlabel('t [s]')
     ax.set_ylabel('pressure [kPa]')
-    ax.set_title('Pressures applied')
-    ax.legend(fontsize=8, ncol=7, loc='lower left')
+    ax.set_title('Pressures applied (each with its bounds, dashed)')
+    _below(ax, ncol=7)
     ax.grid(alpha=0.3)
     if title:
         fig.suptitle(title, fontsize=10)

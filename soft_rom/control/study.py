@@ -308,8 +308,9 @@ def _static_bend(st: _Study, mpc: MPCConfig) -> dict[str, Any]:
                        'final_error': float(err[-1]),
                        'within_2pct_from_s': within}
         st.log(f'  {lab} static bend: error after 1 s at most {100 * err.max():.2f} % of the '
-               f'commanded deviation (final {100 * err[-1]:.2f} %; within 2 % from '
-               + ('never' if within is None else f'{within:.2f} s') + ')')
+               f'commanded deviation (final {100 * err[-1]:.2f} %; '
+               + ('not within 2 % by the end' if within is None
+                  else f'within 2 % from {within:.2f} s') + ')')
     return {'reference': bend.label, 'commanded_deviation_m': commanded, 'per_model': offset}
 
 

@@ -62,13 +62,12 @@ def assess(pred: Any, now_ns: int | None, Level: Any, severity: dict[Any, int]) 
     e_abs, e_dev = pred.windowed_errors(now_ns)
     err = e_dev if cfg.error_metric == 'deviation' else e_abs
     thr = pred.thresholds
+    what = f'{cfg.error_metric} error over the last {cfg.error_window_s:g} s'
     if math.isfinite(err):
         if err > thr.error:
-            reasons.append((Level.ERROR, f'{cfg.error_metric} error {err:.3g} > '
-                                         f'{thr.error:.3g}{thr.error_why}'))
+            reasons.append((Level.ERROR, f'{what} {err:.3g} > {thr.error:.3g}{thr.error_why}'))
         elif err > thr.warn:
-            reasons.append((Level.WARN, f'{cfg.error_metric} error {err:.3g} > '
-                                        f'{thr.warn:.3g}{thr.warn_why}'))
+            reasons.append((Level.WARN, f'{what} {err:.3g} > {thr.warn:.3g}{thr.warn_why}'))
     elif pred._monitor.seen and ch.measured_newest is not None and now_ns is not None:
         age = (now_ns - ch.measured_newest) * 1e-9
         reasons.append((Level.STALE, f'no measurement for {age:.2f} s (window '

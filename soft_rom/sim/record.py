@@ -83,7 +83,7 @@ def record_episode(model: EelModel, episode: int, path: str | Path, *, seed: int
     bar = None
     if progress:
         from tqdm import tqdm
-        bar = tqdm(total=n_steps, desc=f'ep{episode}', unit='step', leave=False)
+        bar = tqdm(total=n_steps, desc=Path(path).name, unit='step', leave=False)
     with EpisodeBagWriter(path, storage=storage, n_chambers=model.n_chambers,
                           n_nodes=model.n_nodes if state else None, frame_id='world',
                           overwrite=overwrite) as writer:

@@ -58,9 +58,19 @@ def _plt() -> Any:
     return plt
 
 
-def _off_handles(plt: Any) -> tuple[list[Any], list[str]]:
+#: What :func:`_plot_in_range` returns: bits of the edges a curve was cut at.
+ABOVE, BELOW = 1, 2
+
+
+def _off_handles(plt: Any, sides: int = ABOVE) -> tuple[list[Any], list[str]]:
+    """Legend entries of the edge markers that were drawn (``sides``: ABOVE | BELOW)."""
     from matplotlib.lines import Line2D
-    return ([Line2D([], [], marker='^', color='0.4', **_OFF)], ['off the scale (cut at the edge)'])
+    handles, labels = [], []
+    for bit, marker, where in ((ABOVE, '^', 'above'), (BELOW, 'v', 'below')):
+        if sides & bit:
+            handles.append(Line2D([], [], marker=marker, color='0.4', **_OFF))
+            labels.append(f'{where} the scale (cut at the edge)')
+    return handles, labels
 
 
 def _finish(fig: Any, path: Path, title: str, handles: Sequence[Any], labels: Sequence[str],
@@ -98,11 +108,15 @@ def _legend_entries(axes: Sequence[Any]) -> tuple[list[Any], list[str]]:
 
 
 def _plot_in_range(ax: Any, x: Any, y: Any, lo: float,
-                   hi: float, *, log: bool = False, **style: Any) -> bool:
+                   hi: float, *, log: bool = False, points: bool = False,
+                   **style: Any) -> int:
     """Plot ``y(x)`` cut where it leaves ``[lo, hi]``: the line ends at the edge, marked there.
 
-    Returns whether any of it was cut. A non-finite value counts as above the range. With
-    ``log`` the crossings are interpolated in log10 (for a logarithmic axis).
+    Returns the edges it was cut at (:data:`ABOVE` | :data:`BELOW`, 0 if none). A non-finite
+    value counts as above the range. With ``log`` the crossings are interpolated in log10
+    (for a logarithmic axis). With ``points`` (data at discrete ``x``, e.g. orders r) every
+    point outside is marked at its own ``x`` on the edge; otherwise (a sampled curve) the
+    marks are where the curve leaves the range.
     """
     x = np.asarray(x, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
@@ -123,7 +137,7 @@ def _plot_in_range(ax: Any, x: Any, y: Any, lo: float,
         return float(x[i - 1] + w * (x[i] - x[i - 1]))
 
     if not len(x):
-        return False
+        return 0
     if side[0] == 0:
         xs.append(x[0])
         ys.append(fy[0])
@@ -155,15 +169,25 @@ def _plot_in_range(ax: Any, x: Any, y: Any, lo: float,
         inside = side == 0
         ax.plot(x[inside], y[inside], ls='none', marker=marker, ms=ms, color=color)
     ax.plot([], [], marker=marker, ms=ms, label=label, **dict(style, color=color))
+    if points:
+        exits = [(float(xi), int(si)) for xi, si in zip(x, side) if si != 0]
     for xe, s in exits:
         ax.plot([xe], [hi if s > 0 else lo], marker='^' if s > 0 else 'v',
                 color=color, **_OFF)
-    return bool(exits)
+    return (ABOVE if any(s > 0 for _, s in exits) else 0) | (
+        BELOW if any(s < 0 for _, s in exits) else 0)
 
 
-def _integer_ticks(ax: Any) -> None:
-    from matplotlib.ticker import MaxNLocator
-    ax.xaxis.set_major_locator(MaxNLocator(integer=True, nbins=6))
+def _r_ticks(ax: Any, rs: Sequence[float]) -> None:
+    """Ticks at the orders drawn (every other one beyond 8), else integers."""
+    ticks = sorted({int(r) for r in rs})
+    if not ticks:
+        from matplotlib.ticker import MaxNLocator
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True, nbins=6))
+        return
+    while len(ticks) > 8:
+        ticks = ticks[::2]
+    ax.set_xticks(ticks)
 
 
 def errors_vs_r(path: Path, curves: Mapping[str, Mapping[str, Sequence[float]]], *,
@@ -204,7 +228,7 @@ def errors_vs_r(path: Path, curves: Mapping[str, Mapping[str, Sequence[float]]],
         hi = min(hi, y_max)
     fig, axes = plt.subplots(1, len(panels), figsize=(WIDTH_IN, 3.3), sharey=True,
                              squeeze=False)
-    cut = False
+    cut = 0
     for ax, method in zip(axes[0], panels):
         drawn = [method] + (['lopinf_cubic'] if method == 'lopinf' and 'lopinf_cubic' in curves
                             else [])
@@ -215,18 +239,18 @@ def errors_vs_r(path: Path, curves: Mapping[str, Mapping[str, Sequence[float]]],
         for m in drawn:
             c = curves[m]
             for key, style, what in (('train', ':o', 'training'), ('test', '-.^', 'test')):
-                cut |= _plot_in_range(ax, c['r'], c[key], lo, hi, log=True, marker=style[-1],
-                                      ls=style[:-1], color=COLORS[m], ms=4.5, lw=1.4,
-                                      label=f'{names[m]}, {what}')
+                cut |= _plot_in_range(ax, c['r'], c[key], lo, hi, log=True, points=True,
+                                      marker=style[-1], ls=style[:-1], color=COLORS[m],
+                                      ms=4.5, lw=1.4, label=f'{names[m]}, {what}')
         ax.set_yscale('log')
         ax.set_ylim(lo, hi)
         ax.set_title(' + '.join(names[m].split(' r=')[0] for m in drawn), fontsize=9)
         ax.set_xlabel('reduced dimension r', fontsize=8.5)
         ax.tick_params(labelsize=8)
-        _integer_ticks(ax)
         rs = [r for m in drawn for r in curves[m]['r']]
         if paper and method in paper:
             rs += list(paper[method]['r'])
+        _r_ticks(ax, rs)
         if rs:
             ax.set_xlim(min(rs) - 1, max(rs) + 1)
         ax.grid(True, which='both', alpha=0.25)
@@ -236,7 +260,7 @@ def errors_vs_r(path: Path, curves: Mapping[str, Mapping[str, Sequence[float]]],
 
 
 def _errors_vs_r_legend(plt: Any, curves: Mapping[str, Any], names: Mapping[str, str],
-                        paper: bool, cut: bool) -> tuple[list[Any], list[str]]:
+                        paper: bool, cut: int) -> tuple[list[Any], list[str]]:
     """Legend of :func:`errors_vs_r`: the two windows, the paper, one patch per method."""
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch
@@ -251,7 +275,7 @@ def _errors_vs_r_legend(plt: Any, curves: Mapping[str, Any], names: Mapping[str,
             handles.append(Patch(color=COLORS[m]))
             entries.append(names[m])
     if cut:
-        h, n = _off_handles(plt)
+        h, n = _off_handles(plt, cut)
         handles, entries = handles + h, entries + n
     return handles, entries
 
@@ -285,7 +309,7 @@ def output_traces(path: Path, t: NDArray[np.float64], fom: NDArray[np.float64],
     from matplotlib.ticker import ScalarFormatter
     fig, axes = plt.subplots(len(rows), 1, figsize=(WIDTH_IN, 1.0 + 2.0 * len(rows)),
                              sharex=True, squeeze=False)
-    cut = False
+    cut = 0
     for ax, row, name in zip(axes[:, 0], rows, row_names):
         ref = np.asarray(fom[row], dtype=np.float64) * scale
         lo, hi = float(np.min(ref)), float(np.max(ref))
@@ -309,7 +333,7 @@ def output_traces(path: Path, t: NDArray[np.float64], fom: NDArray[np.float64],
     axes[-1, 0].set_xlabel('time [s]', fontsize=8.5)
     handles, labels = _legend_entries(axes[:, 0])
     if cut:
-        h, n = _off_handles(plt)
+        h, n = _off_handles(plt, cut)
         handles, labels = handles + h, labels + n
     return _finish(fig, path, title, handles, labels, ncol=min(len(labels), 4))
 
@@ -341,7 +365,7 @@ def error_bars(path: Path, errors: Mapping[str, Mapping[str, float]], *,
               default=1.0) * 1.08
     if y_max is not None:
         top = min(top, y_max)
-    cut = False
+    cut = 0
     for i, method in enumerate(methods):
         xs = x + (i - (len(methods) - 1) / 2) * width
         vals = np.array([errors[method][ep] for ep in episodes], dtype=np.float64)
@@ -349,7 +373,7 @@ def error_bars(path: Path, errors: Mapping[str, Mapping[str, float]], *,
         over = ~np.isfinite(vals) | (vals > top)
         ax.bar(xs, np.where(over, top, vals), width, color=COLORS[method], label=label)
         for xo, v in zip(xs[over], vals[over]):
-            cut = True
+            cut |= ABOVE
             ax.plot([xo], [top], marker='^', color=COLORS[method], **_OFF)
             ax.text(xo, top * 0.97, f'{v:.3g}', rotation=90, ha='center', va='top',
                     fontsize=7, color='white')
@@ -365,7 +389,7 @@ def error_bars(path: Path, errors: Mapping[str, Mapping[str, float]], *,
     ax.grid(True, axis='y', alpha=0.3)
     handles, labels = _legend_entries([ax])
     if cut:
-        h, n = _off_handles(plt)
+        h, n = _off_handles(plt, cut)
         handles, labels = handles + h, labels + n
     return _finish(fig, path, title, handles, labels, ncol=min(len(labels), 5))
 
@@ -394,7 +418,7 @@ def centerline_shapes(path: Path, times: Sequence[float],
     fz_all = [np.asarray(z) * scale for _x, z in shapes.get('fom', [])]
     zpad = max([float(np.max(np.abs(z))) for z in fz_all] + [5e-3 * scale])
     lo, hi = -2.0 * zpad, 2.0 * zpad
-    cut = False
+    cut = 0
     for i, (ax, tt) in enumerate(zip(axes[:, 0], times)):
         for key, per_time in shapes.items():
             x, z = (np.asarray(a, dtype=np.float64) * scale for a in per_time[i])
@@ -416,6 +440,6 @@ def centerline_shapes(path: Path, times: Sequence[float],
     axes[-1, 0].set_xlabel('x [mm]', fontsize=8.5)
     handles, labels = _legend_entries(axes[:, 0])
     if cut:
-        h, n = _off_handles(plt)
+        h, n = _off_handles(plt, cut)
         handles, labels = handles + h, labels + n
     return _finish(fig, path, title, handles, labels, ncol=min(len(labels), 3))
