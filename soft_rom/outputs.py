@@ -37,6 +37,7 @@ import ctypes
 import ctypes.util
 import errno
 import functools
+import gzip
 import json
 import os
 from pathlib import Path
@@ -53,22 +54,88 @@ __all__ = [
     'check_free_space',
     'check_output',
     'clean_stale',
+    'foreign_files',
     'is_marked',
     'make_parent',
     'mark',
     'recover',
+    'refuse_foreign',
 ]
 
 MARKER = '.soft_rom_output.json'
+#: The files soft_rom wrote in a marked folder (relative paths, gzip'd text, one per line).
+MANIFEST = '.soft_rom_output.files.gz'
 _STAGE = '.soft_rom-stage-'
 _OLD = '.soft_rom-old-'
 
 Checker = Callable[[Path], bool]
 
 
-def mark(folder: str | os.PathLike[str], kind: str) -> None:
-    """Write the marker that says soft_rom wrote ``folder`` as an output of ``kind``."""
-    Path(folder, MARKER).write_text(json.dumps({'writer': 'soft_rom', 'kind': kind}) + '\n')
+def mark(folder: str | os.PathLike[str], kind: str, *, manifest: bool = True) -> None:
+    """Write the marker that says soft_rom wrote ``folder`` as an output of ``kind``.
+
+    With ``manifest`` (the default, for a folder soft_rom has just written whole) it also
+    lists the files in it, so that ``--overwrite`` can refuse to delete files added to it
+    later (:func:`foreign_files`); without (a folder that keeps growing, or one adopted from
+    an earlier version), any list left from before is removed.
+    """
+    folder = Path(folder)
+    folder.joinpath(MARKER).write_text(json.dumps({'writer': 'soft_rom', 'kind': kind}) + '\n')
+    if manifest:
+        with gzip.open(folder / MANIFEST, 'wt', encoding='utf-8') as fh:
+            fh.write(''.join(f'{name}\n' for name in _listing(folder)))
+    else:
+        folder.joinpath(MANIFEST).unlink(missing_ok=True)
+
+
+def _ours_hidden(name: str) -> bool:
+    """A staging, parked or marker name of soft_rom's own (never a user's file)."""
+    return name.startswith('.') and 'soft_rom' in name
+
+
+def _listing(folder: Path) -> list[str]:
+    """The files (and links) under ``folder``, relative, without soft_rom's hidden ones."""
+    names = []
+    for root, dirs, files in os.walk(folder):
+        rel = Path(root).relative_to(folder)
+        links = [d for d in dirs if os.path.islink(os.path.join(root, d))]
+        dirs[:] = [d for d in dirs if not _ours_hidden(d) and d not in links]
+        names += [(rel / n).as_posix() for n in files + links if not _ours_hidden(n)]
+    return sorted(names)
+
+
+def foreign_files(folder: str | os.PathLike[str]) -> list[str]:
+    """Files in a marked ``folder`` that were not there when soft_rom wrote it.
+
+    Empty for a folder without a list of its files (written by an earlier version, or still
+    growing): then there is nothing to compare with.
+
+    Raises
+    ------
+    OutputExistsError
+        The list is there but unreadable.
+    """
+    folder = Path(folder)
+    path = folder / MANIFEST
+    if not path.is_file():
+        return []
+    try:
+        with gzip.open(path, 'rt', encoding='utf-8') as fh:
+            known = set(fh.read().splitlines())
+    except (OSError, ValueError, EOFError) as err:
+        raise OutputExistsError(f'{folder}: its list of the files soft_rom wrote ({MANIFEST}) '
+                                f'is unreadable ({err}); refusing to replace it') from None
+    return [name for name in _listing(folder) if name not in known]
+
+
+def refuse_foreign(folder: str | os.PathLike[str]) -> None:
+    """Refuse to replace a soft_rom folder that holds files added since it was written."""
+    extra = foreign_files(folder)
+    if extra:
+        more = f' and {len(extra) - 3} more' if len(extra) > 3 else ''
+        raise OutputExistsError(
+            f'{folder} holds files soft_rom did not write there ({", ".join(extra[:3])}{more}); '
+            '--overwrite would delete them: move them out, or choose another output')
 
 
 def is_marked(path: str | os.PathLike[str], kinds: Sequence[str] | None = None) -> bool:
@@ -179,6 +246,8 @@ def check_output(dest: str | os.PathLike[str], *, overwrite: bool, what: str,
     if not ours:
         raise OutputExistsError(f'{dest} was not written by soft_rom as a {what}; refusing to '
                                 f'replace it (--overwrite only replaces soft_rom outputs)')
+    if is_ours is None:
+        refuse_foreign(dest)
 
 
 def make_parent(folder: Path, what: str) -> None:

@@ -97,7 +97,7 @@ def _check_existing(out: Path, episodes: int, overwrite: bool,
     import json
 
     from soft_rom.errors import OutputExistsError
-    from soft_rom.outputs import is_marked
+    from soft_rom.outputs import is_marked, refuse_foreign
 
     for name in names or [f'ep{e}' for e in range(1, episodes + 1)]:
         bag = out / name
@@ -129,6 +129,7 @@ def _check_existing(out: Path, episodes: int, overwrite: bool,
         if not ours:
             raise OutputExistsError(f'{bag} was not written by soft-rom simulate; refusing to '
                                     'replace it (--overwrite only replaces soft_rom outputs)')
+        refuse_foreign(bag)
 
 
 def read_inputs(path: Path, n_chambers: int = 6) -> tuple[float, np.ndarray]:

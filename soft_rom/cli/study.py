@@ -58,7 +58,7 @@ def _check_study_folder(out: Path, overwrite: bool) -> None:
     (``summary.json`` and ``report.md``).
     """
     from soft_rom.errors import OutputExistsError
-    from soft_rom.outputs import is_marked, mark
+    from soft_rom.outputs import is_marked, mark, refuse_foreign
     from soft_rom.outputs_inplace import restore_interrupted
 
     restore_interrupted(out)
@@ -69,9 +69,11 @@ def _check_study_folder(out: Path, overwrite: bool) -> None:
                                 'choose another -o folder')
     if out.is_dir() and not out.is_symlink():
         if is_marked(out, ('study',)):
+            refuse_foreign(out)
             return
         if (out / 'summary.json').is_file() and (out / 'report.md').is_file():
-            mark(out, 'study')         # written by a study before the marker existed
+            # written by a study before the marker existed (what else is in it: not known)
+            mark(out, 'study', manifest=False)
             return
     raise OutputExistsError(f'{out} is not a soft_rom study folder (it holds other files); '
                             '--overwrite replaces only a study or demo folder: choose a new '

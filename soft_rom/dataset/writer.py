@@ -453,6 +453,6 @@ def adopt_legacy(path: Path) -> None:
     except (OSError, ValueError):
         return
     if isinstance(attrs, dict) and attrs.get('format') == FORMAT:
-        outputs.mark(path, KIND)
+        outputs.mark(path, KIND, manifest=False)     # what else it holds: not known
 
 

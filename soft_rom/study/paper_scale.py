@@ -452,7 +452,6 @@ def run_paper_scale(out: str | Path, cfg: StudyConfig, *, bag_dir: str | Path | 
         Bags (default ``out/bags``).
     stages : sequence of str
         Run only up to these (tests); the default runs all.
-
     Raises
     ------
     ResourceError
@@ -469,7 +468,7 @@ def run_paper_scale(out: str | Path, cfg: StudyConfig, *, bag_dir: str | Path | 
     plan = plan_run(out, cfg, bags)
     check_plan(plan)
     out.mkdir(parents=True, exist_ok=True)
-    mark(out, 'study')                  # a resumed run finds its own folder
+    mark(out, 'study', manifest=False)  # a resumed run finds its own folder (it grows)
     _write_json(out / 'stages' / 'config.json', asdict(cfg))
     echo(f'paper-scale run: {plan.describe()}')
     t_run = time.perf_counter()
@@ -493,6 +492,7 @@ def run_paper_scale(out: str | Path, cfg: StudyConfig, *, bag_dir: str | Path | 
         rec = _stage_record(out, stage) or {}
         echo(f'      {stage} done in {_fmt(rec.get("wall_s", 0.0))}, peak RSS '
              f'{rec.get("peak_rss_gb", 0.0):.2f} GB')
+    mark(out, 'study')                  # the stages done: what the folder holds is ours
     summary_path = out / 'summary.json'
     if 'report' in stages and summary_path.is_file():
         summary: dict[str, Any] = json.loads(summary_path.read_text(encoding='utf-8'))

@@ -96,6 +96,7 @@ def test_overwrite_reuses_the_recorded_episodes_of_the_same_settings(tmp_path,
         (bags / f'ep{i}' / 'ep.mcap').write_bytes(b'messages')
         (bags / f'ep{i}.json').write_text(json.dumps(
             {'seed': seed, 'storage': 'mcap', 'n_steps': 2000, 'dt': 0.001, 'resolution': 1}))
+    mark(out, 'study')                            # the study wrote its bags before its marker
     inode = (bags / 'ep1' / 'ep.mcap').stat().st_ino
     assert main(['study', '-o', str(out), '--quiet', '--overwrite', '--episodes', '3']) == 0
     assert fake_study[0]['bags'] == ['ep1', 'ep1.json', 'ep2', 'ep2.json']
@@ -113,6 +114,22 @@ def test_a_failed_run_leaves_the_previous_folder(tmp_path, capsys, fake_study,
     new = tmp_path / 'new'
     assert main(['demo', '-o', str(new), '--quiet']) == 1
     assert not new.exists() and _leftovers(tmp_path) == []
+
+
+def test_files_added_to_a_study_folder_stop_overwrite(tmp_path, capsys, fake_study) -> None:
+    """A model fitted into it, notes, an input of the run: --overwrite would delete them."""
+    out = tmp_path / 'out'
+    _old_study(out)
+    (out / 'models').mkdir()
+    (out / 'models' / 'mine.npz').write_bytes(b'my model')
+    before = _tree(out)
+    assert main(['study', '-o', str(out), '--quiet', '--overwrite']) == 2
+    err = capsys.readouterr().err
+    assert 'holds files soft_rom did not write there (models/mine.npz)' in err
+    assert len(err.strip().splitlines()) == 1 and _tree(out) == before
+    (out / 'models' / 'mine.npz').unlink()
+    (out / 'models').rmdir()                      # an empty folder left is no one's file
+    assert main(['study', '-o', str(out), '--quiet', '--overwrite']) == 0
 
 
 def test_not_a_study_folder_is_never_replaced(tmp_path, capsys, fake_study) -> None:

@@ -234,6 +234,32 @@ def test_overwrite_onto_a_bag_or_foreign_folder_is_refused_untouched(tmp_path, c
     assert TrainingSet.open(out)['ep1'].n_samples == 50
 
 
+def test_overwrite_keeps_a_recording_put_inside_the_set_it_would_replace(tmp_path, capsys):
+    """The audit's case: the input bag moved into the training set, then converted onto it.
+
+    ``--overwrite`` used to delete the set with the bag in it (exit 0); so a model file that
+    ``soft-rom fit`` wrote into the set. The set's list of its own files stops both.
+    """
+    out = tmp_path / 'copy.zarr'
+    _bag(tmp_path / 'rec1', k=50)
+    assert main(['convert', str(tmp_path / 'rec1'), '-o', str(out), '--quiet']) == 0
+    os.rename(tmp_path / 'rec1', out / 'rec1')
+    before = _tree_digest(out)
+    assert main(['convert', str(out / 'rec1'), '-o', str(out), '--overwrite', '--quiet']) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and 'did not write there (rec1/' in err, err
+    assert _tree_digest(out) == before and read_episode(out / 'rec1')[0].n_samples == 50
+    os.rename(out / 'rec1', tmp_path / 'rec1')  # moved out: the set is replaced as before
+    assert main(['convert', str(tmp_path / 'rec1'), '-o', str(out), '--overwrite',
+                 '--quiet']) == 0
+    assert main(['fit', str(out), '--method', 'dmdc', '--r', '2', '-o', str(out),
+                 '--quiet']) == 0
+    assert main(['convert', str(tmp_path / 'rec1'), '-o', str(out), '--overwrite',
+                 '--quiet']) == 2
+    assert 'copy_dmdc_r2.npz' in capsys.readouterr().err
+    assert (out / 'copy_dmdc_r2.npz').is_file()
+
+
 def test_failed_swap_restores_the_old_set(tmp_path, monkeypatch):
     from soft_rom import outputs
     bag = tmp_path / 'rec'
