@@ -80,13 +80,13 @@ def all_finite(arr: ArrayLike) -> bool:
     return bool(np.isfinite(total)) or bool(np.all(np.isfinite(a)))
 
 
-def check_finite(name: str, arr: NDArray[Any]) -> None:
+def check_finite(name: str, arr: NDArray[Any], before: str = 'fitting') -> None:
     """Raise :class:`ValueError` naming ``name`` and the first bad index if ``arr`` has NaN/Inf."""
     if not all_finite(arr):
         bad = np.argwhere(~np.isfinite(arr))[0]
         raise DimensionError(
             f'{name} contains NaN or Inf (first at index {tuple(int(i) for i in bad)}); '
-            'clean or drop those samples before fitting.')
+            f'clean or drop those samples before {before}.')
 
 
 @dataclass(frozen=True)

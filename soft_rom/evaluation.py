@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from soft_rom.data import Episode
+from soft_rom.data import check_finite, Episode
 from soft_rom.errors import ConfigError, DimensionError
 from soft_rom.metrics import relative_error_from_squares
 from soft_rom.models import DiscreteModel, LinearROM, run_states, SecondOrderModel
@@ -183,6 +183,8 @@ def evaluate(model: LinearROM, episodes: Episode | Sequence[Episode], *,
     preds: dict[str, Array] = {}
     y_ref = model.y_ref[:, None]
     for ep in eps:
+        for name, arr in (('U', ep.U), ('Y', ep.Y)):     # a NaN would make every error NaN
+            check_finite(f'{name} of episode {ep.name!r}', np.asarray(arr), 'evaluating')
         Y_hat = predict(model, ep, initial=initial)
         if return_predictions:
             preds[ep.name] = Y_hat

@@ -176,3 +176,14 @@ def test_held_out_errors_of_one_episode_score_its_tail():
     assert 'the last 25% of ep1' in res['data']
     with pytest.raises(ConfigError, match='at least one'):
         held_out_errors(fit, [], truth.y_ref)
+
+
+def test_a_nan_in_the_data_is_refused_not_averaged_into_nan_errors():
+    """Found by an audit: a NaN in a stored episode printed rows of nan with exit 0."""
+    m, _ = _discrete()
+    U = np.zeros((m.n_inputs, 20))
+    Y = np.zeros((m.n_outputs, 20))
+    Y[1, 7] = np.nan
+    with pytest.raises(DimensionError, match=r"Y of episode 'ep1' contains NaN or Inf "
+                                             r'\(first at index \(1, 7\)\).*evaluating'):
+        evaluate(m, [Episode(t=np.arange(20) * m.dt, U=U, Y=Y, name='ep1')])

@@ -69,6 +69,28 @@ def test_rerun_reuses_bags_and_reconverts_when_they_change(study, tmp_path) -> N
                   progress=False, studies=(1,), bag_dir=out / 'bags')
 
 
+def test_failed_fits_are_said_and_a_study_with_none_is_an_error(tmp_path, caplog) -> None:
+    """Found by an audit: methods that failed at every r left empty tables, exit 0, no reason.
+
+    10-ms episodes are too short for LOpInf's 8th-order differences and for ERA's preset
+    Markov horizon; DMDc fits. With only LOpInf asked for, nothing fits: an error.
+    """
+    from soft_rom.errors import SolverError
+    cfg = StudyConfig(n_episodes=2, duration=0.01, t_train=0.005, r_lopinf=(2,), r_dmdc=(2,),
+                      r_era=(4,), r_cubic=(), jobs=1)
+    summary = run_study(tmp_path / 'a', cfg, progress=False, studies=(1,))
+    failed = summary['failures']
+    assert [f.split(' failed: ')[0] for f in failed] == ['study 1: lopinf', 'study 1: era']
+    assert 'too short for the derivative estimator' in failed[0]
+    report = (tmp_path / 'a' / 'report.md').read_text()
+    assert '## Warnings' in report and failed[1] in report
+    assert list(summary['study1']['best']) == ['dmdc']
+    none = StudyConfig(n_episodes=2, duration=0.01, t_train=0.005, r_lopinf=(2,), r_dmdc=(),
+                       r_era=(), r_cubic=(), jobs=1)
+    with pytest.raises(SolverError, match='no method fitted a model: study 1: lopinf failed'):
+        run_study(tmp_path / 'a', none, progress=False, studies=(1,))
+
+
 def test_report_renders_and_shows_every_figure(study) -> None:
     """Every table row has its header's cells (markdown-it-py); every figure is captioned."""
     from _markdown import table_problems

@@ -26,9 +26,11 @@ import importlib
 import logging
 import math
 import os
+import re
 import sys
 import traceback
 from typing import Any, NoReturn
+import warnings
 
 from soft_rom import __version__
 from soft_rom.errors import (
@@ -46,8 +48,18 @@ VERBS = ('simulate', 'convert', 'fit', 'evaluate', 'replay', 'control', 'study',
 USAGE, RUNTIME = 2, 1
 
 
+#: What argparse takes for a negative number rather than an option: with an exponent and
+#: comma lists too (``--bias -1e4``, ``--u-min -2e4,-2e4``; argparse's own takes ``-5``, ``-.5``).
+_NEGATIVE = re.compile(r'^-(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?'
+                       r'(,[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)*$')
+
+
 class _Parser(argparse.ArgumentParser):
     """An argument parser whose errors are one line (usage is in ``--help``)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._negative_number_matcher = _NEGATIVE
 
     def error(self, message: str) -> NoReturn:
         self.exit(USAGE, f'{self.prog}: error: {message} (see {self.prog} --help)\n')
@@ -158,6 +170,11 @@ def _logging(verbose: int) -> None:
     logging.getLogger('soft_rom').setLevel(logging.DEBUG if verbose >= 2 else logging.INFO)
 
 
+def _show(held: list[warnings.WarningMessage]) -> None:
+    for w in held:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno, source=w.source)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of ``soft-rom``; returns the process exit code."""
     _robust_streams()
@@ -173,8 +190,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         _check_numbers(args)
         _guard_outputs(args)
         from tqdm.contrib.logging import logging_redirect_tqdm
-        with logging_redirect_tqdm():          # log lines above progress bars, not inside
-            return int(args.func(args) or 0)
+        # numpy's warnings on the way to an error (an overflow before 'diverged') would bury
+        # its one line: they are held, and shown after a run that succeeds (or with --debug)
+        held: list[warnings.WarningMessage] = []
+        try:
+            with warnings.catch_warnings(record=True) as held, logging_redirect_tqdm():
+                warnings.simplefilter('default')
+                code = int(args.func(args) or 0)
+        except BaseException:
+            if debug:
+                _show(held)
+            raise
+        _show(held)
+        return code
     except KeyboardInterrupt:
         print(f'soft-rom {args.verb}: interrupted', file=sys.stderr)
         return 130

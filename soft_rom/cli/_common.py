@@ -30,6 +30,7 @@ from typing import Any
 from soft_rom.resources import available_memory
 
 __all__ = [
+    'a_path',
     'add_json',
     'add_output',
     'add_quiet',
@@ -43,14 +44,29 @@ __all__ = [
     'is_model_file',
     'is_summary_json',
     'is_training_set',
+    'list_items',
     'parse_r_list',
     'write_text_output',
 ]
 
 
-def parse_r_list(text: str) -> tuple[int, ...]:
+def list_items(text: str, what: str) -> list[str]:
+    """The comma-separated items of ``text``, stripped; an empty one (``'1,,2'``) is refused.
+
+    A typo that drops a value must not pass for a shorter list.
+    """
+    items = [v.strip() for v in text.split(',')]
+    if len(items) > 1 and not all(items):
+        raise argparse.ArgumentTypeError(f'{what} {text!r} has an empty item; separate the '
+                                         'values with single commas')
+    return [v for v in items if v]
+
+
+def parse_r_list(text: str, what: str = 'r') -> tuple[int, ...]:
     """Parse ``'16'``, ``'4,8,16'`` or ``'2:22:2'`` (inclusive stop) into a tuple of ints."""
     usage = 'give --r as N, N,M,... or START:STOP[:STEP] (stop included), e.g. --r 4:12:4'
+    if ':' not in text:
+        list_items(text, f'the {what} values')
     try:
         if ':' in text:
             parts = [int(p) for p in text.split(':')]
@@ -74,9 +90,10 @@ def parse_r_list(text: str) -> tuple[int, ...]:
     if not values:
         raise argparse.ArgumentTypeError(f'no r value in {text!r}: {usage}')
     if min(values) < 1:
-        raise argparse.ArgumentTypeError(f'r values must be positive integers; got {text!r}')
+        raise argparse.ArgumentTypeError(f'{what} values must be positive integers; got '
+                                         f'{text!r}')
     if max(values) > 10_000:
-        raise argparse.ArgumentTypeError(f'r values must be at most 10000; got {text!r}')
+        raise argparse.ArgumentTypeError(f'{what} values must be at most 10000; got {text!r}')
     if len(set(values)) != len(values):
         raise argparse.ArgumentTypeError(f'r values repeat in {text!r}: give each once')
     return values
@@ -132,15 +149,22 @@ def int_range(lo: int | None = None, hi: int | None = None) -> Callable[[str], i
     return parse
 
 
+def a_path(text: str) -> Path:
+    """An argparse ``type``: a path, not an empty string (``-o ""`` meant the working folder)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError('an empty path; give a file or folder name')
+    return Path(text)
+
+
 def add_output(parser: argparse.ArgumentParser, *, help: str, default: Path | None = None,
                required: bool = False, metavar: str = 'PATH', old: bool = False) -> None:
     """``-o/--output`` (and, with ``old``, the hidden alias ``--out``)."""
     if default is not None:
         help = f'{help} (default: {default})'
-    parser.add_argument('-o', '--output', type=Path, default=default, required=required,
+    parser.add_argument('-o', '--output', type=a_path, default=default, required=required,
                         metavar=metavar, help=help)
     if old:
-        parser.add_argument('--out', type=Path, dest='output', help=argparse.SUPPRESS)
+        parser.add_argument('--out', type=a_path, dest='output', help=argparse.SUPPRESS)
 
 
 def add_quiet(parser: argparse.ArgumentParser, *, help: str = 'no progress bars',

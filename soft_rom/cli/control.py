@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from soft_rom.cli._common import (
+    a_path,
     add_quiet,
     check_writable_folder,
     dumps_strict,
@@ -53,7 +54,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                              'or wave:f=2,wavelength=0.8,amplitude=auto (travelling wave), '
                              'step:u=P1/P2/P3/P4/P5/P6[,at=0.1] (static bend of the FOM), '
                              'episode:BAG (a recorded episode)')
-    parser.add_argument('-o', '--output', type=Path, required=True, metavar='OUT',
+    parser.add_argument('-o', '--output', type=a_path, required=True, metavar='OUT',
                         help='output folder')
     parser.add_argument('--overwrite', action='store_true',
                         help='replace an OUT that soft-rom control wrote before')
@@ -82,7 +83,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                         default=120.0, help='measured centerline rate, Hz (default 120)')
     parser.add_argument('--sensor-noise', type=finite_float(0.0, 1.0), default=5e-4,
                         help='measurement noise (std, m; default 0.0005)')
-    parser.add_argument('--seed', type=int, default=0, help='seed of the sensor noise')
+    parser.add_argument('--seed', type=int_range(0, 2**63 - 1), default=0,
+                        help='seed of the sensor noise')
     parser.add_argument('--resolution', type=int, choices=range(1, 5), default=1,
                         metavar='{1..4}', help='FOM mesh resolution (default 1)')
     add_quiet(parser)
@@ -96,7 +98,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                     'OUT/report.md, summary.json and figures.')
     study.add_argument('models', type=Path, nargs='+',
                        help="linear model files of the eel (e.g. the study's models/*.npz)")
-    study.add_argument('-o', '--output', type=Path, required=True, metavar='OUT',
+    study.add_argument('-o', '--output', type=a_path, required=True, metavar='OUT',
                        help='output folder')
     study.add_argument('--overwrite', action='store_true',
                        help='replace an OUT that soft-rom control-study wrote before')
@@ -104,7 +106,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                        help='seconds per closed loop (default 2)')
     study.add_argument('--references', type=int_range(1, 20), default=4,
                        metavar='{1..20}', help='feasible references (default 4)')
-    study.add_argument('--seed', type=int, default=100,
+    study.add_argument('--seed', type=int_range(0, 2**63 - 1), default=100,
                        help="seed of the references' random pressures (default 100; not a "
                             'training seed)')
     study.add_argument('--wave', default='wave:f=2,wavelength=0.8,reach=0.1',
@@ -144,6 +146,7 @@ def run_study(args: argparse.Namespace) -> int:
 def run(args: argparse.Namespace) -> int:
     """Run the closed loop and write OUT; returns the exit code."""
     from soft_rom.control import (
+        check_moves,
         ClosedLoopResult,
         EstimatorConfig,
         FOMPlant,
@@ -170,6 +173,7 @@ def run(args: argparse.Namespace) -> int:
     sensor = Sensor(rate=args.sensor_rate, noise=args.sensor_noise, seed=args.seed)
     eel = EelModel(resolution=args.resolution)
     ref = parse_reference(args.reference, model, duration=args.duration, plant=eel)
+    check_moves(ref, model, args.duration)
     plant = FOMPlant(model, eel)
     bar: Any = None
     if not args.quiet:
@@ -202,13 +206,22 @@ def run(args: argparse.Namespace) -> int:
                                             encoding='utf-8')
         closed_loop_figure(stage / 'closed_loop.png', res, list(model.output_names),
                            title=f'{model.method} r={model.r}: {ref.label}')
+    _print_summary(model, plant, ref, res, summary)
+    print(f'  wrote {out}/closed_loop.npz, summary.json, closed_loop.png')
+    return 0
+
+
+def _print_summary(model: Any, plant: Any, ref: Any, res: Any, summary: dict[str, Any]
+                   ) -> None:
+    """The run in a few lines: what ran, the tracking error, the solves, the bounds."""
     solve = summary['solve']
     counts = ', '.join(f'{k} {v}' for k, v in summary['status_counts'].items())
     print(f'{model.method} r={model.r} MPC on the eel FOM ({plant.eel.n_dof:,} DOF), '
           f'{res.t[-1] + res.info["plant_step_s"]:.2f} s, reference: {ref.label}')
-    print(f'  tracking deviation error {summary["tracking_deviation_error"]:.4f}'
-          + (f' (after 1 s: {summary["tracking_deviation_error_after_1s"]:.4f})'
-             if summary['tracking_deviation_error_after_1s'] is not None else ''))
+    err, after = (summary[k] for k in ('tracking_deviation_error',
+                                       'tracking_deviation_error_after_1s'))
+    print('  tracking deviation error ' + ('undefined' if err is None else f'{err:.4f}')
+          + (f' (after 1 s: {after:.4f})' if after is not None else ''))
     if solve['p50_ms'] is not None:
         period_ms = 1e3 * res.info['control_step_s']
         print(f'  QP ({res.info["qp_solver"]}) solve p50 {solve["p50_ms"]:.3f} ms, p99 '
@@ -218,5 +231,3 @@ def run(args: argparse.Namespace) -> int:
               'period')
     saturated = 100 * summary['saturated_fraction']
     print(f'  control steps: {counts}; inputs at a bound {saturated:.1f} % of the time')
-    print(f'  wrote {out}/closed_loop.npz, summary.json, closed_loop.png')
-    return 0

@@ -7,7 +7,7 @@ from pathlib import Path
 import time
 from typing import Any
 
-from soft_rom.cli.study import add_study_options, print_timings, study_output
+from soft_rom.cli.study import add_study_options, print_failures, print_timings, study_output
 
 __all__ = ['add_parser', 'run']
 
@@ -59,6 +59,7 @@ def run(args: argparse.Namespace) -> int:
         print(f'  {s2["chosen"][method].get("label", method):<18s} {errs}')
     if summary.get('replay'):
         print(replay_lines(summary['replay']))
+    print_failures(summary)
     return 0
 
 

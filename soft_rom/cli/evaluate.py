@@ -24,9 +24,9 @@ from soft_rom.cli._common import (
     finite_float,
     is_summary_json,
 )
+from soft_rom.cli.fit import open_training_set
 from soft_rom.data import Episode
-from soft_rom.dataset import TrainingSet
-from soft_rom.errors import DimensionError
+from soft_rom.errors import ConfigError, DimensionError
 from soft_rom.evaluation import evaluate
 from soft_rom.models import LinearROM, load_model
 from soft_rom.models.labels import model_label
@@ -89,6 +89,9 @@ def run(args: argparse.Namespace) -> int:
                     + ([('plots folder', args.plots)] if args.plots is not None else []))
         check_output(args.json, overwrite=args.overwrite, what='evaluation summary',
                      is_ours=_EVAL_JSON)
+    if args.outputs is not None and args.plots is None:
+        raise ConfigError('--outputs chooses the outputs of the trace plots; give --plots '
+                          'FOLDER too')
     if args.plots is not None:
         check_writable_folder(args.plots.parent, 'plots')
         check_output(args.plots, overwrite=args.overwrite, what='plots folder',
@@ -99,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
         if args.plots is not None:
             _output_indices(args.outputs, model)
         models.append((path, model))
-    ts = TrainingSet.open(args.data)
+    ts = open_training_set(args.data)             # a bag: refused with its convert command
     episodes = select_episodes(ts, args.episodes)
     for path, model in models:
         _check_layout(model, path, ts)

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from soft_rom.cli._common import (
+    a_path,
     add_json,
     add_quiet,
     check_apart,
@@ -32,6 +33,7 @@ from soft_rom.cli._common import (
     int_range,
     is_model_file,
     is_summary_json,
+    list_items,
     parse_r_list,
 )
 from soft_rom.errors import ConfigError
@@ -44,7 +46,7 @@ METHODS = tuple(LEARNERS)
 
 
 def _methods(text: str) -> tuple[str, ...]:
-    out = tuple(m.strip().lower() for m in text.split(',') if m.strip())
+    out = tuple(m.lower() for m in list_items(text, '--method'))
     bad = [m for m in out if m not in METHODS]
     if not out or bad:
         raise argparse.ArgumentTypeError(
@@ -179,7 +181,7 @@ def _add_run_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument('--dask-timeout', type=float, default=30.0, metavar='S',
                         help='seconds to wait for the Dask scheduler (to connect, and after '
                              'losing it; default 30)')
-    parser.add_argument('-o', '--output', type=Path, required=True, metavar='OUTDIR',
+    parser.add_argument('-o', '--output', type=a_path, required=True, metavar='OUTDIR',
                         help='directory for the model files (created if missing)')
     parser.add_argument('--overwrite', action='store_true',
                         help='replace model files (and the --json file) soft_rom wrote before')
@@ -392,7 +394,7 @@ def open_training_set(path: str | Path) -> Any:
     if p.exists() and is_bag(p):
         out = p.with_name((p.stem if p.is_file() else p.name) + '.zarr')
         raise ConfigError(f'{p} is a rosbag2 bag, not a training set: convert it first with '
-                          f'`soft-rom convert {p} -o {out}`, then fit {out}')
+                          f'`soft-rom convert {p} -o {out}`, then use {out}')
     return TrainingSet.open(p)
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from soft_rom.cli._common import (
+    a_path,
     add_json,
     add_quiet,
     check_apart,
@@ -47,7 +48,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                     'centerline_marker, output, error, model_info and /diagnostics).')
     parser.add_argument('model', help='model file (.npz)')
     parser.add_argument('bag', help='input bag (sqlite3 or MCAP)')
-    parser.add_argument('-o', '--output', type=Path, required=True, metavar='OUT',
+    parser.add_argument('-o', '--output', type=a_path, required=True, metavar='OUT',
                         help='output bag directory')
     parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap',
                         help='storage of the output bag (default mcap)')

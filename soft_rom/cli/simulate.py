@@ -26,6 +26,12 @@ if TYPE_CHECKING:
 
 __all__ = ['add_parser', 'estimate_resources', 'read_inputs', 'run']
 
+#: Shortest time step: bags stamp in nanoseconds, so a step of a microsecond is stamped to
+#: 0.1 %; shorter ones lose their uniform grid (or all of it, below a nanosecond).
+MIN_DT = 1e-6
+#: Largest pressure, Pa (``--amplitude``'s bound).
+MAX_PRESSURE = 1e7
+
 MAX_RESOLUTION = 64
 
 
@@ -49,7 +55,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                         help='seed of the pressure sequences (default: %(default)s)')
     parser.add_argument('--steps', type=int_range(1, 100_000_000), default=2000,
                         help='samples per episode (default: %(default)s)')
-    parser.add_argument('--dt', type=finite_float(0.0, 1.0, lo_open=True), default=1e-3,
+    parser.add_argument('--dt', type=finite_float(MIN_DT, 1.0), default=1e-3,
                         help='time step in seconds (default: %(default)s)')
     parser.add_argument('--amplitude', type=finite_float(0.0, 1e7), default=50e3,
                         help='pressure amplitude in Pa, 0 to 1e7 (default: %(default)s)')
@@ -137,25 +143,24 @@ def read_inputs(path: Path, n_chambers: int = 6) -> tuple[float, np.ndarray]:
     import numpy as np
 
     from soft_rom.errors import ConfigError
+    from soft_rom.models.archive import read_user_arrays
 
-    if not path.is_file():
+    if not path.exists():
         raise FileNotFoundError(2, 'No such file or directory', str(path))
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if 't' not in z.files or 'U' not in z.files:
-                raise ConfigError(f'--inputs {path}: needs arrays t (k,) and U ({n_chambers}, k);'
-                                  f' it has {", ".join(z.files) or "none"}')
-            t = np.asarray(z['t'], dtype=np.float64).reshape(-1)
-            U = np.asarray(z['U'], dtype=np.float64)
-    except (OSError, ValueError, EOFError) as err:
-        if isinstance(err, ConfigError):
-            raise
-        raise ConfigError(f'--inputs {path}: not a readable .npz ({err})') from None
+    z = read_user_arrays(path, '--inputs', ('t', 'U'))
+    if 't' not in z or 'U' not in z:
+        raise ConfigError(f'--inputs {path}: needs arrays t (k,) and U ({n_chambers}, k); '
+                          f'{" and ".join(n for n in ("t", "U") if n not in z)} missing')
+    t = np.asarray(z['t'], dtype=np.float64).reshape(-1)
+    U = np.asarray(z['U'], dtype=np.float64)
     if U.ndim != 2 or U.shape != (n_chambers, t.size) or t.size < 1:
         raise ConfigError(f'--inputs {path}: U must be ({n_chambers}, k) with k = len(t) = '
                           f'{t.size}; got {U.shape}')
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(U))):
         raise ConfigError(f'--inputs {path}: t and U must be finite (NaN or Inf found)')
+    if np.max(np.abs(U), initial=0.0) > MAX_PRESSURE:
+        raise ConfigError(f'--inputs {path}: pressures up to {np.max(np.abs(U)):.3g} Pa; the '
+                          f'eel takes at most {MAX_PRESSURE:g} Pa (as --amplitude)')
     if t.size == 1:
         return 1e-3, U
     steps = np.diff(t)
@@ -163,6 +168,9 @@ def read_inputs(path: Path, n_chambers: int = 6) -> tuple[float, np.ndarray]:
     if not dt > 0 or np.max(np.abs(steps - dt)) > 1e-6 * dt:
         raise ConfigError(f'--inputs {path}: t must be a uniform increasing grid (steps from '
                           f'{steps.min():g} to {steps.max():g} s)')
+    if not MIN_DT <= dt <= 1.0:
+        raise ConfigError(f'--inputs {path}: the step of t is {dt:g} s; it must be between '
+                          f'{MIN_DT:g} and 1 s (as --dt; bags stamp in nanoseconds)')
     return dt, U
 
 
@@ -174,6 +182,7 @@ def _run_inputs(args: argparse.Namespace, out: Path) -> int:
     dt, U = read_inputs(args.inputs)
     name = args.inputs.stem
     _check_existing(out, 1, args.overwrite, [name])
+    _check_resources(args, out, 1, U.shape[1])
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     model = EelModel(EelConfig(resolution=args.resolution))
@@ -189,10 +198,27 @@ def _run_inputs(args: argparse.Namespace, out: Path) -> int:
     return 0
 
 
+def _check_resources(args: argparse.Namespace, out: Path, episodes: int, steps: int) -> None:
+    """Refuse, before any work, a run the memory or the disk cannot hold."""
+    from soft_rom.errors import ResourceError
+    from soft_rom.outputs import check_free_space
+
+    jobs = getattr(args, 'jobs', 1)
+    n_dof, memory, disk = estimate_resources(args.resolution, jobs=jobs, episodes=episodes,
+                                             steps=steps, state=not args.no_state)
+    free = available_memory()
+    if memory > free:
+        raise ResourceError(
+            f'--resolution {args.resolution} ({n_dof:,} DOF) with {min(jobs, episodes)}'
+            f' job(s) needs about {memory / 1e9:.3g} GB of memory; {free / 1e9:.3g} GB '
+            'available. Use a lower --resolution or fewer --jobs')
+    check_free_space(out, disk, f'{episodes} episode(s) of {steps} steps at '
+                                f'--resolution {args.resolution}')
+
+
 def run(args: argparse.Namespace) -> int:
     """Simulate, record, print a summary; returns the exit code."""
-    from soft_rom.errors import ResourceError
-    from soft_rom.outputs import check_free_space, mark
+    from soft_rom.outputs import mark
     from soft_rom.sim.record import record_episodes
 
     out = Path(args.output)
@@ -200,17 +226,7 @@ def run(args: argparse.Namespace) -> int:
     if args.inputs is not None:
         return _run_inputs(args, out)
     _check_existing(out, args.episodes, args.overwrite)
-    n_dof, memory, disk = estimate_resources(args.resolution, jobs=args.jobs,
-                                             episodes=args.episodes, steps=args.steps,
-                                             state=not args.no_state)
-    free = available_memory()
-    if memory > free:
-        raise ResourceError(
-            f'--resolution {args.resolution} ({n_dof:,} DOF) with {min(args.jobs, args.episodes)}'
-            f' job(s) needs about {memory / 1e9:.3g} GB of memory; {free / 1e9:.3g} GB '
-            'available. Use a lower --resolution or fewer --jobs')
-    check_free_space(out, disk, f'{args.episodes} episode(s) of {args.steps} steps at '
-                                f'--resolution {args.resolution}')
+    _check_resources(args, out, args.episodes, args.steps)
     t0 = time.perf_counter()
     sidecars = record_episodes(
         out, args.episodes, resolution=args.resolution, jobs=args.jobs,

@@ -18,11 +18,12 @@ from soft_rom.cli._common import (
     check_writable_folder,
     finite_float,
     int_range,
+    list_items,
     parse_r_list,
 )
 
-__all__ = ['add_parser', 'add_study_options', 'prepare_study', 'print_timings', 'run',
-           'study_output']
+__all__ = ['add_parser', 'add_study_options', 'prepare_study', 'print_failures',
+           'print_timings', 'run', 'study_output']
 
 
 def add_study_options(parser: argparse.ArgumentParser, *, default_output: Path) -> None:
@@ -160,6 +161,12 @@ def study_output(args: argparse.Namespace, cfg: Any) -> Iterator[Path]:
         yield out
 
 
+def print_failures(summary: dict[str, Any]) -> None:
+    """The fits that failed (they are missing from the report's tables), one line each."""
+    for line in summary.get('failures', []):
+        print(f'  warning: {line}')
+
+
 def print_timings(summary: dict[str, Any]) -> None:
     """The stage times and the machine they were measured on, one line each."""
     timings = summary.get('timings', {})
@@ -199,7 +206,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         'the linear one; every setting chosen on held-out training episodes)')
     curve.add_argument('--learning-curve', action='store_true',
                        help='run the learning-curve study instead of studies 1 and 2')
-    curve.add_argument('--sizes', type=parse_r_list, default=(2, 4, 8, 16),
+    curve.add_argument('--sizes', type=_sizes, default=(2, 4, 8, 16),
                        help='training sizes in episodes, e.g. 2,4,8,16 (default) or 2:8:2')
     curve.add_argument('--test-episodes', type=int_range(1, 100), default=4,
                        help='test episodes, seed SEED+1 (default: %(default)s)')
@@ -212,10 +219,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
+def _sizes(text: str) -> tuple[int, ...]:
+    """``--sizes``: training sizes in episodes, written as r lists are."""
+    return parse_r_list(text, 'training size')
+
+
 def _amplitudes(text: str) -> tuple[float, ...]:
     """``'50000,5000'`` -> amplitudes in Pa (positive, at most 1e7 as simulate allows)."""
     parse = finite_float(0.0, 1e7, lo_open=True)
-    values = tuple(parse(v) for v in text.split(',') if v.strip())
+    values = tuple(parse(v) for v in list_items(text, '--amplitudes'))
     if not values:
         raise argparse.ArgumentTypeError(f'expected amplitudes in Pa, e.g. 50000,5000; got '
                                          f'{text!r}')
@@ -224,7 +236,7 @@ def _amplitudes(text: str) -> tuple[float, ...]:
 
 def _curve_methods(text: str) -> tuple[str, ...]:
     from soft_rom.study.curve.core import METHODS
-    values = tuple(v.strip() for v in text.split(',') if v.strip())
+    values = tuple(list_items(text, '--curve-methods'))
     bad = [v for v in values if v not in METHODS]
     if not values or bad:
         raise argparse.ArgumentTypeError(f'--curve-methods must be among {",".join(METHODS)}; '
@@ -305,4 +317,5 @@ def run(args: argparse.Namespace) -> int:
     print(f'report: {out / "report.md"}')
     for line in summary.get('conclusions', []):
         print(f'  - {line}')
+    print_failures(summary)
     return 0

@@ -19,7 +19,12 @@ from soft_rom.control.loop import (
     simulate_inputs,
 )
 from soft_rom.control.mpc import input_bounds, MPC, MPCConfig, MPCStep
-from soft_rom.control.reference import load_reference, parse_reference, Reference
+from soft_rom.control.reference import (
+    check_moves,
+    load_reference,
+    parse_reference,
+    Reference,
+)
 
 __all__ = [
     'ClosedLoopResult',
@@ -34,6 +39,7 @@ __all__ = [
     'ROMPlant',
     'Reference',
     'Sensor',
+    'check_moves',
     'input_bounds',
     'load_reference',
     'open_loop_plan',

@@ -67,6 +67,21 @@ class Sensor:
             raise ConfigError(f'sensor noise must be >= 0; got {self.noise!r}.')
 
 
+def _check_units(model: Any) -> None:
+    """The embedded eel takes pressures in Pa and gives its centerline in m: so must the model.
+
+    A model fitted on a set converted in other units (kPa, mm) would have its commands
+    applied in the wrong units and its outputs compared with the wrong numbers.
+    """
+    for kind, units, want in (('inputs', getattr(model, 'input_units', None), 'Pa'),
+                              ('outputs', getattr(model, 'output_units', None), 'm')):
+        other = sorted({u for u in (units or []) if u and u != want})
+        if other:
+            raise ConfigError(f'the model\'s {kind} are in {", ".join(other)}; the embedded '
+                              f'eel plant works in {want}. Fit the model on a training set '
+                              f"converted in {want} (the bag mapping's units and scale).")
+
+
 class FOMPlant:
     """The embedded eel FOM as a plant: one step at a time, outputs in a model's layout.
 
@@ -89,6 +104,7 @@ class FOMPlant:
         self.model = model
         self.dt = float(dt)
         self.jacobian = jacobian
+        _check_units(model)
         self._stepper = self.eel.stepper(self.dt, jacobian=jacobian)
         _model_outputs(model, self._stepper.centerline())      # the layout fits: checked
         self.n_inputs = self.eel.n_chambers

@@ -32,8 +32,8 @@ from numpy.typing import ArrayLike, NDArray
 from soft_rom.data import all_finite
 from soft_rom.errors import ConfigError, DimensionError
 
-__all__ = ['Reference', 'load_reference', 'parse_reference', 'step_reference',
-           'wave_reference']
+__all__ = ['Reference', 'check_moves', 'load_reference', 'parse_reference',
+           'step_reference', 'wave_reference']
 
 Array = NDArray[np.float64]
 
@@ -95,6 +95,7 @@ class Reference:
 
 def _options(text: str, allowed: dict[str, Any], what: str) -> dict[str, Any]:
     out = dict(allowed)
+    given: dict[str, str] = {}
     if not text:
         return out
     for item in text.split(','):
@@ -103,7 +104,10 @@ def _options(text: str, allowed: dict[str, Any], what: str) -> dict[str, Any]:
         if not sep or key not in allowed:
             raise ConfigError(f'--reference {what}: unknown option {item!r}; options are '
                               f'{", ".join(f"{k}=" for k in allowed)}.')
-        out[key] = value.strip()
+        if key in given:
+            raise ConfigError(f'--reference {what}: {key}= given twice ({given[key]!r} and '
+                              f'{value.strip()!r}); give it once.')
+        out[key] = given[key] = value.strip()
     return out
 
 
@@ -174,6 +178,9 @@ def step_reference(model: Any, u: ArrayLike, duration: float, *, at: float = 0.1
     if u.shape != (eel.n_chambers,) or not all_finite(u):
         raise ConfigError(f'--reference step: u needs {eel.n_chambers} finite pressures '
                           f'separated by "/"; got {u.tolist()}.')
+    if np.max(np.abs(u)) > 1e7:
+        raise ConfigError(f'--reference step: pressures of at most 1e7 Pa (as simulate '
+                          f'--amplitude); got {u.tolist()}.')
     n = max(1, int(round(settle / dt)))
     res = eel.simulate(np.repeat(u[:, None], n, axis=1), n, dt)
     y_end = _model_outputs(model, res.centerline[:, :, -1])
@@ -204,19 +211,15 @@ def load_reference(path: str | Path, model: Any) -> Reference:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f'reference {path} does not exist.')
-    if path.is_dir():
+    if path.is_dir() or path.suffix in ('.mcap', '.db3'):     # a bag (folder or file)
         return _episode_reference(path, model)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            if 't' not in z.files or 'Y' not in z.files:
-                raise ConfigError(f'reference {path} must hold arrays t (k,) and Y (p, k); it '
-                                  f'has {", ".join(z.files) or "none"}.')
-            t, Y = np.asarray(z['t'], dtype=np.float64), np.asarray(z['Y'], dtype=np.float64)
-            U = np.asarray(z['U'], dtype=np.float64) if 'U' in z.files else None
-    except (OSError, ValueError, EOFError) as err:
-        if isinstance(err, ConfigError):
-            raise
-        raise ConfigError(f'reference {path} is not a readable .npz ({err}).') from None
+    from soft_rom.models.archive import read_user_arrays
+    z = read_user_arrays(path, 'reference', ('t', 'Y', 'U'))
+    if 't' not in z or 'Y' not in z:
+        raise ConfigError(f'reference {path} must hold arrays t (k,) and Y (p, k); '
+                          f'{" and ".join(n for n in ("t", "Y") if n not in z)} missing.')
+    t, Y = np.asarray(z['t'], dtype=np.float64), np.asarray(z['Y'], dtype=np.float64)
+    U = np.asarray(z['U'], dtype=np.float64) if 'U' in z else None
     ref = Reference(t=t, Y=Y, label=path.name,
                     U=U if U is not None and U.ndim == 2 and U.shape[1] == t.size else None)
     check_reference(ref, model)
@@ -240,6 +243,30 @@ def check_reference(ref: Reference, model: Any) -> None:
     if ref.n_outputs != model.n_outputs:
         raise DimensionError(f'the reference has {ref.n_outputs} outputs; the model has '
                              f'{model.n_outputs} ({", ".join(model.output_names[:3])}...).')
+
+
+def check_moves(ref: Reference, model: Any, duration: float | None = None) -> None:
+    """Refuse a reference that does not leave the model's rest output within ``duration``.
+
+    The tracking error is relative to that deviation (``‖Y − Y_ref‖ / ‖Y_ref − y_ref‖``):
+    a reference at rest over the run (a step after its end, the rest output itself) leaves
+    it undefined, and one so large that its deviation overflows leaves it meaningless.
+    """
+    dur = ref.duration if duration is None else float(duration)
+    times = np.linspace(min(0.0, dur), dur, max(2, min(100_001, int(abs(dur) / 1e-3) + 1)))
+    y_ref = np.asarray(model.y_ref, dtype=np.float64)
+    with np.errstate(over='ignore', invalid='ignore'):
+        dev = float(np.max(np.abs(ref.at(times) - y_ref[:, None])))
+        norm = float(np.linalg.norm(ref.Y - y_ref[:, None]))
+    if not (math.isfinite(dev) and math.isfinite(norm)):
+        raise ConfigError(f'the reference {ref.label!r} is too large: its deviation from the '
+                          "model's rest output overflows.")
+    tol = 1e-9 * max(1.0, float(np.max(np.abs(y_ref), initial=0.0)))
+    if dev <= tol:
+        raise ConfigError(f"the reference {ref.label!r} does not leave the model's rest output "
+                          f"within the run's {dur:g} s (largest deviation {dev:.3g}): the "
+                          'tracking error, relative to that deviation, would be undefined. '
+                          'Give a reference that moves, or a longer --duration.')
 
 
 def parse_reference(spec: str, model: Any, *, duration: float | None = None,

@@ -54,8 +54,9 @@ def _paths(bags: Iterable[str | Path]) -> list[Path]:
         if not p.exists():
             raise FileNotFoundError(f'bag {p} does not exist.')
         if p.is_file() and not is_bag(p):       # most often a sidecar caught by a glob
-            raise BagError(f'{p} is not a ROS 2 bag (no .mcap or .db3 file); to convert '
-                           f'every bag in {p.parent}, give that folder.')
+            beside = any(c.is_dir() and is_bag(c) for c in p.parent.iterdir())
+            raise BagError(f'{p} is not a ROS 2 bag (no .mcap or .db3 file)' + (
+                f'; to convert every bag in {p.parent}, give that folder.' if beside else '.'))
         inner = [] if not p.is_dir() or is_bag(p) else sorted(
             (c for c in p.iterdir() if c.is_dir() and is_bag(c)), key=_natural)
         out.extend(inner or [p])
@@ -273,7 +274,11 @@ def read_episode(bag_path: str | Path, mapping: BagMapping | None = None, *,
     report : ConversionReport
     """
     m = mapping or BagMapping()
-    path = _paths([bag_path])[0]
+    paths = _paths([bag_path])
+    if len(paths) > 1:
+        raise BagError(f'{bag_path} is a folder of {len(paths)} bags ({paths[0].name}, '
+                       f'{paths[1].name}, ...); give one of them.')
+    path = paths[0]
     plan = probe_bag(path, m, include_state=include_state, storage=storage)
     dt_ns = choose_dt_ns([plan], m)
     sink = _MemorySink()

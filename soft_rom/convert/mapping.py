@@ -372,6 +372,12 @@ def _number(v: Any) -> float:
     return float(v)
 
 
+#: Bounds of the time settings: a day of seconds, a million periods (beyond, the nanosecond
+#: arithmetic of the grid overflows; no recording needs them).
+_MAX_SECONDS = 86_400.0
+_MAX_PERIODS = 1e6
+
+
 def _opt_pos(name: str, v: Any) -> float | None:
     if v is None:
         return None
@@ -380,8 +386,9 @@ def _opt_pos(name: str, v: Any) -> float | None:
     except (TypeError, ValueError) as err:
         raise ConfigError(f'{name} must be a positive number of seconds; got {show_value(v)}.'
                           ) from err
-    if not x > 0 or not math.isfinite(x):
-        raise ConfigError(f'{name} must be a positive number of seconds; got {show_value(v)}.')
+    if not 0 < x <= _MAX_SECONDS:
+        raise ConfigError(f'{name} must be a positive number of seconds, at most '
+                          f'{_MAX_SECONDS:g}; got {show_value(v)}.')
     return x
 
 
@@ -390,8 +397,9 @@ def _nonneg(name: str, v: Any) -> float:
         x = _number(v)
     except (TypeError, ValueError) as err:
         raise ConfigError(f'{name} must be a number >= 0; got {show_value(v)}.') from err
-    if not x >= 0 or not math.isfinite(x):
-        raise ConfigError(f'{name} must be a number >= 0; got {show_value(v)}.')
+    if not 0 <= x <= _MAX_PERIODS:
+        raise ConfigError(f'{name} must be a number >= 0, at most {_MAX_PERIODS:g}; got '
+                          f'{show_value(v)}.')
     return x
 
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections import deque
 from dataclasses import dataclass, field
+import logging
 import re
 from typing import Any, Protocol
 
@@ -47,6 +48,8 @@ __all__ = ['BagConverter', 'BagPlan', 'EpisodeSink', 'SegmentSink', 'input_names
            'probe_bag']
 
 Array = NDArray[np.float64]
+
+LOG = logging.getLogger(__name__)
 
 #: Rejected stamps in a row, agreeing among themselves, after which a clock jump is followed.
 REANCHOR = 8
@@ -185,12 +188,17 @@ class BagConverter:
             tr.report.timing(np.asarray(tr.times, dtype=np.int64))
         if not self.report.episodes:
             cause = self.report.main_cause()
-            grid = (f'; the {self.dt_ns * 1e-9:g} s grid step is longer than the recording'
-                    if self.out_rep.dropped and all(k.startswith('piece shorter')
-                                                    for k in self.out_rep.dropped) else '')
+            hint = ''
+            if self.out_rep.dropped and all(k.startswith('piece shorter')
+                                            for k in self.out_rep.dropped):
+                hint = (f'; gaps split it into {self.out_rep.splits + 1} pieces, each shorter '
+                        f'than {self.mapping.min_samples} samples of the '
+                        f'{self.dt_ns * 1e-9:g} s grid (a larger --max-gap or --split-gap '
+                        'keeps them whole)' if self.out_rep.splits else
+                        f'; the {self.dt_ns * 1e-9:g} s grid step is longer than the recording')
+            LOG.debug('the whole report of %s:\n%s', self.plan.path, self.report.format())
             raise BagError(f'bag {self.plan.path}: no usable sample left after dropping bad or '
-                           f'unmatched messages: {cause}{grid}. The whole report:\n'
-                           f'{self.report.format()}')
+                           f'unmatched messages: {cause}{hint} (-vv prints the whole report)')
         return self.report
 
     def _stamp_ok(self, topic: str, rep: TopicReport, t: int, log_ns: int,

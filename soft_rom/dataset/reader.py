@@ -75,6 +75,9 @@ class TrainingSet:
         if not p.exists():
             raise DatasetError(f'training set {p} does not exist; create it with '
                                '`soft-rom convert BAG... -o OUT.zarr`.')
+        if not p.is_dir():
+            raise DatasetError(f'{p} is a file, not a training set (the folder `soft-rom '
+                               'convert BAG... -o OUT.zarr` writes).')
         try:
             root = _open_group(p, 'r')
             attrs = root.attrs.asdict()

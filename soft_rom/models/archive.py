@@ -35,7 +35,7 @@ import zipfile
 import numpy as np
 from numpy.typing import NDArray
 
-from soft_rom.errors import ModelFileError
+from soft_rom.errors import ConfigError, ModelFileError
 
 __all__ = [
     'MAX_ARCHIVE_BYTES',
@@ -45,6 +45,7 @@ __all__ = [
     'MAX_JSON_DEPTH',
     'parse_json',
     'read_archive',
+    'read_user_arrays',
     'valid_text',
 ]
 
@@ -325,3 +326,42 @@ def parse_json(path: str | os.PathLike[str], data: bytes) -> Any:
         raise _fail(path, f'metadata is not valid UTF-8 JSON within limits '
                           f'({str(err)[:120]}).') from None
     return value
+
+
+def read_user_arrays(path: str | os.PathLike[str], what: str,
+                     names: Collection[str]) -> dict[str, NDArray[Any]]:
+    """The arrays ``names`` of a user's ``.npz`` (a reference, inputs): numbers, never code.
+
+    Returns those of ``names`` it holds (other entries are not read). Each must be an array
+    of real numbers (integers or floats); an object array (a pickle), strings, complex or
+    boolean data, a file that is not a zip archive (a ``.npy``, a text file, a bag), a
+    truncated or corrupt archive: one ``ConfigError`` line that starts with ``what`` and
+    the path.
+    """
+    path = Path(path)
+    head = f'{what} {path}'
+    if path.is_dir():
+        raise ConfigError(f'{head} is a folder; give the .npz file')
+    if not zipfile.is_zipfile(path):
+        raise ConfigError(f'{head}: not an .npz file (a zip archive of .npy arrays, as '
+                          'numpy.savez writes)')
+    out: dict[str, NDArray[Any]] = {}
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            for name in (n for n in z.files if n in names):
+                a = z[name]
+                if a.dtype.kind not in 'iuf':
+                    raise ConfigError(f'{head}: array {name!r} holds {a.dtype} data; only real '
+                                      'numbers are read')
+                out[name] = a
+    except ConfigError:
+        raise
+    except ValueError as err:
+        if 'allow_pickle' in str(err):
+            raise ConfigError(f'{head}: an array holds Python objects (a pickle), which '
+                              'soft_rom never loads') from None
+        raise ConfigError(f'{head}: not a readable .npz ({str(err)[:160]})') from None
+    except Exception as err:  # BadZipFile, zlib.error, EOFError, OSError
+        detail = str(err)[:160] or type(err).__name__
+        raise ConfigError(f'{head}: corrupt or truncated .npz ({detail})') from None
+    return out

@@ -36,8 +36,11 @@ def _wanted(available: Sequence[str], names: str | Sequence[str] | None,
     if names is None:
         wanted = list(available)
     else:
-        wanted = [n.strip() for n in (names.split(',') if isinstance(names, str) else names)
-                  if n.strip()]
+        items = [n.strip() for n in (names.split(',') if isinstance(names, str) else names)]
+        if len(items) > 1 and not all(items):
+            raise DatasetError(f'episodes {names!r}: an empty name (two commas in a row?); '
+                               'separate the names with single commas.')
+        wanted = [n for n in items if n]
     missing = [n for n in wanted if n not in available]
     if missing:
         raise DatasetError(f'unknown episode(s) {missing} in {where}; available: '

@@ -192,6 +192,11 @@ def study_report(summary: Mapping[str, Any], *, figures: str = '') -> str:
     if fom:
         lines += ['## Full-order model and data', '', markdown_table(
             ['quantity', 'value'], [[k, v] for k, v in fom.items()]), '']
+    if summary.get('failures'):
+        lines += ['## Warnings', '',
+                  'Fits that failed (missing from the tables and figures below), and figures '
+                  'that could not be recorded:', '']
+        lines += [f'- {f}' for f in summary['failures']] + ['']
     if 'study1' in summary:
         lines += _extrapolation_section(summary['study1'], fig)
     if 'study2' in summary:

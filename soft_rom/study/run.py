@@ -17,6 +17,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import asdict
 import json
+import logging
 import os
 from pathlib import Path
 import platform
@@ -25,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from soft_rom.errors import BagError, ConfigError
+from soft_rom.errors import BagError, ConfigError, SolverError
 from soft_rom.study.config import blas_threads, StudyConfig
 
 # _conclusions, _in_memory, _record_held_out: re-exported for the paper-scale run and tests.
@@ -165,15 +166,21 @@ def _run_study(out: Path, cfg: StudyConfig, *, progress: bool, studies: Sequence
         bar.update()
 
     summary: dict[str, Any] = {'config': asdict(cfg), 'fom': fom_summary(ts, cfg)}
-    if 1 in studies:
-        t0 = time.perf_counter()
-        summary['study1'] = study_time_extrapolation(ts, cfg, out, tick)
-        timings['study 1'] = time.perf_counter() - t0
-    if 2 in studies and len(ts.episode_names) >= 3:
-        t0 = time.perf_counter()
-        summary['study2'] = study_unseen_inputs(ts, cfg, out, tick)
-        timings['study 2'] = time.perf_counter() - t0
+    with _Failures() as failures:     # a failed fit is a result: said in the report
+        if 1 in studies:
+            t0 = time.perf_counter()
+            summary['study1'] = study_time_extrapolation(ts, cfg, out, tick)
+            timings['study 1'] = time.perf_counter() - t0
+        if 2 in studies and len(ts.episode_names) >= 3:
+            t0 = time.perf_counter()
+            summary['study2'] = study_unseen_inputs(ts, cfg, out, tick)
+            timings['study 2'] = time.perf_counter() - t0
     bar.close()
+    if failures.messages:
+        summary['failures'] = failures.messages
+    if not (summary.get('study1', {}).get('best') or summary.get('study2', {}).get('chosen')):
+        raise SolverError('no method fitted a model: '
+                          + ('; '.join(failures.messages) or 'no study ran'))
     if replay and 'study2' in summary:
         t0 = time.perf_counter()
         summary['replay'] = replay_check(out, bags, summary['study2'])
@@ -185,6 +192,24 @@ def _run_study(out: Path, cfg: StudyConfig, *, progress: bool, studies: Sequence
     (out / 'summary.json').write_text(json.dumps(strict, indent=2, allow_nan=False))
     (out / 'report.md').write_text(study_report(strict))   # the report of summary.json
     return summary
+
+
+class _Failures(logging.Handler):
+    """The warnings of the studies' fits while it is entered (``messages``)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+    def __enter__(self) -> '_Failures':
+        logging.getLogger('soft_rom.study').addHandler(self)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        logging.getLogger('soft_rom.study').removeHandler(self)
 
 
 def _load() -> float | None:

@@ -90,6 +90,23 @@ CASES = [
     (['demo', '-o', '{root}/d', '--episodes', '0'], 2, '--episodes'),
     (['convert', '{bag}', '-o', '{root}/c.zarr', '--dt', 'nan'], 2, '--dt'),
     (['convert', '{bag}', '-o', '{root}/c.zarr', '--split-gap', 'inf'], 2, '--split-gap'),
+    # a typo that drops a value is not a shorter list; bounds where arithmetic overflowed
+    (['fit', '{ts}', '--method', 'dmdc', '--r', '1,,2', '-o', '{root}/m1'], 2, 'empty item'),
+    (['fit', '{ts}', '--method', 'dmdc,,era', '-o', '{root}/m1'], 2, 'empty item'),
+    (['evaluate', '{model}', '--data', '{ts}', '--episodes', 'ep1,,ep2'], 2, 'empty name'),
+    (['evaluate', '{model}', '--data', '{ts}', '--outputs', 'y1'], 2, 'give --plots'),
+    (['evaluate', '{model}', '--data', '{bag}'], 2, 'is a rosbag2 bag, not a training set'),
+    (['evaluate', '{model}', '--data', '{root}/user.json'], 2, 'is a file, not a training set'),
+    (['convert', '{root}/user.json', '-o', '{root}/c.zarr'], 2, 'not a ROS 2 bag (no .mcap or '
+     '.db3 file); to convert every bag in'),                # a bag beside it: the hint
+    (['convert', '{root}/mapdir/../sims/ep1.json', '-o', '{root}/c.zarr'], 2,
+     'no .mcap or .db3 file).'),                            # none beside it: no hint
+    (['simulate', '-o', '', '--episodes', '1', '--steps', '3'], 2, 'an empty path'),
+    (['study', '--learning-curve', '-o', '{root}/lc', '--sizes', '0'], 2,
+     'training size values must be positive'),
+    (['convert', '{bag}', '-o', '{root}/c.zarr', '--max-gap', '1e308'], 2, 'at most 1e+06'),
+    (['convert', '{bag}', '-o', '{root}/c.zarr', '--dt', '1e300'], 2, 'at most 86400'),
+    (['simulate', '-o', '{root}/s1', '--dt', '1e-300'], 2, '--dt'),
     # resources
     (['simulate', '-o', '{root}/s1', '--resolution', '9'], 1, 'GB of memory'),
     (['study', '-o', '{root}/st', '--resolution', '20'], 1, 'GB of memory'),
@@ -336,3 +353,28 @@ def test_convert_overwrite_replaces_a_training_set(ws, tmp_path, capsys) -> None
     assert main(argv) == 2
     assert main(argv + ['--overwrite']) == 0
     capsys.readouterr()
+
+
+def test_numpy_warnings_before_an_error_do_not_bury_its_line(ws, monkeypatch, capsys) -> None:
+    """Warnings on the way to an error are held back; after a success they are shown.
+
+    An overflow warned before a simulation diverges buried the error's one line.
+    """
+    import soft_rom.cli.info as info
+    from soft_rom.errors import SolverError
+
+    def fails(args):
+        np.exp(np.array([1e4]))                    # RuntimeWarning: overflow
+        raise SolverError('the simulation diverged at step 1')
+
+    def succeeds(args):
+        np.exp(np.array([1e4]))
+        return 0
+
+    monkeypatch.setattr(info, 'run', fails)
+    assert main(['info', str(ws['model'])]) == 1
+    assert capsys.readouterr().err.splitlines() == [
+        'soft-rom info: error: the simulation diverged at step 1']
+    monkeypatch.setattr(info, 'run', succeeds)
+    with pytest.warns(RuntimeWarning, match='overflow'):
+        assert main(['info', str(ws['model'])]) == 0

@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 from _eel_rom import modal_rom
 import numpy as np
 import pytest
 
+from soft_rom.bags import EpisodeBagWriter
 from soft_rom.cli import main
+from soft_rom.models import SecondOrderModel
 
 
 @pytest.fixture(scope='module')
@@ -86,6 +89,90 @@ def test_control_refuses_bad_input_in_one_line(run_dir, model_file, reference, t
         assert code == 2, (args, err)
         assert why in err and err.count('\n') == 1 and 'Traceback' not in err, err
         assert not (tmp_path / 'a').exists()
+
+
+def test_what_a_hostile_input_audit_found_is_one_line(run_dir, model_file, reference,
+                                                     tmp_path, capsys) -> None:
+    """Each case of a hostile-input audit, now one line with exit 2.
+
+    Before, each crashed (exit 1, 'a bug'), printed a meaningless figure with exit 0, warned
+    over many lines first, or named the wrong cause.
+    """
+    model = modal_rom(6)
+    t = np.array([0.0, 0.05, 1.0])
+    files = {
+        'rest.npz': dict(t=t, Y=np.repeat(model.y_ref[:, None], 3, axis=1)),   # 9.7e12 once
+        'huge.npz': dict(t=t, Y=np.load(reference)['Y'] * 1e300),
+        'complex.npz': dict(t=t, Y=np.load(reference)['Y'] + 0j),
+    }
+    for name, arrays in files.items():
+        np.savez(tmp_path / name, **arrays)
+    with open(reference, 'rb') as fh:
+        (tmp_path / 'trunc.npz').write_bytes(fh.read()[:200])
+    np.save(tmp_path / 'plain.npy', np.zeros(3))
+    os.rename(tmp_path / 'plain.npy', tmp_path / 'plain.npz')
+    (tmp_path / 'text.npz').write_text('my notes\n')
+    np.savez(tmp_path / 'objects.npz', t=t, Y=np.array([{'a': 1}] * 3, dtype=object))
+    kpa = SecondOrderModel(model.K, model.C, model.B * 1e3, model.E, dt=model.dt,
+                           y_ref=model.y_ref, output_names=model.output_names,
+                           input_units=['kPa'] * 6, output_units=['m'] * 40)
+    kpa.save(tmp_path / 'kpa.npz')
+    for name in ('ep1', 'ep2'):                       # a folder of two recordings
+        with EpisodeBagWriter(tmp_path / 'bags' / name, storage='mcap', n_nodes=2) as w:
+            for j in range(11):
+                w.write(0.01 * j, np.zeros(6), np.zeros((20, 3)), np.zeros((2, 3)))
+    short = ['--duration', '0.05']
+    cases = [
+        (['--reference', f'episode:{tmp_path / "bags"}'], 'a folder of 2 bags'),
+        (['--reference', 'step:u=1000/0/0/0/0/0,at=99', *short], 'does not leave'),
+        (['--reference', 'step:u=-2e4/0/0/0/0/0', *short], 'does not leave'),
+        (['--reference', str(tmp_path / 'rest.npz')], 'does not leave'),
+        (['--reference', str(tmp_path / 'huge.npz')], 'too large'),
+        (['--reference', str(tmp_path / 'complex.npz')], 'complex128 data'),
+        (['--reference', str(tmp_path / 'trunc.npz')], 'not an .npz file'),
+        (['--reference', str(tmp_path / 'plain.npz')], 'not an .npz file'),
+        (['--reference', str(tmp_path / 'text.npz')], 'not an .npz file'),
+        (['--reference', str(tmp_path / 'objects.npz')], 'never loads'),
+        (['--reference', 'wave:f=2,f=3'], 'f= given twice'),
+        (['--reference', 'wave:f=2', '--seed', '-1'], '--seed'),
+        (['--reference', 'step:u=1e12/0/0/0/0/0'], 'at most'),
+    ]
+    for i, (args, why) in enumerate(cases):
+        code = main(['control', str(model_file), *args, '-o', str(tmp_path / f'o{i}'),
+                     '--quiet'])
+        err = capsys.readouterr().err
+        assert code == 2, (args, err)
+        assert why in err and err.count('\n') == 1 and 'Traceback' not in err, (args, err)
+        assert not (tmp_path / f'o{i}').exists()
+    assert main(['control', str(tmp_path / 'kpa.npz'), '--reference', str(reference), '-o',
+                 str(tmp_path / 'k'), '--quiet']) == 2
+    err = capsys.readouterr().err
+    assert 'inputs are in kPa; the embedded eel plant works in Pa' in err, err
+    # negative values as written: no '=' needed
+    assert main(['control', str(model_file), '--reference', str(reference), '-o',
+                 str(tmp_path / 'neg'), '--u-min', '-2e4', '--u-max', '2e4', '--duration',
+                 '0.02', '--quiet']) == 0
+    with np.load(tmp_path / 'neg' / 'closed_loop.npz') as z:
+        assert z['U'].min() >= -2e4 and z['U'].max() <= 2e4
+
+
+def test_simulate_inputs_refuses_what_is_not_pressures_over_time(tmp_path, capsys) -> None:
+    t = np.arange(5) * 1e-3
+    np.savez(tmp_path / 'huge.npz', t=t, U=np.full((6, 5), 1e303))
+    np.savez(tmp_path / 'tiny_dt.npz', t=np.arange(5) * 1e-12, U=np.zeros((6, 5)))
+    np.savez(tmp_path / 'bools.npz', t=t, U=np.zeros((6, 5), dtype=bool))
+    (tmp_path / 'folder').mkdir()
+    cases = [(tmp_path / 'huge.npz', 'at most 1e+07 Pa'), (tmp_path / 'tiny_dt.npz', 'step of t'),
+             (tmp_path / 'bools.npz', 'bool data'), (tmp_path / 'folder', 'is a folder')]
+    for path, why in cases:
+        code = main(['simulate', '--inputs', str(path), '-o', str(tmp_path / 'out'),
+                     '--quiet'])
+        err = capsys.readouterr().err
+        assert code == 2 and why in err and err.count('\n') == 1, (path, err)
+    assert main(['simulate', '--episodes', '1', '--steps', '3', '--dt', '1e-9', '-o',
+                 str(tmp_path / 'out'), '--quiet']) == 2
+    assert '--dt' in capsys.readouterr().err
+    assert not (tmp_path / 'out').exists()
 
 
 def test_the_rate_weight_default_is_the_library_default() -> None:
