@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+import sys
 from typing import Any
 
 from soft_rom.cli._common import (
@@ -208,6 +209,11 @@ def run(args: argparse.Namespace) -> int:
                            title=f'{model.method} r={model.r}: {ref.label}')
     _print_summary(model, plant, ref, res, summary)
     print(f'  wrote {out}/closed_loop.npz, summary.json, closed_loop.png')
+    if not summary['status_counts'].get('ok'):      # the plant ran on held commands only
+        print(f'soft-rom control: error: no control step succeeded '
+              f'({", ".join(f"{k} {v}" for k, v in summary["status_counts"].items())}); the '
+              f'record of the run is in {out}', file=sys.stderr)
+        return 1
     return 0
 
 

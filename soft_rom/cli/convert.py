@@ -38,7 +38,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument('--no-state', action='store_true', help='do not store full states Q')
     parser.add_argument('--overwrite', action='store_true',
                         help='replace OUT if it is a training set soft_rom wrote')
-    add_quiet(parser, help='no progress bar, no report')
+    add_quiet(parser, help='no progress bar, no line per bag (with -v, the report still)')
     parser.set_defaults(func=run)
     return parser
 
@@ -57,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         mapping = mapping.replace(**changes)      # validated like the mapping file
     verbose = getattr(args, 'verbose', 0) > 0
     echo = None
-    if not args.quiet:
+    if verbose or not args.quiet:               # -v: the report, --quiet or not
         def echo(report: ConversionReport) -> None:
             print(report.format() if verbose else report.summary_line(), file=sys.stderr)
     ts, reports = convert(args.bags, args.output, mapping, storage=args.storage,

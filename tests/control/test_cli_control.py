@@ -156,6 +156,23 @@ def test_what_a_hostile_input_audit_found_is_one_line(run_dir, model_file, refer
         assert z['U'].min() >= -2e4 and z['U'].max() <= 2e4
 
 
+def test_a_run_where_no_control_step_succeeded_is_an_error(tmp_path, capsys) -> None:
+    """A model the QP cannot use (a hand-edited unstable one): exit 1, the record kept."""
+    m = modal_rom(6)
+    bad = SecondOrderModel(-1e3 * m.K, m.C, m.B, m.E, dt=m.dt, y_ref=m.y_ref,
+                           output_names=m.output_names, input_units=['Pa'] * 6,
+                           output_units=['m'] * 40)
+    bad.save(tmp_path / 'unstable.npz')
+    code = main(['control', str(tmp_path / 'unstable.npz'), '--reference',
+                 'wave:f=2,amplitude=0.003', '--u-min', '-5e4', '--u-max', '5e4', '--duration',
+                 '0.05', '-o', str(tmp_path / 'out'), '--quiet'])
+    err = capsys.readouterr().err
+    assert code == 1 and err.count('\n') == 1, err
+    assert 'no control step succeeded (failed 5)' in err
+    with open(tmp_path / 'out' / 'summary.json') as fh:
+        assert json.load(fh)['status_counts'] == {'failed': 5}
+
+
 def test_simulate_inputs_refuses_what_is_not_pressures_over_time(tmp_path, capsys) -> None:
     t = np.arange(5) * 1e-3
     np.savez(tmp_path / 'huge.npz', t=t, U=np.full((6, 5), 1e303))
