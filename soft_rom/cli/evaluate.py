@@ -104,10 +104,6 @@ def run(args: argparse.Namespace) -> int:
         models.append((path, model))
     ts = open_training_set(args.data)             # a bag: refused with its convert command
     episodes = select_episodes(ts, args.episodes)
-    longest = max(float(ep.t[-1] - ep.t[0]) for ep in episodes)
-    if args.t_split is not None and args.t_split > longest:
-        raise ConfigError(f'--t-split {args.t_split:g} s leaves no test samples: the episodes '
-                          f'last at most {longest:g} s')
     for path, model in models:
         _check_layout(model, path, ts)
     rows: list[dict[str, Any]] = []

@@ -95,8 +95,6 @@ CASES = [
     (['fit', '{ts}', '--method', 'dmdc,,era', '-o', '{root}/m1'], 2, 'empty item'),
     (['evaluate', '{model}', '--data', '{ts}', '--episodes', 'ep1,,ep2'], 2, 'empty name'),
     (['evaluate', '{model}', '--data', '{ts}', '--outputs', 'y1'], 2, 'give --plots'),
-    (['evaluate', '{model}', '--data', '{ts}', '--t-split', '1e9'], 2,
-     'leaves no test samples'),
     (['evaluate', '{model}', '--data', '{bag}'], 2, 'is a rosbag2 bag, not a training set'),
     (['evaluate', '{model}', '--data', '{root}/user.json'], 2, 'is a file, not a training set'),
     (['convert', '{root}/user.json', '-o', '{root}/c.zarr'], 2, 'not a ROS 2 bag (no .mcap or '
