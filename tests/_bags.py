@@ -27,8 +27,10 @@ def write_input_bag(path: str | os.PathLike[str], episode: Episode, *, storage: 
                     array_topic: str = '/soft_robot/pressures',
                     centerline_topic: str | None = '/soft_robot/centerline',
                     components: str = 'xz', frame_id: str = 'world',
-                    overwrite: bool = False, t0_ns: int = 0) -> Path:
+                    overwrite: bool = False, t0_ns: int = 0, output_every: int = 1) -> Path:
     """Write an episode as the inputs of the bag contract (pressures, measured centerline).
+
+    ``output_every``: the centerline on every that-many samples only (a slower camera).
 
     Pressures go one ``sensor_msgs/FluidPressure`` per chamber (stamped) or one
     ``std_msgs/Float64MultiArray`` per sample (bag time only); the outputs as a stamped
@@ -62,7 +64,7 @@ def write_input_bag(path: str | os.PathLike[str], episode: Episode, *, storage: 
             else:
                 msg = _float64_array(episode.U[:, j], 'chambers')
                 writer.write(arr_conn, ns, _TS.serialize_cdr(msg, msg.__msgtype__))
-            if c_conn is not None:
+            if c_conn is not None and j % output_every == 0:
                 pts = outputs_to_points(episode.Y[:, j], components)
                 writer.write(c_conn, ns, _TS.serialize_cdr(_pose_array(ns, frame_id, pts),
                                                            'geometry_msgs/msg/PoseArray'))

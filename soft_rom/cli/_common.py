@@ -179,7 +179,7 @@ def add_quiet(parser: argparse.ArgumentParser, *, help: str = 'no progress bars'
 def add_json(parser: argparse.ArgumentParser, *, help: str,
              old: str | None = '--summary-json') -> None:
     """``--json FILE`` and its hidden alias ``--summary-json`` (kept for one release)."""
-    parser.add_argument('--json', type=Path, default=None, metavar='FILE', help=help)
+    parser.add_argument('--json', type=a_path, default=None, metavar='FILE', help=help)
     if old:
         parser.add_argument(old, type=Path, dest='json', help=argparse.SUPPRESS)
 
@@ -256,11 +256,12 @@ def write_text_output(path: Path, text: str, *, overwrite: bool, what: str,
 
 def is_training_set(path: Path) -> bool:
     """Whether ``path`` is a training set soft_rom wrote (marker, or its zarr attributes)."""
+    from soft_rom.dataset.writer import KIND
     from soft_rom.outputs import is_marked
 
     if not path.is_dir() or path.is_symlink():
         return False
-    if is_marked(path, ('training_set',)):
+    if is_marked(path, (KIND,)):                 # 'trainingset' (the zarr attributes below)
         return True
     for name, key in (('.zattrs', None), ('zarr.json', 'attributes')):
         attrs_file = path / name

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from soft_rom.cli._common import (
+    a_path,
     add_json,
     add_quiet,
     check_apart,
@@ -53,7 +54,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     parser.add_argument('--initial', choices=('reference', 'output'), default='reference',
                         help='initial state: the reference configuration (default) or fitted '
                              'to the first measured output')
-    parser.add_argument('--plots', type=Path, default=None, metavar='DIR',
+    parser.add_argument('--plots', type=a_path, default=None, metavar='DIR',
                         help='write PNG plots of output traces (measured vs predicted)')
     parser.add_argument('--outputs', default=None,
                         help='comma-separated output indices (0-based) or names to plot '
@@ -191,6 +192,9 @@ def _output_indices(spec: str | None, model: LinearROM) -> list[int]:
         if not 0 <= i < p:
             raise DimensionError(f'--outputs: index {i} out of range 0..{p - 1}.')
         out.append(i)
+    twice = sorted({model.output_names[i] for i in out if out.count(i) > 1})
+    if twice:
+        raise DimensionError(f'--outputs: {", ".join(twice)} given twice (a panel each).')
     return out
 
 

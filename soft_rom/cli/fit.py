@@ -45,6 +45,35 @@ __all__ = ['add_parser', 'run']
 METHODS = tuple(LEARNERS)
 
 
+def _prefix(text: str) -> str:
+    """``--prefix``: a file-name start, not blank, no folder in it."""
+    if not text.strip() or text != text.strip() or '/' in text or '\\' in text:
+        raise argparse.ArgumentTypeError(f'{text!r} is not a file-name prefix (no blanks at '
+                                         'its ends, no folder)')
+    return text
+
+
+def _address(text: str) -> str:
+    """``--dask``: a scheduler address, ``[scheme://]host:port``."""
+    import re
+    if not (text.strip().startswith('inproc://') or re.fullmatch(
+            r'([a-z][a-z0-9+.-]*://)?(\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+):\d{1,5}', text.strip())):
+        raise argparse.ArgumentTypeError(f'{text!r} is not a scheduler address; give '
+                                         '[tcp://]HOST:PORT, e.g. tcp://127.0.0.1:8786')
+    return text.strip()
+
+
+def _ddt(text: str) -> str:
+    """``--ddt``: checked when given, whatever the method (it was ignored for DMDc/ERA)."""
+    from soft_rom.ddt import parse_estimator
+    from soft_rom.errors import ConfigError
+    try:
+        parse_estimator(text)
+    except ConfigError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    return text
+
+
 def _methods(text: str) -> tuple[str, ...]:
     out = tuple(m.lower() for m in list_items(text, '--method'))
     bad = [m for m in out if m not in METHODS]
@@ -110,7 +139,7 @@ def _add_size_and_lopinf_options(parser: argparse.ArgumentParser) -> None:
                         help='LOpInf/DMDc coordinates: full states Q, or the measured outputs '
                              '(deviations from y_ref); default state when the set has Q, '
                              'else outputs')
-    parser.add_argument('--ddt', default=None, metavar='ESTIMATOR',
+    parser.add_argument('--ddt', type=_ddt, default=None, metavar='ESTIMATOR',
                         help='LOpInf derivatives: fd2, fd4, fd6, fd8, savgol, '
                              'savgol:WINDOW[:POLYORDER] (default fd8 on states, savgol on '
                              'outputs); overrides --ddt-order')
@@ -175,7 +204,7 @@ def _add_run_options(parser: argparse.ArgumentParser) -> None:
                         help='stream the snapshots from disk with bounded memory (for training '
                              'sets larger than RAM; the exact Gram POD while it fits in 1 GiB, '
                              'else the randomized one)')
-    parser.add_argument('--dask', metavar='ADDRESS', default=None,
+    parser.add_argument('--dask', type=_address, metavar='ADDRESS', default=None,
                         help='fit on a dask.distributed cluster (scheduler address, e.g. '
                              'tcp://host:8786); implies --streaming')
     parser.add_argument('--dask-timeout', type=float, default=30.0, metavar='S',
@@ -185,7 +214,7 @@ def _add_run_options(parser: argparse.ArgumentParser) -> None:
                         help='directory for the model files (created if missing)')
     parser.add_argument('--overwrite', action='store_true',
                         help='replace model files (and the --json file) soft_rom wrote before')
-    parser.add_argument('--prefix', default=None,
+    parser.add_argument('--prefix', type=_prefix, default=None,
                         help='file-name prefix (default: the training set name, e.g. eel)')
     add_json(parser, help='also write the summary table as JSON')
     add_quiet(parser, old=True)
@@ -215,8 +244,17 @@ def _stems(method: str, args: argparse.Namespace) -> list[str]:
 
 def _check_outputs_early(args: argparse.Namespace, outdir: Path, prefix: str) -> None:
     """Refuse before fitting what would be refused when writing (exists, not ours, ...)."""
+    from soft_rom.bags.reader import is_bag
     from soft_rom.outputs import check_output
 
+    mine, data = outdir.resolve(), Path(args.training_set).resolve()
+    if mine == data or data in mine.parents:
+        raise ConfigError(f'-o {outdir} would put the model files inside the training set '
+                          f'{args.training_set}; choose another -o')
+    bag = next((p for p in (mine, *mine.parents) if p.is_dir() and is_bag(p)), None)
+    if bag is not None:
+        raise ConfigError(f'-o {outdir} would put the model files inside the bag {bag}; '
+                          'choose another -o')
     check_writable_folder(outdir, 'model files')
     if args.r is not None:
         from soft_rom.models import MAX_STATES
@@ -298,8 +336,36 @@ def _reducer(args: argparse.Namespace, clients: list[Any]) -> Any:
     return StreamingReducer(0.95 if args.energy is None else args.energy, client=client)
 
 
+#: Options of one or two methods: ``dest -> (its flag, the methods it applies to, default)``.
+_OF_METHODS: dict[str, tuple[str, tuple[str, ...], Any]] = {
+    'solver': ('--solver', ('lopinf',), 'fast'),
+    'forces': ('--forces', ('lopinf',), 'linear'),
+    'mass': ('--mass', ('lopinf',), None),
+    'refine': ('--refine', ('lopinf',), None),
+    'ddt': ('--ddt', ('lopinf',), None),
+    'ddt_order': ('--ddt-order', ('lopinf',), 8),
+    'regularization': ('--regularization', ('lopinf',), None),
+    'min_damping_ratio': ('--min-damping-ratio', ('lopinf',), None),
+    'coordinates': ('--coordinates', ('lopinf', 'dmdc'), None),
+    'dmdc_p': ('--p', ('dmdc',), None),
+    'dmdc_variant': ('--dmdc-variant', ('dmdc',), None),
+    **{dest: (f'--{dest.replace("_", "-")}', ('era',), None)
+       for dest in ('era_episode', 'decimation', 'n_markov', 'observer_order', 'output_rank',
+                    'okid_rcond', 'hsv_tol', 'era_preset', 'okid_ridge')},
+}
+
+
+def _check_applies(args: argparse.Namespace) -> None:
+    """Refuse an option none of the methods asked for reads (it was silently ignored)."""
+    for dest, (flag, methods, default) in _OF_METHODS.items():
+        if getattr(args, dest, default) != default and not set(methods) & set(args.method):
+            raise ConfigError(f'{flag} applies to {" and ".join(methods)}, not to --method '
+                              f'{",".join(args.method)}')
+
+
 def run(args: argparse.Namespace) -> int:
     """Execute ``soft-rom fit`` (a Dask client it connects is closed at the end)."""
+    _check_applies(args)
     clients: list[Any] = []
     try:
         return _run(args, clients)
@@ -374,12 +440,18 @@ def _rows(fitted: list[FittedModel], data: Any, outdir: Path, prefix: str
             train_eps = [e for e in data.episodes
                          if e.name in model.metadata['training']['episodes']]
         ev = evaluate(model, train_eps).get()
+        notes = list(fit.notes)
+        refined = (model.metadata.get('diagnostics') or {}).get('refinement') or {}
+        if refined.get('criterion') == 'output-error' and not refined.get('iterations'):
+            # asked for and not kept: the table's figures are the equation-error fit's
+            notes.append(f'--refine output-error was not applied ({refined.get("status")}): '
+                         'this is the equation-error fit')
         rows.append({'model': fit.label, 'method': model.method, 'r': _basis_r(model),
                      'dt': model.dt, 'train_relative_error': ev['relative_error'],
                      'train_relative_deviation_error': ev['relative_deviation_error'],
                      'stability_margin': model.stability_margin(),
                      'trust': model.trust_issues(), 'seconds': fit.seconds,
-                     'path': str(path), 'notes': list(fit.notes),
+                     'path': str(path), 'notes': notes,
                      **({'forces_selection': model.metadata['forces_selection']}
                         if 'forces_selection' in model.metadata else {})})
     review_rows(rows, fitted, data)

@@ -8,9 +8,15 @@ import math
 from pathlib import Path
 from typing import Any
 
+from soft_rom.cli._common import a_path
 from soft_rom.errors import ConfigError
 
 __all__ = ['add_parser', 'describe', 'run']
+
+
+def _json_target(text: str) -> str | Path:
+    """``--json``'s value: ``-`` (standard output) or a path, not an empty string."""
+    return '-' if text == '-' else a_path(text)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -20,8 +26,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description='Describe a ROS 2 bag (topics, types, counts, rates, duration), a training '
                     'set (episodes, names, units, shapes) or a model file (method, r, dt, '
                     'names, units, stability margin, metadata).')
-    parser.add_argument('paths', nargs='*', metavar='PATH')
-    parser.add_argument('--json', nargs='?', const='-', default=None, metavar='FILE',
+    parser.add_argument('paths', type=a_path, nargs='*', metavar='PATH')
+    parser.add_argument('--json', type=_json_target, nargs='?', const='-', default=None,
+                        metavar='FILE',
                         help='write JSON instead of text to FILE (default, or -: standard '
                              'output)')
     parser.add_argument('--overwrite', action='store_true',

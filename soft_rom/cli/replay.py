@@ -34,9 +34,18 @@ from soft_rom.cli._common import (
     is_summary_json,
     write_text_output,
 )
-from soft_rom.errors import ConfigError
+from soft_rom.errors import BagError, ConfigError
 
 __all__ = ['add_parser', 'run']
+
+
+def _node_name(text: str) -> str:
+    """A ROS 2 node name: letters, digits and underscores, not starting with a digit."""
+    import re
+    if not re.fullmatch(r'[A-Za-z_][A-Za-z0-9_]*', text):
+        raise argparse.ArgumentTypeError(f'{text!r} is not a ROS 2 node name (letters, digits '
+                                         'and _, not starting with a digit)')
+    return text
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
@@ -74,7 +83,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     parser.add_argument('--components', default=None,
                         help='output layout, component-major (default xz)')
     parser.add_argument('--frame-id', default=None, help='frame of the centerline')
-    parser.add_argument('--node-name', default='soft_rom_predictor',
+    parser.add_argument('--node-name', type=_node_name, default='soft_rom_predictor',
                         help='topics are /<node-name>/... (default soft_rom_predictor)')
     parser.add_argument('--no-measured', action='store_true',
                         help='ignore the measured centerline (open-loop prediction only)')
@@ -104,7 +113,11 @@ def _read(bag: str, mapping_path: str | None, model: Any,
     from soft_rom.convert import load_mapping, read_episode
     from soft_rom.layout import layout_of, replay_components
 
-    episode, report = read_episode(bag, load_mapping(mapping_path))
+    mapping = load_mapping(mapping_path)
+    episode, report = read_episode(bag, mapping)
+    if mapping.dt is None and episode.n_samples > 1 and episode.dt > 1.5 * model.dt:
+        # outputs slower than the model: on their grid the inputs between two would be lost
+        episode, report = read_episode(bag, mapping.replace(dt=model.dt))
     meta = episode.metadata
     check_model_matches_data(model, str(model_path), f'the bag {bag}',
                              counts=(episode.U.shape[0], episode.Y.shape[0]),
@@ -171,7 +184,16 @@ def run(args: argparse.Namespace) -> int:
     model = predictor.model
     if args.stream:
         return _run_stream(args, values, predictor)
-    episode, _report, components = _read(args.bag, args.mapping, model, args.model)
+    try:
+        episode, _report, components = _read(args.bag, args.mapping, model, args.model)
+    except BagError as err:
+        if args.no_measured and str(err).startswith('output topic'):
+            # the grid of a converted episode is the measured output's: without one, the bag
+            # can only be fed message by message
+            raise ConfigError(f'{err} Without a measured centerline, replay it with --stream '
+                              '--no-measured (the inputs message by message, as the node '
+                              'takes them).') from None
+        raise
     if components is not None:
         values.setdefault('output_components', components)
     publish_rate = float(values.get('publish_rate_hz', 0.0) or 0.0)

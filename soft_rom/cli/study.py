@@ -12,6 +12,7 @@ import shutil
 from typing import Any
 
 from soft_rom.cli._common import (
+    a_path,
     add_output,
     add_quiet,
     available_memory,
@@ -43,7 +44,7 @@ def add_study_options(parser: argparse.ArgumentParser, *, default_output: Path) 
                         help='seed of the pressure sequences (default: %(default)s)')
     parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap',
                         help='bag storage format (default: %(default)s)')
-    parser.add_argument('--bags', type=Path, default=None,
+    parser.add_argument('--bags', type=a_path, default=None,
                         help='reuse (or write) the episode bags in this folder')
     parser.add_argument('--jobs', type=int_range(1, 512), default=2,
                         help='processes for simulating episodes, and for study 2 (DMDc beside '
@@ -81,6 +82,27 @@ def _check_study_folder(out: Path, overwrite: bool) -> None:
                             '-o folder')
 
 
+#: Shortest training window of study 1 (32 samples of 1 ms, as convert's shortest episode).
+_MIN_TRAIN_S = 0.032
+
+
+def check_bag_folder(bags: Path) -> None:
+    """``--bags``: a folder of episode bags, not a bag, nor inside a training set or a bag."""
+    from soft_rom.bags.reader import is_bag
+    from soft_rom.dataset.writer import KIND
+    from soft_rom.errors import ConfigError
+    from soft_rom.outputs import is_marked
+
+    for p in (bags.resolve(), *bags.resolve().parents):
+        if p.is_dir() and is_bag(p):
+            raise ConfigError(f'--bags {bags}: {p} is a bag; give the folder the episode bags '
+                              'are (or go) in')
+        if is_marked(p, (KIND,)):
+            raise ConfigError(f'--bags {bags} is, or is inside, the training set {p}; give '
+                              'a folder of its own')
+    check_writable_folder(bags, 'bags')
+
+
 def prepare_study(args: argparse.Namespace) -> None:
     """Check the folders and resources of a study before any work.
 
@@ -94,7 +116,7 @@ def prepare_study(args: argparse.Namespace) -> None:
     check_writable_folder(Path(args.output), 'report')
     _check_study_folder(Path(args.output), args.overwrite)
     if args.bags is not None:
-        check_writable_folder(Path(args.bags), 'bags')
+        check_bag_folder(Path(args.bags))
     n_dof, memory, disk = estimate_resources(args.resolution, jobs=args.jobs,
                                              episodes=args.episodes, steps=2000, state=True)
     free = available_memory()
@@ -281,7 +303,7 @@ def _run_staged(args: argparse.Namespace, cfg: Any) -> int:
     if not ((out / 'stages').is_dir() and is_marked(out, ('study',))):
         _check_study_folder(out, args.overwrite)
     if args.bags is not None:
-        check_writable_folder(Path(args.bags), 'bags')
+        check_bag_folder(Path(args.bags))
     summary = run_paper_scale(out, cfg, bag_dir=args.bags, progress=not args.quiet,
                               echo=print)
     print(f'report: {out / "report.md"}')
@@ -299,6 +321,13 @@ def run(args: argparse.Namespace) -> int:
     t_train = args.t_train if args.t_train is not None else min(1.5, 0.75 * args.duration)
     if not t_train < args.duration:
         raise ConfigError(f'--t-train {t_train:g} must be below --duration {args.duration:g}')
+    if args.only in (None, 1) and t_train < _MIN_TRAIN_S:
+        raise ConfigError(f'--t-train {t_train:g} s leaves study 1 fewer than '
+                          f'{int(_MIN_TRAIN_S * 1e3)} samples to train on; give at least '
+                          f'{_MIN_TRAIN_S:g} s (a longer --duration sets a longer default)')
+    if args.only == 2 and args.episodes < 3:
+        raise ConfigError(f'study 2 trains on Ep 1 + Ep 2 and tests on the others: --episodes '
+                          f'{args.episodes} leaves none to test (6 as the paper)')
     staged = args.staged or args.resolution >= 3
     cfg = StudyConfig(resolution=args.resolution, n_episodes=args.episodes, seed=args.seed,
                       storage=args.storage, t_train=t_train, r_lopinf=args.r_lopinf,

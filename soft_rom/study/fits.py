@@ -152,6 +152,16 @@ def _grids(cfg: StudyConfig) -> dict[str, tuple[int, ...]]:
             'lopinf_cubic': cfg.r_cubic}
 
 
+def failure_text(method: str, err: BaseException) -> str:
+    """Why a study's fit failed, in the study's terms (its ERA preset is not an option)."""
+    text = str(err)
+    if method == 'era' and '--n-markov' in text:
+        text += (' (the study sets the Markov horizon with its ERA/OKID preset, not with '
+                 '--n-markov: give it longer training data, a longer --duration or, for study '
+                 '1, --t-train)')
+    return text
+
+
 def _pick(method: str, eps: Sequence[Episode], ts: Any, cfg: StudyConfig,
           tick: Callable[[str], None] | None, fit_seconds: dict[str, float],
           swept: dict[str, dict[int, LinearROM]], reducer: Reducer | None = None
@@ -164,7 +174,8 @@ def _pick(method: str, eps: Sequence[Episode], ts: Any, cfg: StudyConfig,
                        reducer=reducer)
         fit_seconds[method] = fit_seconds.get(method, 0.0) + time.perf_counter() - t0
     except Exception as err:
-        LOG.warning('study 2: %s on %s failed: %s', method, [e.name for e in eps], err)
+        LOG.warning('study 2: %s on %s failed: %s', method, [e.name for e in eps],
+                    failure_text(method, err))
         return None
     swept[method] = models
     best = None

@@ -34,6 +34,7 @@ from soft_rom.study.fits import (
     _in_memory,
     _predict,
     _record_held_out,
+    failure_text,
     HELD_OUT_METHODS,
     sweep,
 )
@@ -89,7 +90,7 @@ def study_time_extrapolation(ts: Any, cfg: StudyConfig, out: Path,
                            era_options=cfg.era_options, cubic_options=cfg.cubic_options,
                            streaming=cfg.streaming)
         except Exception as err:  # a failed fit is a result to report, not a crash
-            LOG.warning('study 1: %s failed: %s', method, err)
+            LOG.warning('study 1: %s failed: %s', method, failure_text(method, err))
             models = {}
         fit_s = (time.perf_counter() - t0) / max(len(models), 1)
         for r, model in models.items():

@@ -269,3 +269,29 @@ def test_stream_replay_of_topics_the_bag_lacks_reads_nothing(tmp_path) -> None:
     assert summary['messages'] == {'inputs': 0, 'measured': 0, 'published': 0}
     with pytest.raises(FileNotFoundError, match='does not exist'):
         list(read_messages_ns(tmp_path / 'missing'))
+
+
+def test_cli_replay_keeps_every_input_when_the_outputs_are_slower(tmp_path, capsys) -> None:
+    """A camera at 100 Hz beside pressures at 1 kHz: every input reaches the prediction.
+
+    Found by an audit: the converted grid was the outputs' (10 ms), so 9 of 10 input samples
+    were lost (30 samples replayed); the replay now converts on the model's step.
+    """
+    from soft_rom.cli import main
+
+    model = small_model()
+    rng = np.random.default_rng(3)
+    k = 300
+    U = rng.standard_normal((model.n_inputs, k))            # a new input every 1 ms step
+    Y = model.simulate(U)
+    ep = Episode(t=2.0 + np.arange(k) * model.dt, U=U, Y=Y, name='ep')
+    bag = write_input_bag(tmp_path / 'in', ep, storage='mcap', output_every=10)
+    path = model.save(tmp_path / 'm.npz')
+    out = tmp_path / 'pred'
+    assert main(['replay', str(path), str(bag), '-o', str(out), '--publish-rate', '0',
+                 '--json', str(tmp_path / 's.json'), '--components', 'xz', '--quiet']) == 0
+    data = json.loads((tmp_path / 's.json').read_text())
+    assert data['samples'] >= k - 10, data['samples']
+    pred = np.array([data_to_array(m.data) for _, _, m in read_messages(out, [f'{NODE}/output'])])
+    n = pred.shape[0]
+    np.testing.assert_allclose(pred.T, Y[:, :n], atol=1e-9)

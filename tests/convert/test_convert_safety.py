@@ -238,7 +238,8 @@ def test_overwrite_keeps_a_recording_put_inside_the_set_it_would_replace(tmp_pat
     """The audit's case: the input bag moved into the training set, then converted onto it.
 
     ``--overwrite`` used to delete the set with the bag in it (exit 0); so a model file that
-    ``soft-rom fit`` wrote into the set. The set's list of its own files stops both.
+    ``soft-rom fit`` wrote into the set (fit now refuses to). The set's list of its own files
+    stops both.
     """
     out = tmp_path / 'copy.zarr'
     _bag(tmp_path / 'rec1', k=50)
@@ -253,7 +254,11 @@ def test_overwrite_keeps_a_recording_put_inside_the_set_it_would_replace(tmp_pat
     assert main(['convert', str(tmp_path / 'rec1'), '-o', str(out), '--overwrite',
                  '--quiet']) == 0
     assert main(['fit', str(out), '--method', 'dmdc', '--r', '2', '-o', str(out),
+                 '--quiet']) == 2                  # fit no longer writes into the set ...
+    assert 'inside the training set' in capsys.readouterr().err
+    assert main(['fit', str(out), '--method', 'dmdc', '--r', '2', '-o', str(tmp_path / 'm'),
                  '--quiet']) == 0
+    os.rename(tmp_path / 'm' / 'copy_dmdc_r2.npz', out / 'copy_dmdc_r2.npz')   # ... a user may
     assert main(['convert', str(tmp_path / 'rec1'), '-o', str(out), '--overwrite',
                  '--quiet']) == 2
     assert 'copy_dmdc_r2.npz' in capsys.readouterr().err
