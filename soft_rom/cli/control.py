@@ -151,6 +151,7 @@ def run(args: argparse.Namespace) -> int:
         ClosedLoopResult,
         EstimatorConfig,
         FOMPlant,
+        input_bounds,
         MPCConfig,
         parse_reference,
         run_closed_loop,
@@ -168,6 +169,7 @@ def run(args: argparse.Namespace) -> int:
     if getattr(model, 'is_nonlinear', False) or getattr(model, 'is_linear', True) is False:
         raise ConfigError(f'{args.model}: a cubic LOpInf model is nonlinear; the MPC is linear. '
                           'Fit a linear one (soft-rom fit --forces linear).')
+    input_bounds(model, args.u_min, args.u_max)     # before the FOM's set-up (seconds)
     mpc = MPCConfig(step=args.step, horizon=args.horizon, rate_weight=args.rate_weight,
                     u_min=args.u_min, u_max=args.u_max, rate_max=args.rate_max,
                     solver=args.solver, terminal=args.terminal)
