@@ -158,6 +158,7 @@ def run(args: argparse.Namespace) -> int:
         Sensor,
     )
     from soft_rom.control.figures import closed_loop_figure
+    from soft_rom.control.loop import check_plant_units
     from soft_rom.models import load_model
     from soft_rom.outputs import atomic_dir, check_output
     from soft_rom.sim import EelModel
@@ -169,7 +170,8 @@ def run(args: argparse.Namespace) -> int:
     if getattr(model, 'is_nonlinear', False) or getattr(model, 'is_linear', True) is False:
         raise ConfigError(f'{args.model}: a cubic LOpInf model is nonlinear; the MPC is linear. '
                           'Fit a linear one (soft-rom fit --forces linear).')
-    input_bounds(model, args.u_min, args.u_max)     # before the FOM's set-up (seconds)
+    check_plant_units(model)                         # before the FOM's set-up (seconds)
+    input_bounds(model, args.u_min, args.u_max)
     mpc = MPCConfig(step=args.step, horizon=args.horizon, rate_weight=args.rate_weight,
                     u_min=args.u_min, u_max=args.u_max, rate_max=args.rate_max,
                     solver=args.solver, terminal=args.terminal)

@@ -36,8 +36,8 @@ from soft_rom.control.reference import _model_outputs, Reference
 from soft_rom.errors import ConfigError
 from soft_rom.metrics import relative_deviation_error
 
-__all__ = ['ClosedLoopResult', 'FOMPlant', 'ROMPlant', 'Sensor', 'open_loop_plan',
-           'run_closed_loop', 'simulate_inputs']
+__all__ = ['ClosedLoopResult', 'FOMPlant', 'ROMPlant', 'Sensor', 'check_plant_units',
+           'open_loop_plan', 'run_closed_loop', 'simulate_inputs']
 
 Array = NDArray[np.float64]
 
@@ -67,7 +67,7 @@ class Sensor:
             raise ConfigError(f'sensor noise must be >= 0; got {self.noise!r}.')
 
 
-def _check_units(model: Any) -> None:
+def check_plant_units(model: Any) -> None:
     """The embedded eel takes pressures in Pa and gives its centerline in m: so must the model.
 
     A model fitted on a set converted in other units (kPa, mm) would have its commands
@@ -104,7 +104,7 @@ class FOMPlant:
         self.model = model
         self.dt = float(dt)
         self.jacobian = jacobian
-        _check_units(model)
+        check_plant_units(model)
         self._stepper = self.eel.stepper(self.dt, jacobian=jacobian)
         _model_outputs(model, self._stepper.centerline())      # the layout fits: checked
         self.n_inputs = self.eel.n_chambers
