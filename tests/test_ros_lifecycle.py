@@ -22,7 +22,8 @@ client = client_fixture('lifecycle_client')
 
 
 def _state(client: Client, fqn: str) -> int:
-    return client.call(GetState, f'{fqn}/get_state', GetState.Request()).current_state.id
+    return client.call(GetState, f'{fqn}/get_state', GetState.Request(),
+                       idempotent=True).current_state.id
 
 
 def _transition(client: Client, fqn: str, tid: int) -> bool:
