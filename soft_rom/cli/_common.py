@@ -39,6 +39,7 @@ __all__ = [
     'check_model_matches_data',
     'check_writable_folder',
     'dumps_strict',
+    'enclosing_data',
     'finite_float',
     'int_range',
     'is_model_file',
@@ -252,6 +253,18 @@ def write_text_output(path: Path, text: str, *, overwrite: bool, what: str,
 
     with atomic_files([path], overwrite=overwrite, what=what, is_ours=is_ours) as staged:
         staged[path].write_text(text, encoding='utf-8')
+
+
+def enclosing_data(path: Path) -> tuple[str, Path] | None:
+    """The bag or training set that ``path`` is or sits inside (``('bag', p)``), if any."""
+    from soft_rom.bags.reader import is_bag
+
+    for p in (path.resolve(), *path.resolve().parents):
+        if p.is_dir() and is_bag(p):
+            return 'bag', p
+        if is_training_set(p):
+            return 'training set', p
+    return None
 
 
 def is_training_set(path: Path) -> bool:

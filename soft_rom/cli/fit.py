@@ -29,6 +29,7 @@ from soft_rom.cli._common import (
     check_apart,
     check_writable_folder,
     dumps_strict,
+    enclosing_data,
     finite_float,
     int_range,
     is_model_file,
@@ -244,17 +245,12 @@ def _stems(method: str, args: argparse.Namespace) -> list[str]:
 
 def _check_outputs_early(args: argparse.Namespace, outdir: Path, prefix: str) -> None:
     """Refuse before fitting what would be refused when writing (exists, not ours, ...)."""
-    from soft_rom.bags.reader import is_bag
     from soft_rom.outputs import check_output
 
-    mine, data = outdir.resolve(), Path(args.training_set).resolve()
-    if mine == data or data in mine.parents:
-        raise ConfigError(f'-o {outdir} would put the model files inside the training set '
-                          f'{args.training_set}; choose another -o')
-    bag = next((p for p in (mine, *mine.parents) if p.is_dir() and is_bag(p)), None)
-    if bag is not None:
-        raise ConfigError(f'-o {outdir} would put the model files inside the bag {bag}; '
-                          'choose another -o')
+    inside = enclosing_data(outdir)
+    if inside is not None:
+        raise ConfigError(f'-o {outdir} would put the model files inside the {inside[0]} '
+                          f'{inside[1]}; choose another -o')
     check_writable_folder(outdir, 'model files')
     if args.r is not None:
         from soft_rom.models import MAX_STATES

@@ -113,11 +113,8 @@ def _read(bag: str, mapping_path: str | None, model: Any,
     from soft_rom.convert import load_mapping, read_episode
     from soft_rom.layout import layout_of, replay_components
 
-    mapping = load_mapping(mapping_path)
-    episode, report = read_episode(bag, mapping)
-    if mapping.dt is None and episode.n_samples > 1 and episode.dt > 1.5 * model.dt:
-        # outputs slower than the model: on their grid the inputs between two would be lost
-        episode, report = read_episode(bag, mapping.replace(dt=model.dt))
+    # outputs slower than the model: read on its step, or the inputs between two are lost
+    episode, report = read_episode(bag, load_mapping(mapping_path), finest=model.dt)
     meta = episode.metadata
     check_model_matches_data(model, str(model_path), f'the bag {bag}',
                              counts=(episode.U.shape[0], episode.Y.shape[0]),

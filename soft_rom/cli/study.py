@@ -17,6 +17,7 @@ from soft_rom.cli._common import (
     add_quiet,
     available_memory,
     check_writable_folder,
+    enclosing_data,
     finite_float,
     int_range,
     list_items,
@@ -88,18 +89,12 @@ _MIN_TRAIN_S = 0.032
 
 def check_bag_folder(bags: Path) -> None:
     """``--bags``: a folder of episode bags, not a bag, nor inside a training set or a bag."""
-    from soft_rom.bags.reader import is_bag
-    from soft_rom.dataset.writer import KIND
     from soft_rom.errors import ConfigError
-    from soft_rom.outputs import is_marked
 
-    for p in (bags.resolve(), *bags.resolve().parents):
-        if p.is_dir() and is_bag(p):
-            raise ConfigError(f'--bags {bags}: {p} is a bag; give the folder the episode bags '
-                              'are (or go) in')
-        if is_marked(p, (KIND,)):
-            raise ConfigError(f'--bags {bags} is, or is inside, the training set {p}; give '
-                              'a folder of its own')
+    inside = enclosing_data(bags)
+    if inside is not None:
+        raise ConfigError(f'--bags {bags} is, or is inside, the {inside[0]} {inside[1]}; give '
+                          'the folder the episode bags are (or go) in')
     check_writable_folder(bags, 'bags')
 
 

@@ -260,8 +260,12 @@ def convert(bags: Sequence[str | Path], out: str | Path, mapping: BagMapping | N
 
 def read_episode(bag_path: str | Path, mapping: BagMapping | None = None, *,
                  include_state: bool = False, storage: str = 'auto',
-                 progress: bool = False) -> tuple[Episode, ConversionReport]:
+                 progress: bool = False, finest: float | None = None
+                 ) -> tuple[Episode, ConversionReport]:
     """Read one bag into an in-memory :class:`~soft_rom.data.Episode` on the uniform grid.
+
+    ``finest`` (s): without a grid step in the mapping, the grid is at most this coarse
+    (a model's step: on a slower camera's grid the inputs between two frames would be lost).
 
     Where long gaps split the bag, the longest piece is returned (said in the report's
     notes). ``Q`` is held in memory, so ``include_state=True`` is for small models only;
@@ -281,6 +285,8 @@ def read_episode(bag_path: str | Path, mapping: BagMapping | None = None, *,
     path = paths[0]
     plan = probe_bag(path, m, include_state=include_state, storage=storage)
     dt_ns = choose_dt_ns([plan], m)
+    if finest is not None and m.dt is None and dt_ns > 1.5 * finest * 1e9:
+        dt_ns = int(round(finest * 1e9))
     sink = _MemorySink()
     conv = BagConverter(plan, m, dt_ns, sink, set(), progress)
     report = conv.run()

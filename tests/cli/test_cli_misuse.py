@@ -130,7 +130,7 @@ CASES = [
     (['study', '-o', '{root}/st', '--only', '2', '--episodes', '2'], 2, 'leaves none to test'),
     (['study', '-o', '{root}/st', '--t-train', '0.001'], 2, 'fewer than 32 samples'),
     (['study', '-o', '{root}/st', '--bags', '{ts}'], 2, 'is, or is inside, the training set'),
-    (['study', '-o', '{root}/st', '--bags', '{bag}'], 2, 'is a bag'),
+    (['study', '-o', '{root}/st', '--bags', '{bag}'], 2, 'is, or is inside, the bag'),
     # resources
     (['simulate', '-o', '{root}/s1', '--resolution', '9'], 1, 'GB of memory'),
     (['study', '-o', '{root}/st', '--resolution', '20'], 1, 'GB of memory'),
