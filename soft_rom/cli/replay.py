@@ -150,6 +150,37 @@ def _check_paths(args: argparse.Namespace) -> None:
     check_output(args.output, overwrite=args.overwrite, what='replay bag', kinds=('replay',))
 
 
+def _settings(args: argparse.Namespace) -> tuple[dict[str, Any], Any]:
+    """The node's parameters (``--config``, then the options given) and its config."""
+    from soft_rom.predictor.params import load_params_file, predictor_config
+
+    values: dict[str, Any] = load_params_file(args.config) if args.config else {}
+    overrides = {'kalman': args.kalman, 'process_noise': args.process_noise,
+                 'measurement_noise': args.measurement_noise, 'stepping': args.stepping,
+                 'publish_rate_hz': args.publish_rate, 'output_components': args.components,
+                 'frame_id': args.frame_id}
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    config = predictor_config(values)
+    _check_filter_options(args, config.kalman)
+    return values, config
+
+
+def _check_filter_options(args: argparse.Namespace, kalman: bool) -> None:
+    """Refuse the Kalman options that would do nothing (``kalman``: the filter is on)."""
+    if args.no_measured and (args.kalman or args.compare):
+        flag = '--kalman' if args.kalman else '--compare'
+        raise ConfigError(f'{flag} corrects the prediction with the measured centerline, which '
+                          f'--no-measured ignores; drop one of them')
+    if args.stream and args.compare:
+        raise ConfigError('--compare replays the converted episode twice (open loop and '
+                          'Kalman); it does not run with --stream')
+    noise = [f for f, v in (('--process-noise', args.process_noise),
+                            ('--measurement-noise', args.measurement_noise)) if v is not None]
+    if noise and not (kalman or args.compare):
+        raise ConfigError(f'{" and ".join(noise)} set{"s" if len(noise) == 1 else ""} the '
+                          'Kalman filter, which is off; add --kalman (or --compare)')
+
+
 def _write_json(args: argparse.Namespace, summary: dict[str, Any]) -> None:
     if args.json is not None:
         write_text_output(args.json, dumps_strict(summary, indent=2, default=str),
@@ -164,19 +195,12 @@ def run(args: argparse.Namespace) -> int:
     from soft_rom.models import load_model
     from soft_rom.outputs import atomic_new_dir
     from soft_rom.predictor import kalman_vs_open_loop, Predictor
-    from soft_rom.predictor.params import load_params_file, predictor_config
 
     _check_paths(args)
     if not Path(args.bag).exists():
         raise FileNotFoundError(f'bag {args.bag} does not exist')
     checked = load_model(args.model, strict=args.strict)
-    values: dict[str, Any] = load_params_file(args.config) if args.config else {}
-    overrides = {'kalman': args.kalman, 'process_noise': args.process_noise,
-                 'measurement_noise': args.measurement_noise, 'stepping': args.stepping,
-                 'publish_rate_hz': args.publish_rate, 'output_components': args.components,
-                 'frame_id': args.frame_id}
-    values.update({k: v for k, v in overrides.items() if v is not None})
-    config = predictor_config(values)
+    values, config = _settings(args)
     predictor = Predictor(args.model, config)
     model = predictor.model
     if args.stream:

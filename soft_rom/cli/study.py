@@ -39,8 +39,7 @@ def add_study_options(parser: argparse.ArgumentParser, *, default_output: Path) 
     parser.add_argument('--resolution', type=int_range(1, MAX_RESOLUTION), default=1,
                         help='eel mesh resolution (1 = fast default; 4 = paper size)')
     parser.add_argument('--episodes', type=int_range(2, 1000), default=6,
-                        help='episodes to simulate, at least 2, 6 for study 2 '
-                             '(default: %(default)s)')
+                        help='episodes to simulate, at least 2, 6 for study 2 (default 6)')
     parser.add_argument('--seed', type=int_range(0, 2**63 - 1), default=0,
                         help='seed of the pressure sequences (default: %(default)s)')
     parser.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap',
@@ -203,11 +202,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     add_study_options(parser, default_output=Path('soft_rom_study'))
     parser.add_argument('--only', type=int, choices=(1, 2), default=None,
                         help='run only study 1 (time extrapolation) or 2 (unseen inputs)')
-    parser.add_argument('--r-lopinf', type=parse_r_list, default=tuple(range(2, 23, 2)),
+    # None: not given (refused with --learning-curve, which does not use them); run() fills in
+    parser.set_defaults(episodes=None)
+    parser.add_argument('--r-lopinf', type=parse_r_list, default=None,
                         help='r values for LOpInf, e.g. 2:22:2 or 4,8,16 (default 2:22:2)')
-    parser.add_argument('--r-dmdc', type=parse_r_list, default=tuple(range(2, 23, 2)),
+    parser.add_argument('--r-dmdc', type=parse_r_list, default=None,
                         help='r values for DMDc (default 2:22:2)')
-    parser.add_argument('--r-era', type=parse_r_list, default=tuple(range(20, 43, 2)),
+    parser.add_argument('--r-era', type=parse_r_list, default=None,
                         help='r values for ERA/OKID (default 20:42:2)')
     parser.add_argument('--t-train', type=finite_float(0.0, 1.999, lo_open=True), default=None,
                         help='end of training in study 1, seconds, below the episode length '
@@ -223,11 +224,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         'the linear one; every setting chosen on held-out training episodes)')
     curve.add_argument('--learning-curve', action='store_true',
                        help='run the learning-curve study instead of studies 1 and 2')
-    curve.add_argument('--sizes', type=_sizes, default=(2, 4, 8, 16),
+    curve.add_argument('--sizes', type=_sizes, default=None,
                        help='training sizes in episodes, e.g. 2,4,8,16 (default) or 2:8:2')
-    curve.add_argument('--test-episodes', type=int_range(1, 100), default=4,
-                       help='test episodes, seed SEED+1 (default: %(default)s)')
-    curve.add_argument('--amplitudes', type=_amplitudes, default=(50e3, 5e3),
+    curve.add_argument('--test-episodes', type=int_range(1, 100), default=None,
+                       help='test episodes, seed SEED+1 (default 4)')
+    curve.add_argument('--amplitudes', type=_amplitudes, default=None,
                        help='pressure amplitudes in Pa, one curve each (default 50000,5000: '
                             'strongly nonlinear and nearly linear)')
     curve.add_argument('--curve-methods', type=_curve_methods, default=None,
@@ -261,19 +262,38 @@ def _curve_methods(text: str) -> tuple[str, ...]:
     return values
 
 
+_STUDY_ONLY = ('only', 'episodes', 'r_lopinf', 'r_dmdc', 'r_era', 't_train', 'staged')
+_CURVE_ONLY = ('sizes', 'test_episodes', 'amplitudes', 'curve_methods')
+
+
+def _refuse_given(args: argparse.Namespace, names: tuple[str, ...], why: str) -> None:
+    """Refuse the options of ``names`` the user gave (not None or False): they would do nothing."""
+    from soft_rom.errors import ConfigError
+
+    given = [f'--{n.replace("_", "-")}' for n in names if getattr(args, n) not in (None, False)]
+    if given:
+        it = 'it' if len(given) == 1 else 'them'
+        raise ConfigError(f'{", ".join(given)} {"is" if len(given) == 1 else "are"} '
+                          + why.format(it=it))
+
+
 def _run_curve(args: argparse.Namespace) -> int:
     """``--learning-curve``: simulate, fit and score per size and amplitude; the report."""
     from soft_rom.errors import ConfigError
     from soft_rom.study.curve import CurveConfig, run_learning_curve
 
-    if args.only is not None:
-        raise ConfigError('--only picks study 1 or 2; drop it with --learning-curve')
-    if min(args.sizes) < 2:
+    _refuse_given(args, _STUDY_ONLY, 'for studies 1 and 2; the learning curve does not '
+                  'use {it} (its options: --sizes, --test-episodes, --amplitudes, '
+                  '--curve-methods)')
+    sizes = args.sizes if args.sizes is not None else (2, 4, 8, 16)
+    if min(sizes) < 2:
         raise ConfigError('--sizes must be at least 2 episodes each (the settings are chosen '
                           'on held-out training episodes)')
     kw = {} if args.curve_methods is None else {'methods': args.curve_methods}
-    cfg = CurveConfig(sizes=tuple(sorted(set(args.sizes))), n_test=args.test_episodes,
-                      amplitudes=args.amplitudes, seed=args.seed, resolution=args.resolution,
+    cfg = CurveConfig(sizes=tuple(sorted(set(sizes))),
+                      n_test=4 if args.test_episodes is None else args.test_episodes,
+                      amplitudes=args.amplitudes or (50e3, 5e3), seed=args.seed,
+                      resolution=args.resolution,
                       storage=args.storage, jobs=args.jobs, duration=args.duration, **kw)
     # The resource check counts every recording: training, test and ERA's long episode.
     args.episodes = len(cfg.amplitudes) * (2 * max(cfg.sizes) + cfg.n_test)
@@ -313,6 +333,14 @@ def run(args: argparse.Namespace) -> int:
 
     if args.learning_curve:
         return _run_curve(args)
+    _refuse_given(args, _CURVE_ONLY, 'for the learning curve; add --learning-curve, or drop '
+                  '{it}')
+    if args.episodes is None:
+        args.episodes = 6
+    defaults = {'r_lopinf': range(2, 23, 2), 'r_dmdc': range(2, 23, 2), 'r_era': range(20, 43, 2)}
+    for name, values in defaults.items():
+        if getattr(args, name) is None:
+            setattr(args, name, tuple(values))
     t_train = args.t_train if args.t_train is not None else min(1.5, 0.75 * args.duration)
     if not t_train < args.duration:
         raise ConfigError(f'--t-train {t_train:g} must be below --duration {args.duration:g}')

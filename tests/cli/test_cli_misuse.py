@@ -131,6 +131,17 @@ CASES = [
     (['study', '-o', '{root}/st', '--t-train', '0.001'], 2, 'fewer than 32 samples'),
     (['study', '-o', '{root}/st', '--bags', '{ts}'], 2, 'is, or is inside, the training set'),
     (['study', '-o', '{root}/st', '--bags', '{bag}'], 2, 'is, or is inside, the bag'),
+    # options that would do nothing: refused, not ignored
+    (['study', '-o', '{root}/st', '--sizes', '2,4'], 2,
+     '--sizes is for the learning curve; add --learning-curve'),
+    (['study', '--learning-curve', '-o', '{root}/lc', '--r-lopinf', '4', '--episodes', '8'], 2,
+     '--episodes, --r-lopinf are for studies 1 and 2; the learning curve does not use them'),
+    (['replay', '{model}', '{bag}', '-o', '{root}/p1', '--process-noise', '1e-6'], 2,
+     '--process-noise sets the Kalman filter, which is off; add --kalman'),
+    (['replay', '{model}', '{bag}', '-o', '{root}/p1', '--kalman', '--no-measured'], 2,
+     'which --no-measured ignores'),
+    (['replay', '{model}', '{bag}', '-o', '{root}/p1', '--stream', '--compare'], 2,
+     'does not run with --stream'),
     # resources
     (['simulate', '-o', '{root}/s1', '--resolution', '9'], 1, 'GB of memory'),
     (['study', '-o', '{root}/st', '--resolution', '20'], 1, 'GB of memory'),
