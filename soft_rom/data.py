@@ -52,6 +52,7 @@ def as_signal(name: str, values: ArrayLike, *, rows: int | None = None,
         if isinstance(err, DimensionError):
             raise
         raise DimensionError(f'{name} must be an array of numbers; {err}.') from err
+    given = arr.shape
     if arr.ndim == 1:
         arr = arr[np.newaxis, :]
     if arr.ndim != 2:
@@ -59,7 +60,8 @@ def as_signal(name: str, values: ArrayLike, *, rows: int | None = None,
             f'{name} must be a 2-D array (n_channels, n_samples); got shape {arr.shape}.')
     if rows is not None and arr.shape[0] != rows:
         raise DimensionError(
-            f'{name} must have {rows} channels (rows); got shape {arr.shape}. '
+            f'{name} must have {rows} channels (rows); got shape {given}'
+            f'{" (one channel)" if len(given) == 1 else ""}. '
             'Arrays are (n_channels, n_samples): transpose if you passed (samples, channels).')
     if cols is not None and arr.shape[1] != cols:
         raise DimensionError(f'{name} must have {cols} samples (columns); got shape {arr.shape}.')

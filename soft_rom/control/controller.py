@@ -11,7 +11,16 @@ never returns a command outside the bounds or not finite:
 * without a measurement yet (``missing``), or with none for ``stale_after`` seconds
   (``stale``), the last command is held (clipped into the bounds); with an external state
   estimate (``external_state``, the predictor node's ``~/state``) the same holds for it;
-* an infeasible or failed QP holds the last command (clipped into the bounds).
+* an infeasible or failed QP holds the last command (clipped into the bounds);
+* a step time that is not finite, earlier than the last step's, or more than
+  ``stale_after`` before the last measurement (``bad_time``: two clocks?) holds the last
+  command; steps closer together than the control step move the command by at most the
+  rate bound times the time since the last step.
+
+A measurement is a vector in the model's output order: an array of another shape (a
+``(points, components)`` centerline) or farther from the rest output than 100 times the
+training data's largest deviation (the predictor's output envelope; wrong units) is
+dropped.
 """
 
 from __future__ import annotations
@@ -31,6 +40,10 @@ from soft_rom.errors import DimensionError
 
 __all__ = ['Command', 'Controller']
 
+#: A measurement farther than this many times the training data's largest output deviation
+#: from the rest output is dropped (the predictor's default output envelope).
+MEASUREMENT_FACTOR = 100.0
+
 Array = NDArray[np.float64]
 
 
@@ -44,6 +57,7 @@ class Command:
         The command (finite, within the bounds).
     status : str
         ``'ok'``, ``'missing'`` (no measurement yet), ``'stale'``, ``'no_reference'``,
+        ``'bad_time'`` (the step time: not finite, going back, or before the measurements),
         ``'infeasible'`` or ``'failed'`` (QP).
     solve_s : float
         QP solve wall time (0 when none ran).
@@ -117,8 +131,10 @@ class Controller:
         self.reference: Reference | None = None
         self.u = self.mpc.fallback(np.zeros(self.mpc.m))
         self.t_measured: float | None = None
+        self.t_step: float | None = None
         self.started = False
         self.counters = _Counters()
+        self._y_bound = MEASUREMENT_FACTOR * self.mpc.y_scale
 
     @property
     def h(self) -> float:
@@ -126,8 +142,14 @@ class Controller:
         return self.mpc.h
 
     def start(self, t: float) -> None:
-        """Anchor the estimator at time ``t`` at rest, with the current command held."""
+        """Start a run at time ``t``: the estimator at rest with the current command held.
+
+        The measurements, state estimate and command times of an earlier run are forgotten
+        (its clock may have started again from 0); the reference and command stay.
+        """
         self.estimator.reset(t, self.u)
+        self.t_measured = self.t_step = self.state = None
+        self._history.clear()
         self.started = True
 
     # -- inputs -------------------------------------------------------------------------
@@ -135,7 +157,8 @@ class Controller:
         """Use ``ref`` from now on; returns ``''`` or why it was refused (the old one stays)."""
         why = ''
         if not isinstance(ref, Reference):
-            why = 'not a reference'
+            why = (f'not a Reference but {type(ref).__name__} (parse a text with '
+                   'soft_rom.control.parse_reference)')
         elif ref.n_outputs != self.mpc.p:
             why = f'reference has {ref.n_outputs} outputs; the model has {self.mpc.p}'
         elif not (np.all(np.isfinite(ref.Y)) and np.all(np.isfinite(ref.t))):
@@ -153,13 +176,21 @@ class Controller:
         """A measured absolute output at time ``t``; returns ``''`` or why it was dropped."""
         why = ''
         try:
-            y = np.asarray(y, dtype=np.float64).reshape(-1)
+            y = np.asarray(y, dtype=np.float64)
         except (TypeError, ValueError):
             y = np.zeros(0)
+        shape = y.shape
+        if y.ndim == 2 and 1 in shape:       # a row or column vector
+            y = y.reshape(-1)
         if y.shape != (self.mpc.p,):
-            why = f'measurement of {y.size} values; the model has {self.mpc.p} outputs'
+            why = (f'measurement of shape {shape}; the model has {self.mpc.p} outputs '
+                   '(one vector in its output order)')
         elif not np.all(np.isfinite(y)):
             why = f'measurement with {int(np.count_nonzero(~np.isfinite(y)))} NaN/Inf value(s)'
+        elif (dev := float(np.max(np.abs(y - self.estimator.y_ref)))) > self._y_bound:
+            why = (f'measurement {dev:.3g} from the rest output, more than {MEASUREMENT_FACTOR:g}'
+                   f" x the training data's largest deviation ({self.mpc.y_scale:.3g}): wrong "
+                   'units?')
         elif not math.isfinite(t):
             why = 'measurement time not finite'
         elif self.t_measured is not None and t <= self.t_measured:
@@ -170,7 +201,12 @@ class Controller:
             return why
         if not self.started:
             self.start(t)
-        self.estimator.predict_to(t)
+        try:
+            self.estimator.predict_to(t)
+        except DimensionError as e:          # an unstable model carried over a long gap
+            self.counters.measurements_dropped += 1
+            self.counters.last_problem = why = f'measurement at {t:.4f} s: {e}'
+            return why
         self.estimator.correct(y)
         self.t_measured = t
         self.counters.measurements += 1
@@ -220,53 +256,70 @@ class Controller:
         est.predict_to(t)
 
     # -- the control step ---------------------------------------------------------------
+    def _hold_reason(self, t: float) -> tuple[str, str]:
+        """``(status, detail)`` of a step at ``t`` that holds the command, else ``('ok', '')``."""
+        if not math.isfinite(t):
+            return 'bad_time', f'step time {t!r} is not finite: command held'
+        if self.t_step is not None and t < self.t_step - 1e-9:
+            return 'bad_time', (f'step at {t:.4f} s is before the last one ({self.t_step:.4f} '
+                                's): command held')
+        if self.t_measured is None:
+            return 'missing', 'no measurement yet: command held'
+        if self.t_measured - t > self.stale_after:
+            return 'bad_time', (f'the last measurement is stamped {self.t_measured:.4f} s, '
+                                f'after the step at {t:.4f} s (two clocks?): command held')
+        if t - self.t_measured > self.stale_after:
+            return 'stale', (f'last measurement {t - self.t_measured:.3f} s old '
+                             f'(> {self.stale_after:g} s): command held')
+        if self.external_state and self.state is None:
+            return 'missing', 'no state estimate yet: command held'
+        if self.external_state and self.state is not None and \
+                t - self.state[0] > self.stale_after:
+            return 'stale', (f'state estimate {t - self.state[0]:.3f} s old '
+                             f'(> {self.stale_after:g} s): command held')
+        if self.reference is None:
+            return 'no_reference', 'no reference: command held'
+        return 'ok', ''
+
+    def _solve(self, t: float, ref: Reference) -> tuple[str, str, Array, float, int, float]:
+        """The MPC at ``t``: status, detail, command, solve time, saturated, tracking error."""
+        est = self.estimator
+        if self.external_state:
+            self._carry_state(t)
+        est.predict_to(t)
+        times = t + self.h * np.arange(1, self.mpc.N + 1)
+        R = ref.at(times)
+        err = float(np.linalg.norm(est.output() - ref.at([t])[:, 0]) / math.sqrt(self.mpc.p))
+        try:
+            res = self.mpc.solve(est.x, est.d, R, self.u)
+        except DimensionError as e:       # cannot happen with checked inputs; be safe
+            return 'failed', str(e), self.mpc.fallback(self.u), 0.0, 0, err
+        if not res.qp.ok:
+            status = res.qp.status if res.qp.status == 'infeasible' else 'failed'
+            return (status, f'QP {res.qp.status} ({res.qp.detail}): command held', res.u,
+                    res.qp.seconds, res.saturated, err)
+        return 'ok', '', res.u, res.qp.seconds, res.saturated, err
+
     def step(self, t: float) -> Command:
         """The command to apply from time ``t`` for one control step."""
         t0 = time.perf_counter()
         c0 = time.thread_time()
         self.counters.steps += 1
-        status, detail, solve_s, sat, err = 'ok', '', 0.0, 0, float('nan')
-        ref = self.reference
-        if self.t_measured is None:
-            status, detail = 'missing', 'no measurement yet: command held'
-        elif t - self.t_measured > self.stale_after:
-            status, detail = 'stale', (f'last measurement {t - self.t_measured:.3f} s old '
-                                       f'(> {self.stale_after:g} s): command held')
-        elif self.external_state and self.state is None:
-            status, detail = 'missing', 'no state estimate yet: command held'
-        elif self.external_state and self.state is not None and \
-                t - self.state[0] > self.stale_after:
-            status, detail = 'stale', (f'state estimate {t - self.state[0]:.3f} s old '
-                                       f'(> {self.stale_after:g} s): command held')
-        elif ref is None:
-            status, detail = 'no_reference', 'no reference: command held'
-        if status != 'ok' or ref is None:
+        t = float(t)
+        status, detail = self._hold_reason(t)
+        solve_s, sat, err = 0.0, 0, float('nan')
+        if status != 'ok' or self.reference is None:
             u = self.mpc.fallback(self.u)
         else:
-            est = self.estimator
-            if self.external_state:
-                self._carry_state(t)
-            est.predict_to(t)
-            times = t + self.h * np.arange(1, self.mpc.N + 1)
-            R = ref.at(times)
-            err = float(np.linalg.norm(est.output() - ref.at([t])[:, 0])
-                        / math.sqrt(self.mpc.p))
-            try:
-                res = self.mpc.solve(est.x, est.d, R, self.u)
-            except DimensionError as e:       # cannot happen with checked inputs; be safe
-                res = None
-                detail = str(e)
-            if res is None:
-                status, u = 'failed', self.mpc.fallback(self.u)
-            else:
-                solve_s = res.qp.seconds
-                u, sat = res.u, res.saturated
-                if not res.qp.ok:
-                    status = res.qp.status if res.qp.status == 'infeasible' else 'failed'
-                    detail = f'QP {res.qp.status} ({res.qp.detail}): command held'
+            status, detail, u, solve_s, sat, err = self._solve(t, self.reference)
         if not np.all(np.isfinite(u)):         # belt and braces: never a NaN command
             u = self.mpc.centre.copy()
         u = np.clip(u, self.mpc.lo, self.mpc.hi)
+        if self.t_step is not None and status != 'bad_time' and \
+                t - self.t_step < self.h * (1 - 1e-6):
+            # steps closer than h: the rate bound (per second) over the time since the last
+            limit = self.mpc.rate * max(t - self.t_step, 0.0) / self.h
+            u = np.clip(u, self.u - limit, self.u + limit)
         if status in ('failed', 'infeasible'):
             setattr(self.counters, f'qp_{status}', getattr(self.counters, f'qp_{status}') + 1)
         if status != 'ok':
@@ -274,11 +327,13 @@ class Controller:
             self.counters.last_problem = detail
         self.counters.by_status[status] = self.counters.by_status.get(status, 0) + 1
         self.u = u
-        self._history.append((float(t), u.copy()))
-        del self._history[:-64]
-        if self.started:
-            self.estimator.predict_to(t)
-            self.estimator.set_input(u)
+        if status != 'bad_time':
+            self.t_step = t
+            self._history.append((t, u.copy()))
+            del self._history[:-64]
+            if self.started:
+                self.estimator.predict_to(t)
+                self.estimator.set_input(u)
         return Command(u=u.copy(), status=status, solve_s=solve_s,
                        step_s=time.perf_counter() - t0, step_cpu_s=time.thread_time() - c0,
                        saturated=sat, tracking_error=err,

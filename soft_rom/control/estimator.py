@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from soft_rom.control.mpc import require_linear
 from soft_rom.errors import ConfigError, DimensionError
 from soft_rom.models import DiscreteModel
 from soft_rom.predictor.dynamics import kalman_gain
@@ -119,6 +120,7 @@ class OffsetFreeEstimator:
     """
 
     def __init__(self, model: Any, config: EstimatorConfig | None = None) -> None:
+        require_linear(model, 'the offset-free estimator')
         cfg = config or EstimatorConfig()
         self.model = model
         self.config = cfg

@@ -27,13 +27,14 @@ import time
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.control.controller import Controller
 from soft_rom.control.estimator import EstimatorConfig
-from soft_rom.control.mpc import MPCConfig
-from soft_rom.control.reference import _model_outputs, Reference
-from soft_rom.errors import ConfigError
+from soft_rom.control.mpc import MPCConfig, require_linear
+from soft_rom.control.reference import _model_outputs, check_moves, Reference
+from soft_rom.data import as_signal
+from soft_rom.errors import ConfigError, DimensionError
 from soft_rom.metrics import relative_deviation_error
 
 __all__ = ['ClosedLoopResult', 'FOMPlant', 'ROMPlant', 'Sensor', 'check_plant_units',
@@ -113,15 +114,16 @@ class FOMPlant:
         """Noise-free output at the current sample, shape (p,)."""
         return _model_outputs(self.model, self._stepper.centerline())
 
-    def step(self, u: Array) -> None:
-        """Advance one plant step with ``u`` held."""
-        self._stepper.step(u)
+    def step(self, u: ArrayLike) -> None:
+        """Advance one plant step with ``u`` (one pressure per chamber, Pa) held."""
+        self._stepper.step(_input_vector(u, self.n_inputs))
 
 
 class ROMPlant:
     """A linear ROM as the plant (its native step): for open-loop plans and tests."""
 
     def __init__(self, model: Any, *, dt: float | None = None) -> None:
+        require_linear(model, 'ROMPlant')
         self.model = model
         self.dt = float(model.dt if dt is None else dt)
         sys_ = model.discretize(self.dt)
@@ -133,9 +135,22 @@ class ROMPlant:
     def output(self) -> Array:
         return self.C @ self.x + self.D @ self.u + self.model.y_ref
 
-    def step(self, u: Array) -> None:
-        self.u = np.asarray(u, dtype=np.float64)
+    def step(self, u: ArrayLike) -> None:
+        self.u = _input_vector(u, self.n_inputs)
         self.x = self.A @ self.x + self.B @ self.u
+
+
+def _input_vector(u: ArrayLike, m: int) -> Array:
+    """``u`` as ``m`` finite inputs, or :class:`DimensionError`."""
+    try:
+        v = np.asarray(u, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise DimensionError(f'the plant input must be {m} numbers; {err}.') from err
+    if v.shape != (m,) or not np.all(np.isfinite(v)):
+        raise DimensionError(f'the plant input must be {m} finite values (one per input); got '
+                             f'shape {v.shape}' + ('' if v.shape != (m,) else ' with NaN/Inf')
+                             + '.')
+    return v
 
 
 @dataclass
@@ -258,6 +273,8 @@ def run_closed_loop(model: Any, reference: Reference, *, plant: Any = None,
     progress : callable, optional
         Called with the fraction done now and then.
     """
+    if duration is not None and not (math.isfinite(duration) and duration > 0):
+        raise ConfigError(f'the closed loop needs a duration > 0 s; got {duration!r}.')
     sensor = sensor or Sensor()
     if estimator is None:
         estimator = EstimatorConfig(measurement_noise=max(sensor.noise, 1e-5),
@@ -266,6 +283,7 @@ def run_closed_loop(model: Any, reference: Reference, *, plant: Any = None,
     if reference.n_outputs != ctl.mpc.p:
         raise ConfigError(f'the reference has {reference.n_outputs} outputs; the model has '
                           f'{ctl.mpc.p}.')
+    check_moves(reference, model, duration)
     ctl.set_reference(reference)
     plant = plant if plant is not None else FOMPlant(model)
     dt = float(plant.dt)
@@ -353,9 +371,13 @@ def open_loop_plan(model: Any, reference: Reference, *, mpc: MPCConfig | None = 
     return res.U
 
 
-def simulate_inputs(model: Any, U: Array, *, dt: float = 1e-3, eel: Any = None) -> Array:
+def simulate_inputs(model: Any, U: ArrayLike, *, dt: float = 1e-3, eel: Any = None) -> Array:
     """The FOM's noise-free outputs in ``model``'s layout for pressures ``U`` (m, k)."""
     plant = FOMPlant(model, eel, dt=dt)
+    U = as_signal('U', U, rows=plant.n_inputs)
+    if not np.all(np.isfinite(U)):
+        raise DimensionError(f'U has {int(np.count_nonzero(~np.isfinite(U)))} NaN/Inf '
+                             'value(s); the plant needs finite pressures.')
     Y = np.empty((len(model.output_names), U.shape[1]))
     for j in range(U.shape[1]):
         Y[:, j] = plant.output()

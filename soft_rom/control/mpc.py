@@ -42,7 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 from soft_rom.control.qp import make_solver, QPResult
 from soft_rom.errors import ConfigError, DimensionError
 
-__all__ = ['MPC', 'MPCConfig', 'MPCStep', 'TERMINAL_COSTS', 'input_bounds']
+__all__ = ['MPC', 'MPCConfig', 'MPCStep', 'TERMINAL_COSTS', 'input_bounds', 'require_linear']
 
 Array = NDArray[np.float64]
 
@@ -72,8 +72,9 @@ class MPCConfig:
     u_min, u_max : tuple of float, optional
         Input bounds (one value per input, or one for all); default the training range
         recorded in the model file (``metadata['envelope']``).
-    rate_max : float, optional
-        Largest input change per second (one value for all inputs, in input units per s);
+    rate_max : float or tuple of float, optional
+        Largest input change per second (one value for all inputs, or one per input, in
+        input units per s);
         default: the full range ``u_max - u_min`` in 50 ms.
     solver : str
         ``'daqp'`` (default) or ``'osqp'``.
@@ -91,7 +92,7 @@ class MPCConfig:
     null_weight: float = 1e-2
     u_min: tuple[float, ...] | None = None
     u_max: tuple[float, ...] | None = None
-    rate_max: float | None = None
+    rate_max: float | tuple[float, ...] | None = None
     solver: str = 'daqp'
     terminal: str = 'none'
 
@@ -106,9 +107,14 @@ class MPCConfig:
                 raise ConfigError(f'MPC {name} must be a finite number >= 0; got {v!r}.')
         if self.output_weight <= 0:
             raise ConfigError('MPC output_weight must be > 0 (nothing would be tracked).')
-        if self.rate_max is not None and not (math.isfinite(self.rate_max)
-                                              and self.rate_max > 0):
-            raise ConfigError(f'MPC rate_max must be > 0; got {self.rate_max!r}.')
+        if self.rate_max is not None:
+            try:
+                rate = np.asarray(self.rate_max, dtype=np.float64).reshape(-1)
+            except (TypeError, ValueError):
+                rate = np.zeros(0)
+            if not (rate.size and np.all(np.isfinite(rate)) and np.all(rate > 0)):
+                raise ConfigError(f'MPC rate_max must be one number > 0, or one per input; '
+                                  f'got {self.rate_max!r}.')
         if self.terminal not in TERMINAL_COSTS:
             raise ConfigError(f'MPC terminal cost {self.terminal!r} is not one of '
                               f'{", ".join(TERMINAL_COSTS)}.')
@@ -154,7 +160,33 @@ def input_bounds(model: Any, u_min: ArrayLike | None = None,
         i = int(np.argmax(lo >= hi))
         raise ConfigError(f'input bounds: u_min >= u_max for input {i} ({lo[i]:g} >= '
                           f'{hi[i]:g}); give u_min below u_max.')
+    if (u_min is not None or u_max is not None) and env.get('u_min') and env.get('u_max'):
+        _check_bound_units(model, lo, hi, np.asarray(env['u_min'], dtype=np.float64),
+                           np.asarray(env['u_max'], dtype=np.float64))
     return lo, hi
+
+
+def _check_bound_units(model: Any, lo: Array, hi: Array, t_lo: Array, t_hi: Array) -> None:
+    """Refuse given bounds 1000 x narrower or wider than the training range (units?)."""
+    trained = float(np.max(t_hi - t_lo))
+    given = float(np.max(hi - lo))
+    if trained > 0 and not 1e-3 <= given / trained <= 1e3:
+        units = sorted(set(getattr(model, 'input_units', None) or ())) or ['its input units']
+        raise ConfigError(f'input bounds [{float(np.min(lo)):g}, {float(np.max(hi)):g}] span '
+                          f'{given / trained:.2g} x the training range [{float(np.min(t_lo)):g},'
+                          f" {float(np.max(t_hi)):g}]: give them in the model's input units "
+                          f'({", ".join(units)}).')
+
+
+def require_linear(model: Any, what: str) -> None:
+    """Refuse a model ``what`` (the MPC, a plant, an estimator) cannot take as linear."""
+    if getattr(model, 'is_nonlinear', False) or getattr(model, 'is_linear', True) is False:
+        raise ConfigError(
+            f'{getattr(model, "method", "this")} model is nonlinear (cubic LOpInf): {what} is '
+            'linear; fit a linear LOpInf (soft-rom fit --forces linear) to control with.')
+    if not callable(getattr(model, 'discretize', None)):
+        raise ConfigError(f'{type(model).__name__} cannot be discretized; {what} needs a '
+                          'linear ROM (LOpInf, DMDc, ERA/OKID).')
 
 
 @dataclass(frozen=True)
@@ -206,13 +238,7 @@ class MPC:
 
     def __init__(self, model: Any, config: MPCConfig | None = None) -> None:
         cfg = config or MPCConfig()
-        if getattr(model, 'is_nonlinear', False) or getattr(model, 'is_linear', True) is False:
-            raise ConfigError(
-                f'{getattr(model, "method", "this")} model is nonlinear (cubic LOpInf): the MPC '
-                'is linear; fit a linear LOpInf (soft-rom fit --forces linear) to control with.')
-        if not callable(getattr(model, 'discretize', None)):
-            raise ConfigError(f'{type(model).__name__} cannot be discretized; the MPC needs a '
-                              'linear ROM (LOpInf, DMDc, ERA/OKID).')
+        require_linear(model, 'the MPC')
         ratio = cfg.step / float(model.dt)
         j = int(round(ratio))
         if j < 1 or abs(ratio - j) > 1e-6:
@@ -228,8 +254,14 @@ class MPC:
         self.lo, self.hi = input_bounds(model, cfg.u_min, cfg.u_max)
         self.centre = 0.5 * (self.lo + self.hi)
         self.half = 0.5 * (self.hi - self.lo)
-        rate = (2 * self.half / 0.05) if cfg.rate_max is None else np.full(self.m, cfg.rate_max)
-        self.rate = np.asarray(rate, dtype=np.float64) * self.h
+        if cfg.rate_max is None:
+            rate = 2 * self.half / 0.05
+        else:
+            rate = np.asarray(cfg.rate_max, dtype=np.float64).reshape(-1)
+            if rate.size not in (1, self.m):
+                raise ConfigError(f'MPC rate_max needs 1 or {self.m} values (one per input); '
+                                  f'got {rate.size}.')
+        self.rate = np.broadcast_to(rate, (self.m,)) * self.h
         env = model.metadata.get('envelope') if isinstance(model.metadata, dict) else None
         dev = env.get('y_dev_max') if isinstance(env, dict) else None
         self.y_scale = float(dev) if isinstance(dev, (int, float)) and dev and dev > 0 else \

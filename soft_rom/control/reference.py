@@ -33,7 +33,7 @@ from soft_rom.data import all_finite
 from soft_rom.errors import ConfigError, DimensionError
 
 __all__ = ['Reference', 'check_moves', 'load_reference', 'parse_reference',
-           'step_reference', 'wave_reference']
+           'step_reference', 'training_deviation', 'wave_reference']
 
 Array = NDArray[np.float64]
 
@@ -143,9 +143,8 @@ def wave_reference(model: Any, duration: float, *, f: float = 2.0, wavelength: f
     """The biological travelling wave (see the module docstring) in ``model``'s layout."""
     xs, zs, s = _layout(model)
     if amplitude is None:
-        env = model.metadata.get('envelope') if isinstance(model.metadata, dict) else None
-        dev = env.get('y_dev_max') if isinstance(env, dict) else None
-        if not isinstance(dev, (int, float)) or not dev > 0:
+        dev = training_deviation(model)
+        if dev is None:
             raise ConfigError('--reference wave: the model file records no output range; give '
                               'amplitude= in output units.')
         amplitude = reach * float(dev)
@@ -245,12 +244,22 @@ def check_reference(ref: Reference, model: Any) -> None:
                              f'{model.n_outputs} ({", ".join(model.output_names[:3])}...).')
 
 
+def training_deviation(model: Any) -> float | None:
+    """The training data's largest output deviation recorded in the model file, if any."""
+    env = model.metadata.get('envelope') if isinstance(model.metadata, dict) else None
+    dev = env.get('y_dev_max') if isinstance(env, dict) else None
+    ok = isinstance(dev, (int, float)) and math.isfinite(dev) and dev > 0
+    return float(dev) if ok else None
+
+
 def check_moves(ref: Reference, model: Any, duration: float | None = None) -> None:
     """Refuse a reference that does not leave the model's rest output within ``duration``.
 
     The tracking error is relative to that deviation (``‖Y − Y_ref‖ / ‖Y_ref − y_ref‖``):
     a reference at rest over the run (a step after its end, the rest output itself) leaves
-    it undefined, and one so large that its deviation overflows leaves it meaningless.
+    it undefined, and one so large that its deviation overflows leaves it meaningless. A
+    reference moving less than 1/1000 or more than 100 times the training data's largest
+    deviation (when the model file records it) is in other units than the model.
     """
     dur = ref.duration if duration is None else float(duration)
     times = np.linspace(min(0.0, dur), dur, max(2, min(100_001, int(abs(dur) / 1e-3) + 1)))
@@ -267,6 +276,13 @@ def check_moves(ref: Reference, model: Any, duration: float | None = None) -> No
                           f"within the run's {dur:g} s (largest deviation {dev:.3g}): the "
                           'tracking error, relative to that deviation, would be undefined. '
                           'Give a reference that moves, or a longer --duration.')
+    trained = training_deviation(model)
+    if trained is not None and not 1e-3 * trained <= dev <= 100 * trained:
+        units = ', '.join(sorted(set(getattr(model, 'output_units', None) or ()))) or '?'
+        raise ConfigError(f'the reference {ref.label!r} moves up to {dev:.3g} from the rest '
+                          f"output, {dev / trained:.2g} x the training data's largest deviation"
+                          f" ({trained:.3g}): give it in the model's output units ({units}), "
+                          'within its reach.')
 
 
 def parse_reference(spec: str, model: Any, *, duration: float | None = None,

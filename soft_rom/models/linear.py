@@ -227,14 +227,12 @@ class DiscreteModel(LinearROM):
             raise DimensionError(
                 f'{self.method} model has sample time {self.dt:g} s; it can step by whole '
                 f'multiples of it only, not {dt:g} s. Step at the model rate instead.')
+        r, m = self.B.shape
+        # [[A, B], [0, I]]^j = [[A^j, (A^{j-1} + ... + I) B], [0, I]]: log2(j) products
+        aug = np.block([[self.A, self.B], [np.zeros((m, r)), np.eye(m)]])
         with np.errstate(all='ignore'):
-            Aj = np.linalg.matrix_power(self.A, j)
-            S = np.zeros_like(self.A)
-            P = np.eye(self.r)
-            for _ in range(j):
-                S += P
-                P = P @ self.A
-            sys_ = DiscreteSystem(Aj, S @ self.B, self.C, self.D, j * self.dt)
+            P = np.linalg.matrix_power(aug, j)
+            sys_ = DiscreteSystem(P[:r, :r], P[:r, r:], self.C, self.D, j * self.dt)
         return _finite_system(sys_, f'{self.method} model')
 
     @classmethod

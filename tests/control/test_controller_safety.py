@@ -66,6 +66,8 @@ def test_a_stale_limit_that_would_hold_every_command_is_refused(model, stale_aft
     (np.zeros(39), 'model has 40 outputs'),
     (np.full(40, np.nan), 'NaN/Inf'),
     ('not numbers', 'model has 40 outputs'),
+    (np.zeros((20, 2)), 'shape (20, 2)'),             # a (points, components) centerline
+    (np.full(40, 1e3), 'wrong units'),                # mm for a model in m: 1 km off
 ])
 def test_bad_measurements_are_dropped_with_the_reason(model, bad, why) -> None:
     ctl = _controller(model)
@@ -148,3 +150,63 @@ def test_no_sequence_of_inputs_gives_a_nan_or_out_of_bounds_command(model, fresh
             cmd = ctl.step(ev[1])
             assert _ok(cmd.u), (ev, cmd)
         assert _ok(ctl.u)
+
+
+def _run(ctl, model, times, t_meas=None) -> list:
+    cmds = []
+    for t in times:
+        ctl.measure(model.y_ref, t if t_meas is None else t_meas)
+        cmds.append(ctl.step(t))
+    return cmds
+
+
+def test_a_second_run_after_start_is_closed_loop_again(model) -> None:
+    # a user restarting with start(0): the first run's last measurement time is forgotten
+    ctl = _controller(model)
+    ctl.set_reference(_ref(model))
+    _run(ctl, model, [0.0, 0.1, 0.3])
+    ctl.start(0.0)
+    assert ctl.measure(model.y_ref, 0.01) == ''
+    assert ctl.step(0.01).status == 'ok'
+
+
+@pytest.mark.parametrize('t, why', [(float('nan'), 'not finite'), (float('inf'), 'not finite'),
+                                    (0.02, 'before the last one')])
+def test_a_step_time_that_is_not_finite_or_goes_back_holds_the_command(model, t, why) -> None:
+    ctl = _controller(model)
+    ctl.set_reference(_ref(model))
+    last = _run(ctl, model, [0.0, 0.01, 0.05, 0.07])[-1]
+    n_hist = len(ctl._history)
+    cmd = ctl.step(t)
+    assert cmd.status == 'bad_time' and why in cmd.detail
+    np.testing.assert_array_equal(cmd.u, last.u)
+    assert len(ctl._history) == n_hist and ctl.t_step == 0.07
+    assert ctl.step(0.08).status == 'ok'
+
+
+def test_measurements_stamped_far_after_the_steps_are_not_ok(model) -> None:
+    # two clocks: measurements in one, steps 0.5 s behind in another
+    ctl = _controller(model)
+    ctl.set_reference(_ref(model))
+    ctl.measure(model.y_ref, 0.5)
+    cmd = ctl.step(0.0)
+    assert cmd.status == 'bad_time' and 'two clocks' in cmd.detail
+
+
+def test_steps_faster_than_h_keep_the_rate_bound_per_second(model) -> None:
+    # the user ticks every 1 ms where h is 10 ms: the command moves at most rate_max per s
+    rate = 100e3
+    ctl = _controller(model, rate_max=rate)
+    ctl.set_reference(_ref(model, bend=0.05))
+    U = np.array([c.u for c in _run(ctl, model, 1e-3 * np.arange(100))])
+    assert np.abs(np.diff(U, axis=0)).max() <= rate * 1e-3 * (1 + 1e-9)
+    assert np.abs(U[-1] - U[0]).max() > 0.5 * rate * 0.099       # it did move
+
+
+def test_rate_bound_per_input(model) -> None:
+    ctl = _controller(model, rate_max=(1e5, 2e5, 3e5, 1e5, 2e5, 3e5))
+    np.testing.assert_allclose(ctl.mpc.rate, np.array([1, 2, 3, 1, 2, 3]) * 1e5 * ctl.h)
+    with pytest.raises(ValueError, match='1 or 6 values'):
+        _controller(model, rate_max=(1e5, 2e5))
+    with pytest.raises(ValueError, match='rate_max must be one number > 0'):
+        _controller(model, rate_max=(1e5, -1.0))

@@ -7,15 +7,20 @@ import numpy as np
 import pytest
 
 from soft_rom.control import (
+    check_moves,
     EstimatorConfig,
+    FOMPlant,
     MPC,
     MPCConfig,
+    OffsetFreeEstimator,
+    parse_reference,
     Reference,
     ROMPlant,
     run_closed_loop,
     Sensor,
+    simulate_inputs,
 )
-from soft_rom.errors import ConfigError
+from soft_rom.errors import ConfigError, DimensionError
 from soft_rom.models import DiscreteModel, SecondOrderModel
 from soft_rom.sim import random_pressures
 
@@ -93,6 +98,71 @@ def test_cubic_model_is_refused() -> None:
                                   model.B, model.E, dt=model.dt, y_ref=model.y_ref)
     with pytest.raises(ConfigError, match='nonlinear'):
         MPC(cubic)
+    # nor taken as linear by the plant or the estimator (their discretize() linearizes)
+    with pytest.raises(ConfigError, match='nonlinear'):
+        ROMPlant(cubic)
+    with pytest.raises(ConfigError, match='nonlinear'):
+        OffsetFreeEstimator(cubic)
+
+
+def test_a_long_gap_on_a_discrete_model_is_discretized_by_squaring() -> None:
+    # A^j and (A^{j-1} + ... + I) B against the plain sums; a 1e9-step gap is immediate
+    model = modal_rom(4)
+    s = model.discretize(1e-3)
+    disc = DiscreteModel(s.A, s.B, s.C, s.D, dt=1e-3, method='dmdc', y_ref=model.y_ref)
+    for j in (2, 7, 33):
+        Aj = np.linalg.matrix_power(s.A, j)
+        Bj = sum(np.linalg.matrix_power(s.A, i) for i in range(j)) @ s.B
+        got = disc.discretize(j * 1e-3)
+        np.testing.assert_allclose(got.A, Aj, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(got.B, Bj, rtol=1e-10, atol=1e-14 * np.abs(Bj).max())
+    far = disc.discretize(1e6)                     # 1e9 steps: 30 squarings
+    assert np.all(np.isfinite(far.A))
+
+
+@pytest.mark.parametrize('kw, words', [
+    ({'u_min': (-20,), 'u_max': (20,)}, 'give them in the model'),          # kPa for Pa
+    ({'u_min': (-5e8,), 'u_max': (5e8,)}, 'x the training range'),
+])
+def test_bounds_in_other_units_than_the_model_are_refused(kw, words) -> None:
+    with pytest.raises(ConfigError, match=words):
+        MPC(modal_rom(2), MPCConfig(**kw))
+
+
+def test_plants_and_simulate_inputs_check_their_inputs() -> None:
+    model = modal_rom(2)
+    U = np.zeros((6, 30))
+    with pytest.raises(DimensionError, match='transpose'):
+        simulate_inputs(model, U.T)
+    with pytest.raises(DimensionError, match='NaN'):
+        simulate_inputs(model, np.full((6, 3), np.nan))
+    with pytest.raises(DimensionError, match=r'shape \(6,\) \(one channel\)'):
+        simulate_inputs(model, np.zeros(6))
+    for plant in (ROMPlant(model), FOMPlant(model)):
+        with pytest.raises(DimensionError, match='6 finite values'):
+            plant.step(np.full(50, 2e4))
+        plant.step([2e4] * 6)                       # a list is fine
+
+
+@pytest.mark.parametrize('spec, words', [
+    ('step:u=20/-20/15/-15/10/-10', 'give it in the model'),       # kPa for Pa: a 20 um bend
+    ('wave:f=2,amplitude=3.7', 'give it in the model'),            # 3.7 m on a 1.2 m robot
+])
+def test_references_in_other_units_are_refused(spec, words) -> None:
+    model = modal_rom(2)
+    ref = parse_reference(spec, model, duration=0.5)
+    with pytest.raises(ConfigError, match=words):
+        check_moves(ref, model, 0.5)
+    with pytest.raises(ConfigError, match=words):
+        run_closed_loop(model, ref, plant=ROMPlant(model), duration=0.5)
+
+
+@pytest.mark.parametrize('duration', [float('nan'), -1.0, 0.0])
+def test_a_closed_loop_needs_a_positive_duration(duration) -> None:
+    model = modal_rom(2)
+    with pytest.raises(ConfigError, match='duration > 0'):
+        run_closed_loop(model, _feasible(model, 100, seed=1)[1], plant=ROMPlant(model),
+                        duration=duration)
 
 
 def test_bounds_come_from_the_training_envelope_or_are_asked_for() -> None:
