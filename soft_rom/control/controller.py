@@ -14,8 +14,10 @@ never returns a command outside the bounds or not finite:
 * an infeasible or failed QP holds the last command (clipped into the bounds);
 * a step time that is not finite, earlier than the last step's, or more than
   ``stale_after`` before the last measurement (``bad_time``: two clocks?) holds the last
-  command; steps closer together than the control step move the command by at most the
-  rate bound times the time since the last step.
+  command; a step or measurement more than ``clock_reset`` before the last one is a
+  restarted clock (a simulation started again): the controller starts a new run;
+* steps closer together than the control step move the command by at most the rate bound
+  times the time since the last step.
 
 A measurement is a vector in the model's output order: an array of another shape (a
 ``(points, components)`` centerline) or farther from the rest output than 100 times the
@@ -94,6 +96,7 @@ class _Counters:
     qp_failed: int = 0
     qp_infeasible: int = 0
     held: int = 0
+    clock_resets: int = 0
     last_problem: str = ''
     by_status: dict[str, int] = field(default_factory=dict)
 
@@ -113,11 +116,14 @@ class Controller:
         model on the applied commands); the measurements then correct the disturbance
         only, which is the offset-free estimator with state noise 0 (internal model
         control). The state is carried to each control time on the commands applied since.
+    clock_reset : float
+        A step or measurement time this many seconds before the last one starts a new run
+        (:meth:`start`; default 1 s, the predictor's ``clock_reset_s``).
     """
 
     def __init__(self, model: Any, mpc: MPCConfig | None = None,
                  estimator: EstimatorConfig | None = None, *, stale_after: float = 0.1,
-                 external_state: bool = False) -> None:
+                 external_state: bool = False, clock_reset: float = 1.0) -> None:
         self.model = model
         self.external_state = bool(external_state)
         self.state: tuple[float, Array] | None = None
@@ -128,6 +134,10 @@ class Controller:
         if not (math.isfinite(self.stale_after) and self.stale_after > 0):
             raise ValueError(f'stale_after must be a positive number of seconds; got '
                              f'{stale_after!r}.')
+        self.clock_reset = float(clock_reset)
+        if not (self.clock_reset > 0):
+            raise ValueError(f'clock_reset must be a positive number of seconds; got '
+                             f'{clock_reset!r}.')
         self.reference: Reference | None = None
         self.u = self.mpc.fallback(np.zeros(self.mpc.m))
         self.t_measured: float | None = None
@@ -193,13 +203,14 @@ class Controller:
                    'units?')
         elif not math.isfinite(t):
             why = 'measurement time not finite'
-        elif self.t_measured is not None and t <= self.t_measured:
+        elif self.t_measured is not None and self.t_measured - self.clock_reset <= t <= \
+                self.t_measured:
             why = f'measurement at {t:.4f} s is not newer than the last ({self.t_measured:.4f} s)'
         if why:
             self.counters.measurements_dropped += 1
             self.counters.last_problem = why
             return why
-        if not self.started:
+        if not self.started or self._restarted(self.t_measured, t):
             self.start(t)
         try:
             self.estimator.predict_to(t)
@@ -256,8 +267,17 @@ class Controller:
         est.predict_to(t)
 
     # -- the control step ---------------------------------------------------------------
+    def _restarted(self, last: float | None, t: float) -> bool:
+        """Whether ``t`` is more than ``clock_reset`` before ``last`` (counted)."""
+        if last is None or not t < last - self.clock_reset:
+            return False
+        self.counters.clock_resets += 1
+        return True
+
     def _hold_reason(self, t: float) -> tuple[str, str]:
         """``(status, detail)`` of a step at ``t`` that holds the command, else ``('ok', '')``."""
+        if math.isfinite(t) and self._restarted(self.t_step, t):
+            self.start(t)
         if not math.isfinite(t):
             return 'bad_time', f'step time {t!r} is not finite: command held'
         if self.t_step is not None and t < self.t_step - 1e-9:

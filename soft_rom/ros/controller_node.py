@@ -373,6 +373,7 @@ class ControllerNode(Node):
             'measurements_dropped': str(c.measurements_dropped),
             'states_dropped': str(c.states_dropped),
             'references_refused': str(c.references_refused),
+            'clock_resets': str(c.clock_resets),
             'callback_errors': str(self.callback_errors), 'last_problem': c.last_problem,
         }
         status = DiagnosticStatus(level=level, name=f'{self.get_name()}: control',

@@ -210,3 +210,17 @@ def test_rate_bound_per_input(model) -> None:
         _controller(model, rate_max=(1e5, 2e5))
     with pytest.raises(ValueError, match='rate_max must be one number > 0'):
         _controller(model, rate_max=(1e5, -1.0))
+
+
+def test_a_restarted_clock_starts_a_new_run(model) -> None:
+    # a simulation started again: steps and measurements from 0 after 2 s
+    ctl = _controller(model)
+    ctl.set_reference(_ref(model))
+    _run(ctl, model, [1.9, 1.95, 2.0])
+    assert ctl.step(0.0).status == 'missing' and ctl.counters.clock_resets == 1
+    assert [c.status for c in _run(ctl, model, [0.01, 0.02])] == ['ok', 'ok']
+    # a measurement from the restarted clock first
+    _run(ctl, model, [1.9, 1.95, 2.0])
+    assert ctl.measure(model.y_ref, 0.0) == '' and ctl.counters.clock_resets == 2
+    assert ctl.step(0.0).status == 'ok'
+    assert 'not newer' in ctl.measure(model.y_ref, -0.5)      # within clock_reset: dropped
