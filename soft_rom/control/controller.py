@@ -276,8 +276,6 @@ class Controller:
 
     def _hold_reason(self, t: float) -> tuple[str, str]:
         """``(status, detail)`` of a step at ``t`` that holds the command, else ``('ok', '')``."""
-        if math.isfinite(t) and self._restarted(self.t_step, t):
-            self.start(t)
         if not math.isfinite(t):
             return 'bad_time', f'step time {t!r} is not finite: command held'
         if self.t_step is not None and t < self.t_step - 1e-9:
@@ -326,6 +324,8 @@ class Controller:
         c0 = time.thread_time()
         self.counters.steps += 1
         t = float(t)
+        if math.isfinite(t) and self._restarted(self.t_step, t):
+            self.start(t)
         status, detail = self._hold_reason(t)
         solve_s, sat, err = 0.0, 0, float('nan')
         if status != 'ok' or self.reference is None:
