@@ -163,6 +163,8 @@ def test_array_mode_publishes_one_scaled_float64multiarray(tmp_path, model_path,
     ({'diagnostics_rate_hz': 0.0}, 'diagnostics_rate_hz must be between 0.01 and 100; got 0.0'),
     ({'rate_weight': 'abc'}, 'parameter rate_weight must be of type DOUBLE; got STRING abc'),
     ({'stale_after_s': -1.0}, 'stale_after must be a positive number of seconds; got -1.0'),
+    ({'reference_duration_s': -5.0}, 'reference_duration_s must be finite and > 0; got -5.0'),
+    ({'model_path': ''}, 'model_path is empty (give -p model_path:=FILE)'),
 ])
 def test_bad_parameter_is_one_line_and_exit_1(tmp_path, model_path, params, message) -> None:
     node = NodeProcess(tmp_path, {'model_path': str(model_path), **params},
@@ -172,5 +174,41 @@ def test_bad_parameter_is_one_line_and_exit_1(tmp_path, model_path, params, mess
         log = node.log()
         assert message in log, log
         assert 'Traceback' not in log
+    finally:
+        node.kill()
+
+
+@pytest.mark.parametrize('exe', ['controller', 'plant'])
+def test_a_bad_command_line_is_one_line_and_exit_1(tmp_path, exe) -> None:
+    node = NodeProcess(tmp_path, {}, name=f'{exe}_badargs', exe=exe,
+                       extra_args=('-p', 'model_path'))        # no := value
+    try:
+        assert node.wait(60) == 1
+        log = node.log()
+        assert 'bad command line (--ros-args)' in log and 'Traceback' not in log, log
+    finally:
+        node.kill()
+
+
+def test_plant_refuses_input_topics_of_the_wrong_length(tmp_path) -> None:
+    # one topic for six chambers: five would stay at 0 Pa and every lockstep point time out
+    node = NodeProcess(tmp_path, {'input_topics': ['/soft_robot/pressure/chamber_1']},
+                       name='plant_topics', exe='plant')
+    try:
+        assert node.wait(60) == 1
+        log = node.log()
+        assert 'input_topics needs 6 topics (one per chamber); got 1' in log, log
+        assert 'Traceback' not in log
+    finally:
+        node.kill()
+
+
+def test_a_mistyped_parameter_is_named(tmp_path, model_path, client) -> None:
+    node = NodeProcess(tmp_path, {'model_path': str(model_path), 'horizn': 0.5},
+                       name='ctl_typo', exe='controller')
+    try:
+        assert client.spin_until(lambda: 'horizn' in node.log(), 60), node.log()
+        assert 'parameter(s) horizn given but not declared by this node' in node.log()
+        assert node.stop(signal.SIGINT) == 0
     finally:
         node.kill()

@@ -206,6 +206,8 @@ def check_param(name: str, value: Any) -> Any:
                                              f'{p.range[1]:{fmt}}')
         if out is None or (p.range is not None and not p.range[0] <= out <= p.range[1]):
             raise ConfigError(f'{name} must be {kind}{within}; got {show_value(value)}.')
+        if name == 'input_scale' and out == 0:
+            raise ConfigError('input_scale must not be 0 (every input would read 0); got 0.')
         return out
     if isinstance(default, str):
         if not isinstance(value, str):

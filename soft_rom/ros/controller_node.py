@@ -54,7 +54,6 @@ from rclpy.exceptions import ParameterException
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import FluidPressure, JointState
 from std_msgs.msg import Float64MultiArray, Header
 
@@ -67,7 +66,7 @@ from soft_rom.predictor.conversions import (
     set_points,
     stamp_to_ns,
 )
-from soft_rom.ros.node_params import rclpy_reason
+from soft_rom.ros.node_params import init_rclpy, rclpy_reason, warn_unknown_parameters
 
 __all__ = ['ControllerNode', 'main']
 
@@ -170,7 +169,16 @@ class ControllerNode(Node):
                     and math.isfinite(self.input_offset)):
                 raise ValueError(f'input_scale ({self.input_scale!r}) must be finite and not 0 '
                                  f'and input_offset ({self.input_offset!r}) finite')
+            if not c['model_path']:
+                raise ValueError('model_path is empty (give -p model_path:=FILE)')
+            if not (math.isfinite(c['duration']) and c['duration'] > 0):
+                raise ValueError(f"reference_duration_s must be finite and > 0; got "
+                                 f"{c['duration']!r}")
             self.model = load_model(c['model_path'])
+            self.distrust = '; '.join(self.model.trust_issues())
+            if self.distrust:
+                self.get_logger().warning(f'model not trusted: {self.distrust}; the '
+                                          'diagnostics stay at WARN while it controls')
             if self.input_mode == 'per_chamber' and len(self.topics) != self.model.n_inputs:
                 raise ValueError(f'the model has {self.model.n_inputs} inputs but input_topics '
                                  f'lists {len(self.topics)} topics')
@@ -234,9 +242,14 @@ class ControllerNode(Node):
 
     def _on_measured(self, msg: PoseArray) -> None:
         try:
-            y = _model_outputs(self.model, poses_to_points(msg.poses)) \
-                if len(msg.poses) * 2 == self.model.n_outputs else np.zeros(0)
-            why = self.core.measure(y, stamp_to_ns(msg.header.stamp) * 1e-9)
+            if len(msg.poses) * 2 != self.model.n_outputs:
+                why = (f'{len(msg.poses)} poses; the model has {self.model.n_outputs // 2} '
+                       'centerline points')
+                self.core.counters.measurements_dropped += 1
+                self.core.counters.last_problem = why
+            else:
+                why = self.core.measure(_model_outputs(self.model, poses_to_points(msg.poses)),
+                                        stamp_to_ns(msg.header.stamp) * 1e-9)
             if why:
                 self.get_logger().warning(f'measurement dropped: {why}',
                                           throttle_duration_sec=5.0)
@@ -355,7 +368,8 @@ class ControllerNode(Node):
 
     def _diagnostics(self, stamp: TimeMsg, cmd: Any) -> None:
         c = self.core.counters
-        level = DiagnosticStatus.OK if cmd.status == 'ok' else DiagnosticStatus.WARN
+        level = DiagnosticStatus.OK if cmd.status == 'ok' and not self.distrust \
+            else DiagnosticStatus.WARN
         if cmd.status in ('failed', 'infeasible'):
             level = DiagnosticStatus.ERROR
         last_tick = self.ticks[-1][0] * 1e3 if self.ticks else float('nan')
@@ -374,10 +388,12 @@ class ControllerNode(Node):
             'states_dropped': str(c.states_dropped),
             'references_refused': str(c.references_refused),
             'clock_resets': str(c.clock_resets),
+            'model_trust': self.distrust or 'trusted',
             'callback_errors': str(self.callback_errors), 'last_problem': c.last_problem,
         }
         status = DiagnosticStatus(level=level, name=f'{self.get_name()}: control',
-                                  message=cmd.detail or cmd.status,
+                                  message=(cmd.detail or cmd.status) + (
+                                      ' (model not trusted)' if self.distrust else ''),
                                   hardware_id=self.get_name(),
                                   values=[KeyValue(key=k, value=v) for k, v in values.items()])
         self.pub_diag.publish(DiagnosticArray(header=_header(stamp), status=[status]))
@@ -398,12 +414,19 @@ def main(args: list[str] | None = None) -> int:
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT,
                                                                        signal.SIGTERM)}
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    refused = init_rclpy(args)
+    if refused is not None:
+        for s, h in previous.items():
+            signal.signal(s, h)
+        print(f'soft_rom controller: bad command line (--ros-args): {refused}',
+              file=sys.stderr)
+        return 1
     node = None
     code = 0
     executor = SingleThreadedExecutor()
     try:
         node = ControllerNode()
+        warn_unknown_parameters(node)
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=0.1)

@@ -27,8 +27,11 @@ from rcl_interfaces.msg import (
     ParameterDescriptor,
     SetParametersResult,
 )
+import rclpy
 from rclpy.exceptions import ParameterException
+from rclpy.logging import get_logger_level, LoggingSeverity, set_logger_level
 from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
 
 from soft_rom.errors import ConfigError, show_value
 from soft_rom.predictor import PredictorConfig
@@ -36,7 +39,8 @@ from soft_rom.predictor.loop import LoopSettings
 from soft_rom.predictor.params import loop_settings as _loop_settings
 from soft_rom.predictor.params import NODE_PARAMS, Param, PARAMS, predictor_config
 
-__all__ = ['NODE_PARAMS', 'NodeSettings', 'ParameterMixin', 'rclpy_reason']
+__all__ = ['NODE_PARAMS', 'NodeSettings', 'ParameterMixin', 'init_rclpy', 'rclpy_reason',
+           'warn_unknown_parameters']
 
 ALL_PARAMS = PARAMS + NODE_PARAMS
 _BY_NAME = {p.name: p for p in ALL_PARAMS}
@@ -262,3 +266,36 @@ class ParameterMixin:
             return SetParametersResult(successful=False, reason=reason)
         return SetParametersResult(successful=True)
 
+
+def init_rclpy(args: list[str] | None) -> str | None:
+    """``rclpy.init``; ``None``, or why the command line was refused (one line).
+
+    rcl's own "Failed to parse global arguments" error line is held back meanwhile: the
+    reason returned says more (which ``-p`` rule, which file).
+    """
+    quiet = get_logger_level('rcl') == LoggingSeverity.UNSET
+    if quiet:
+        set_logger_level('rcl', LoggingSeverity.FATAL)
+    try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    except RuntimeError as err:         # rclpy's RCLError: a bad --ros-args
+        text = re.sub(r'(\. Error: error not set)?\s*,? at /\S+:\d+', '', str(err))
+        return ' '.join(text.split()).removeprefix('failed to initialize rcl: ')
+    finally:
+        if quiet and get_logger_level('rcl') == LoggingSeverity.FATAL:
+            set_logger_level('rcl', LoggingSeverity.UNSET)
+    return None
+
+
+def warn_unknown_parameters(node: Any) -> list[str]:
+    """Log the parameters given to ``node`` (params file, ``-p``) that it does not declare.
+
+    rclpy ignores them without a word; most are typos (``kalmann``). Returns their names.
+    """
+    given = getattr(node, '_parameter_overrides', None) or {}
+    unknown = sorted(name for name in given if not node.has_parameter(name))
+    if unknown:
+        node.get_logger().warning(
+            f'parameter(s) {", ".join(unknown)} given but not declared by this node: ignored '
+            '(a typo?)')
+    return unknown

@@ -20,6 +20,10 @@ The first step waits until a publisher (the controller) is on every pressure top
 with ``wait_for_subscribers`` = N, N subscribers besides the plant (the predictor: 1, as
 ``closed_loop.launch.py`` sets), then 1 s for the connections to match: a predictor that
 joined late missed the controller's first commands, which the plant applied.
+
+A lockstep point that timed out is logged (throttled); a pressure above 1e7 Pa (kPa sent as
+Pa?) or not finite is dropped and the last one held; a FOM that diverges anyway ends the node
+with one error line and exit status 1 (``record_path`` written up to there).
 """
 
 from __future__ import annotations
@@ -42,17 +46,19 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import FluidPressure
 from std_msgs.msg import Float64MultiArray
 
+from soft_rom.errors import SolverError
 from soft_rom.predictor.conversions import data_to_array, ns_to_stamp, set_points, stamp_to_ns
-from soft_rom.ros.node_params import rclpy_reason
+from soft_rom.ros.node_params import init_rclpy, rclpy_reason, warn_unknown_parameters
 
 __all__ = ['PlantNode', 'main']
 
 DEFAULT_TOPICS = [f'/soft_robot/pressure/chamber_{i}' for i in range(1, 7)]
+#: Larger pressure commands are dropped (Pa; ``soft-rom simulate --amplitude``'s limit).
+MAX_PRESSURE = 1e7
 
 
 class PlantNode(Node):
@@ -92,6 +98,11 @@ class PlantNode(Node):
         self.stepper = self.eel.stepper(self.dt)
         self.rng = np.random.default_rng(self.seed)
         m = self.eel.n_chambers
+        if self.input_mode == 'per_chamber' and len(self.topics) != m:
+            raise ValueError(f'input_topics needs {m} topics (one per chamber); got '
+                             f'{len(self.topics)}')
+        self.stop_event: threading.Event | None = None     # main(): SIGINT/SIGTERM
+        self.too_large = 0
         self.value = np.zeros(m)
         self.pending: list[list[tuple[int, float]]] = [[] for _ in range(m)]
         self.newest = np.full(m, -1, dtype=np.int64)
@@ -104,10 +115,10 @@ class PlantNode(Node):
             self.create_subscription(Float64MultiArray, self.array_topic, self._on_array, qos)
             self.command_topics = [self.array_topic]
         else:
-            for i, topic in enumerate(self.topics[:m]):
+            for i, topic in enumerate(self.topics):
                 self.create_subscription(FluidPressure, topic,
                                          functools.partial(self._on_pressure, i), qos)
-            self.command_topics = list(self.topics[:m])
+            self.command_topics = list(self.topics)
         self.pub_clock = self.create_publisher(Clock, '/clock', 10)
         self.pub_measured = self.create_publisher(PoseArray, self.measured_topic, 10)
         n = self.eel.centerline_map.shape[0]
@@ -121,9 +132,20 @@ class PlantNode(Node):
         self.held = 0
         self.frame = 0
 
+    def _sane(self, v: float) -> bool:
+        """Whether a pressure is finite and at most ``MAX_PRESSURE`` (counted, warned)."""
+        if abs(v) <= MAX_PRESSURE:           # False for NaN
+            return True
+        if math.isfinite(v):
+            self.too_large += 1
+            self.get_logger().warning(
+                f'pressure command {v:g} Pa dropped: more than {MAX_PRESSURE:g} Pa (kPa sent as '
+                f'Pa?); {self.too_large} so far', throttle_duration_sec=5.0)
+        return False
+
     def _on_pressure(self, i: int, msg: FluidPressure) -> None:
         v = float(msg.fluid_pressure)
-        if not np.isfinite(v):
+        if not self._sane(v):
             return
         t = stamp_to_ns(msg.header.stamp)
         self.pending[i].append((t, v))
@@ -131,7 +153,7 @@ class PlantNode(Node):
 
     def _on_array(self, msg: Float64MultiArray) -> None:
         v = data_to_array(msg.data)
-        if v.shape != (self.eel.n_chambers,) or not np.all(np.isfinite(v)):
+        if v.shape != (self.eel.n_chambers,) or not all(self._sane(x) for x in v.tolist()):
             self.bad_arrays += 1
             return
         for i, value in enumerate(v.tolist()):
@@ -177,10 +199,15 @@ class PlantNode(Node):
         if self.lockstep > 0 and j > 0 and \
                 abs(t / self.lockstep - round(t / self.lockstep)) < 1e-6:
             deadline = time.monotonic() + self.timeout
-            while np.any(self.newest < t_ns) and time.monotonic() < deadline:
+            while np.any(self.newest < t_ns) and time.monotonic() < deadline and not (
+                    self.stop_event is not None and self.stop_event.is_set()):
                 spin(0.002)
             if np.any(self.newest < t_ns):
                 self.held += 1
+                self.get_logger().warning(
+                    f'no command for t = {t:.3f} s within command_timeout_s '
+                    f'({self.timeout:g} s): the last pressures are held; {self.held} '
+                    'lockstep point(s) held so far', throttle_duration_sec=5.0)
         spin(0.0)
         self._apply(t_ns)
         if self.record_path:
@@ -219,8 +246,14 @@ def main(args: list[str] | None = None) -> int:
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT,
                                                                        signal.SIGTERM)}
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    refused = init_rclpy(args)
+    if refused is not None:
+        for s, h in previous.items():
+            signal.signal(s, h)
+        print(f'soft_rom plant: bad command line (--ros-args): {refused}', file=sys.stderr)
+        return 1
     node = None
+    code = 0
     executor = SingleThreadedExecutor()
     try:
         try:
@@ -231,6 +264,8 @@ def main(args: list[str] | None = None) -> int:
         except ParameterException as err:       # a value of the wrong type
             print(f'soft_rom plant: cannot start: parameter {rclpy_reason(err)}', file=sys.stderr)
             return 1
+        node.stop_event = stop
+        warn_unknown_parameters(node)
         executor.add_node(node)
 
         def spin(timeout: float) -> None:
@@ -264,6 +299,11 @@ def main(args: list[str] | None = None) -> int:
                     spin(0.1)
         if node.record_path:
             node.save()
+    except SolverError as err:                  # the FOM diverged: it cannot go on
+        node.get_logger().error(f'{err} Pressures at the end: '
+                                f'{np.round(node.value / 1e3, 1).tolist()} kPa; exiting.')
+        node.save()
+        code = 1
     except KeyboardInterrupt:
         pass
     finally:
@@ -273,7 +313,7 @@ def main(args: list[str] | None = None) -> int:
         rclpy.try_shutdown()
         for s, h in previous.items():
             signal.signal(s, h)
-    return 0
+    return code
 
 
 if __name__ == '__main__':  # pragma: no cover

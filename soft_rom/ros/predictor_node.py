@@ -44,7 +44,6 @@ checks at least every 0.1 s, so no callback runs after the context shuts down (n
 from __future__ import annotations
 
 import functools
-import re
 import signal
 import sys
 import threading
@@ -55,10 +54,9 @@ import rclpy
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.lifecycle import LifecycleNodeMixin, LifecycleState, TransitionCallbackReturn
-from rclpy.logging import get_logger, get_logger_level, LoggingSeverity, set_logger_level
+from rclpy.logging import get_logger
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rclpy.signals import SignalHandlerOptions
 from sensor_msgs.msg import FluidPressure
 from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
@@ -72,7 +70,13 @@ from soft_rom.predictor.conversions import (
 )
 from soft_rom.predictor.loop import RuntimeLoop
 from soft_rom.ros.diagnostics import Diagnostics, TopicMonitor
-from soft_rom.ros.node_params import NodeSettings, ParameterMixin, rclpy_reason
+from soft_rom.ros.node_params import (
+    init_rclpy,
+    NodeSettings,
+    ParameterMixin,
+    rclpy_reason,
+    warn_unknown_parameters,
+)
 from soft_rom.ros.prediction_publishers import PredictionPublishers
 
 __all__ = ['PredictorNode', 'StartupError', 'main']
@@ -119,6 +123,7 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, PredictionPublishers, No
         except (ConfigError, ParameterException) as err:
             self._fail_start(node_name, str(err) if isinstance(err, ConfigError) else
                              f'parameter {rclpy_reason(err)}.')
+        warn_unknown_parameters(self)
         self.managed = self.settings.lifecycle
         self.loop: RuntimeLoop | None = None
         self.callback_errors = 0
@@ -440,30 +445,10 @@ def _executor(node: PredictorNode) -> Any:
     return SingleThreadedExecutor()
 
 
-def _init(args: list[str] | None) -> str | None:
-    """``rclpy.init``; ``None``, or why the command line was refused (one line).
-
-    rcl's own "Failed to parse global arguments" error line is held back meanwhile: the
-    reason returned says more (which ``-p`` rule, which file).
-    """
-    quiet = get_logger_level('rcl') == LoggingSeverity.UNSET
-    if quiet:
-        set_logger_level('rcl', LoggingSeverity.FATAL)
-    try:
-        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    except RuntimeError as err:         # rclpy's RCLError: a bad --ros-args
-        text = re.sub(r'(\. Error: error not set)?\s*,? at /\S+:\d+', '', str(err))
-        return ' '.join(text.split()).removeprefix('failed to initialize rcl: ')
-    finally:
-        if quiet and get_logger_level('rcl') == LoggingSeverity.FATAL:
-            set_logger_level('rcl', LoggingSeverity.UNSET)
-    return None
-
-
 def main(args: list[str] | None = None) -> int:
     """Run the node until SIGINT/SIGTERM; returns the exit status (0, or 1: bad start)."""
     stop = _StopFlag()
-    refused = _init(args)
+    refused = init_rclpy(args)
     if refused is not None:
         stop.restore()
         get_logger('soft_rom_predictor').error(

@@ -38,6 +38,7 @@ HOSTILE = [
     ('{max_catchup_steps: 0}', 'max_catchup_steps'),
     ('{error_window: abc}', 'error_window'),
     ('{kalman: "yes"}', 'kalman must be true or false'),
+    ('{input_scale: 0}', 'input_scale must not be 0'),
     ('{stepping: sometimes}', 'stepping must be one of event, fixed, input'),
     ('{frame_id: [a]}', 'frame_id must be a string'),
     ('{input_min: 5}', 'input_min must be a list of numbers'),
