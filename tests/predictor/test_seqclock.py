@@ -119,21 +119,53 @@ def test_a_lagging_reception_clock_at_start_up_does_not_shift_the_sequence() -> 
 
 
 @pytest.mark.parametrize('seed', range(4))
-def test_a_start_up_stamp_a_step_early_is_corrected_at_the_first_phase_check(seed) -> None:
-    # sim time, the CI loop's failure (predictor state 1.2e-2 off): the 9th array, the last
-    # stamped from its reception, was taken before the /clock of its step, so the sequence
-    # went on a step early. The 8 start-up arrivals before it, stamped at their receptions,
-    # agreed with their own stamps, and the phase check counted them as arrivals in phase:
-    # the first quartile moved only at the 65th array (0.65 s of every command a step
-    # early). Against the sequence that goes on they are a step late, and the first phase
-    # check (the 17th array) moves it; 10 % of the later arrays are taken a step early too.
+def test_a_9th_array_taken_a_step_early_does_not_put_the_sequence_early(seed) -> None:
+    # sim time, a CI loop's failure (predictor state 1.2e-2 off): the 9th array, the last
+    # of the start-up, was taken before the /clock of its step, and the sequence went on
+    # from its reception, a step early, until a phase check moved it (the 17th array). Its
+    # stamp is now the whole step nearest the sequence fitted to the 9 arrivals: in step
+    # from the 9th on; 10 % of the later arrays are taken a step early too.
     rng = np.random.default_rng(seed)
     sent = T0 + np.arange(300) * 10 * H
     early = np.where(rng.random(300) < 0.1, H, 0)
     early[:8], early[8] = 0, H
     clock = SequenceClock(H, 100 * H)
     err = _stamps(sent, sent - early, clock)
-    assert err[8] == -H and np.all(err[17:] == 0), np.flatnonzero(err)
+    assert np.all(err[8:] == 0), np.flatnonzero(err)
+    assert clock.period == 10 * H
+
+
+@pytest.mark.parametrize('steps_off', [{0: 2}, {0: 1, 8: -1}, {0: -1, 8: 1}, {8: -2}, {0: 5}])
+def test_start_up_arrays_taken_steps_off_keep_the_period_on_the_grid(steps_off) -> None:
+    # sim time, the closed-loop test's intermittent failure in CI (predictor state 0.27 and
+    # 0.35 off): the controller's 100 Hz arrays in lock-step, each taken at its send time
+    # but the first or the 9th, taken a few steps off (before the /clock of its step, or
+    # after later ones). The start-up period was the mean of the 8 intervals, the first
+    # and the 9th arrival's alone: 2 steps between them made it 9.75 ms (10.25, 10.5 ms),
+    # off the model's grid, which no early check corrects, and the stamps drifted 4-37 ms
+    # off until a window's votes, after 1.4 s (the model's state 0.1 to 0.4 off)
+    sent = T0 + np.arange(300) * 10 * H
+    off = np.zeros(300, dtype=np.int64)
+    for k, steps in steps_off.items():
+        off[k] = steps * H
+    clock = SequenceClock(H, 100 * H)
+    err = _stamps(sent, sent + off, clock)
+    assert np.all(err[8:] == 0), (np.flatnonzero(err), err[8:].min(), err[8:].max())
+    assert clock.period == 10 * H and clock.resyncs == 0
+
+
+def test_start_up_arrays_behind_a_loaded_node_are_in_step_after_the_17th() -> None:
+    # measured in the closed loop, its predictor niced on a CPU with 3 busy processes: the
+    # first arrays were taken up to 30 ms late, and it caught up by the 10th. The mean of the
+    # 8 start-up intervals made the period 10.5 ms, more than a refinement (2 %) from the
+    # early estimates, and the stamps stayed 2-10 ms late for the 2 s of the test (state 0.7
+    # off, with 7 arrays dropped later); fitted again to the first 17, the period is 10 ms
+    late_ms = [0, 1, 13, 28, 30, 24, 19, 11, 4] + [0] * 6 + [1, 1, 1, 2] + [0] * 11 + [1] \
+        + [0] * 5
+    sent = T0 + np.arange(len(late_ms)) * 10 * H
+    clock = SequenceClock(H, 100 * H)
+    err = _stamps(sent, sent + np.array(late_ms) * H, clock)
+    assert np.all(err[17:] == 0), err // H
     assert clock.period == 10 * H
 
 
