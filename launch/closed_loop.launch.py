@@ -46,8 +46,10 @@ def _actions(context, *args, **kwargs):
         Node(package='soft_rom', executable='plant', name='soft_rom_plant',
              parameters=[plant], output='screen', emulate_tty=True, additional_env=_ENV),
         Node(package='soft_rom', executable='predictor', name='soft_rom_predictor',
+             # every command reaches the model it integrates: reliable, as the controller
+             # publishes (best effort, depth 10, dropped commands while it lagged)
              parameters=[{'model_path': model, 'use_sim_time': True, 'kalman': False,
-                          **mode}],
+                          'input_qos': 'reliable', 'qos_depth': 100, **mode}],
              output='screen', emulate_tty=True, additional_env=_ENV),
         Node(package='soft_rom', executable='controller', name='soft_rom_controller',
              parameters=[{'model_path': model, 'use_sim_time': True,

@@ -70,6 +70,7 @@ def test_starts_plant_predictor_controller_in_sim_time(launch_module) -> None:
                                            'input_mode': 'per_chamber'}]
     assert predictor.kwargs['parameters'][0]['use_sim_time'] is True
     assert predictor.kwargs['parameters'][0]['kalman'] is False
+    assert predictor.kwargs['parameters'][0]['input_qos'] == 'reliable'
     c = controller.kwargs['parameters'][0]
     assert c['use_sim_time'] and c['reference'] == 'wave:f=1' and c['model_path'] == '/m.npz'
     assert c['state_topic'] == '/soft_rom_predictor/state'
