@@ -248,8 +248,9 @@ def training_deviation(model: Any) -> float | None:
     """The training data's largest output deviation recorded in the model file, if any."""
     env = model.metadata.get('envelope') if isinstance(model.metadata, dict) else None
     dev = env.get('y_dev_max') if isinstance(env, dict) else None
-    ok = isinstance(dev, (int, float)) and math.isfinite(dev) and dev > 0
-    return float(dev) if ok else None
+    if isinstance(dev, (int, float)) and math.isfinite(dev) and dev > 0:
+        return float(dev)
+    return None
 
 
 def check_moves(ref: Reference, model: Any, duration: float | None = None) -> None:

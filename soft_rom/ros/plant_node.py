@@ -300,6 +300,7 @@ def main(args: list[str] | None = None) -> int:
         if node.record_path:
             node.save()
     except SolverError as err:                  # the FOM diverged: it cannot go on
+        assert node is not None                 # raised by node.step only
         node.get_logger().error(f'{err} Pressures at the end: '
                                 f'{np.round(node.value / 1e3, 1).tolist()} kPa; exiting.')
         node.save()
