@@ -212,3 +212,16 @@ def test_a_mistyped_parameter_is_named(tmp_path, model_path, client) -> None:
         assert node.stop(signal.SIGINT) == 0
     finally:
         node.kill()
+
+
+@pytest.mark.parametrize('exe', ['controller', 'predictor'])
+def test_waiting_for_a_sim_clock_is_said(tmp_path, model_path, client, exe) -> None:
+    # use_sim_time and no /clock: the timers wait, nothing is published; the log says why
+    node = NodeProcess(tmp_path, {'model_path': str(model_path), 'use_sim_time': True},
+                       name=f'{exe}_noclock', exe=exe)
+    try:
+        assert client.spin_until(lambda: 'no /clock has come in 5 s' in node.log(), 60), \
+            node.log()
+        assert node.stop(signal.SIGINT) == 0
+    finally:
+        node.kill()

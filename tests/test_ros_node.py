@@ -204,6 +204,28 @@ def test_array_input_equals_replay_of_what_arrived(client, tmp_path) -> None:
         node.kill()
 
 
+def test_arrays_all_dropped_show_on_their_topic(client, tmp_path) -> None:
+    # arrays of the wrong length: the topic says they arrive and are dropped, not "no
+    # messages yet" (an audit saw STALE 'nothing received' while 2,499 were dropped)
+    node = NodeProcess(tmp_path, params(model().save(tmp_path / 'm.npz'), input_mode='array'))
+    try:
+        out = Outputs(client, node.fqn)
+        pub = client.node.create_publisher(Float64MultiArray, '/t/pressures', RELIABLE)
+        _connected(client, [pub], out)
+
+        def warned() -> bool:
+            pub.publish(Float64MultiArray(data=[1.0] * 5))
+            return out.status(': input /t/pressures').get('message', '').startswith('none taken')
+
+        assert client.spin_until(warned, timeout=20.0), out.status(': input /t/pressures')
+        st = out.status(': input /t/pressures')
+        assert st['level'] == 1 and 'dropped or clipped since the last report' in st['message']
+        assert int(st['dropped']) >= 1 and st['received'] == '0', st
+        assert node.stop(signal.SIGINT) == 0
+    finally:
+        node.kill()
+
+
 def test_array_burst_one_step_each_equals_simulate(client, tmp_path) -> None:
     # un-stamped arrays are placed on the sender's sequence: a burst (as after an executor
     # stall) still gives one model step per array, in order
@@ -276,7 +298,9 @@ def test_hostile_messages_reset_and_diagnostics(client, tmp_path) -> None:
             assert st['hardware_id'] == 'eel_1', st
             assert int(st['received']) >= 40
             assert 'rate_hz' in st and 'stamp_age_s' in st
-        assert out.status(': measured /t/centerline')['received'] == '2'
+        measured = out.status(': measured /t/centerline')
+        # both arrived, both dropped (3 points; NaN): said on the topic, not "OK 30 Hz"
+        assert measured['received'] == '2' and measured['dropped'] == '2', measured
         pubs[2].publish(pressure(1.0, 0))     # a zero stamp: taken at node time
         assert client.spin_until(lambda: len(out.stamped) > 40, timeout=10.0)
         # ~/reset

@@ -330,14 +330,16 @@ class Predictor(Measuring):
         m = self._dyn.m
         if vec.shape != (m,):
             return self._drop('wrong_length', None, stamp_ns,
-                              f'input of length {vec.size}, expected {m}')
+                              f'input of length {vec.size}, expected {m}', every=True)
         env = self._env
         if env.u_lo is None:
             if not _finite(vec):
-                return self._drop('nonfinite', None, stamp_ns, 'input with NaN/Inf')
+                return self._drop('nonfinite', None, stamp_ns, 'input with NaN/Inf',
+                                  every=True)
         elif not ((vec >= env.u_lo) & (vec <= env.u_hi)).all():    # NaN fails both too
             if not _finite(vec):
-                return self._drop('nonfinite', None, stamp_ns, 'input with NaN/Inf')
+                return self._drop('nonfinite', None, stamp_ns, 'input with NaN/Inf',
+                                  every=True)
             inside = self._envelope_vector(vec, stamp_ns)
             if inside is None:
                 return False
@@ -390,10 +392,13 @@ class Predictor(Measuring):
         self._alarm('clipped', stamp_ns, f'input {self.model.input_names[index]}={value:.4g} '
                                          'clipped to its envelope')
 
-    def _drop(self, counter: str, index: int | None, stamp_ns: int | None, why: str) -> bool:
+    def _drop(self, counter: str, index: int | None, stamp_ns: int | None, why: str, *,
+              every: bool = False) -> bool:
+        """Count a dropped input: on channel ``index``, or on ``every`` one (a whole vector)."""
         self.counters[counter] += 1
-        if index is not None:
-            self.channels.dropped[index] += 1
+        dropped = self.channels.dropped
+        for i in (range(len(dropped)) if every else () if index is None else (index,)):
+            dropped[i] += 1
         self._alarm('dropped', stamp_ns, f'dropped messages (last: {why})')
         return False
 

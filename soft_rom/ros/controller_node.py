@@ -66,7 +66,12 @@ from soft_rom.predictor.conversions import (
     set_points,
     stamp_to_ns,
 )
-from soft_rom.ros.node_params import init_rclpy, rclpy_reason, warn_unknown_parameters
+from soft_rom.ros.node_params import (
+    init_rclpy,
+    rclpy_reason,
+    warn_unknown_parameters,
+    watch_sim_clock,
+)
 
 __all__ = ['ControllerNode', 'main']
 
@@ -427,6 +432,7 @@ def main(args: list[str] | None = None) -> int:
     try:
         node = ControllerNode()
         warn_unknown_parameters(node)
+        watch_sim_clock(node)
         executor.add_node(node)
         while not stop.is_set() and rclpy.ok():
             executor.spin_once(timeout_sec=0.1)

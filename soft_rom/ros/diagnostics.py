@@ -100,16 +100,22 @@ class Diagnostics:
             except ValueError:
                 silent = False
             received = int(fig['received']) if fig['received'].isdigit() else 0
-            bad = sum(int(values.get(f'input.{n}.{k}', '0') or 0) for n in mine
-                      for k in ('dropped', 'clipped'))
+            # a whole array dropped counts on each of its channels: the topic's count is
+            # the largest of its channels', not their sum
+            bad = max((sum(int(values.get(f'input.{n}.{k}', '0') or 0)
+                           for k in ('dropped', 'clipped')) for n in mine), default=0)
             new_bad = bad - self._dropped.get(topic, 0)
             self._dropped[topic] = bad
+            dropped = (f'; {new_bad} dropped or clipped since the last report (see the '
+                       'prediction status)' if new_bad > 0 else '')
             if received == 0:
-                st.level, st.message = DiagnosticStatus.STALE, 'no messages yet'
+                st.level, st.message = ((DiagnosticStatus.WARN, f'none taken{dropped}')
+                                        if bad else (DiagnosticStatus.STALE, 'no messages yet'))
             elif fig['timed_out'] == 'true' or silent:
                 st.level = DiagnosticStatus.STALE
-                st.message = (f'nothing received for {fig["age_s"]} s' if silent else
-                              f'timed out: {fig["stamp_lag_s"]} s behind the other inputs')
+                st.message = (f'nothing taken for {fig["age_s"]} s' if silent else
+                              f'timed out: {fig["stamp_lag_s"]} s behind the other inputs'
+                              ) + dropped
             elif new_bad > 0:
                 st.level = DiagnosticStatus.WARN
                 st.message = f'{new_bad} dropped or clipped since the last report'
@@ -121,8 +127,11 @@ class Diagnostics:
             out.append(st)
         return out
 
-    def _measured_status(self, monitor: TopicMonitor, now_ns: int, timeout: float
-                         ) -> DiagnosticStatus:
+    def _measured_status(self, monitor: TopicMonitor, now_ns: int, timeout: float,
+                         dropped: int = 0) -> DiagnosticStatus:
+        """The measured topic: arriving (``monitor``), and ``dropped`` by the core so far."""
+        new_drops = dropped - self._dropped.get(monitor.topic, 0)
+        self._dropped[monitor.topic] = dropped
         rate = monitor.rate(now_ns)
         never = monitor.last_stamp_ns == _NO_STAMP
         age = math.inf if never else (now_ns - monitor.last_stamp_ns) * 1e-9
@@ -132,12 +141,17 @@ class Diagnostics:
         elif not age <= timeout:
             st.level = DiagnosticStatus.STALE
             st.message = f'newest stamp {age:.3g} s old (timeout {timeout:g} s)'
+        elif new_drops > 0:
+            st.level = DiagnosticStatus.WARN
+            st.message = (f'{new_drops} dropped since the last report (see the prediction '
+                          'status)')
         else:
             st.level = DiagnosticStatus.OK
             st.message = f'{rate:.4g} Hz' if math.isfinite(rate) else 'receiving'
         st.values = [KeyValue(key='rate_hz', value=f'{rate:.6g}'),
                      KeyValue(key='stamp_age_s', value=f'{age:.6g}'),
-                     KeyValue(key='received', value=str(monitor.count))]
+                     KeyValue(key='received', value=str(monitor.count)),
+                     KeyValue(key='dropped', value=str(dropped))]
         return st
 
     def message(self, now_ns: int, stamp: Any, report: Any, startup_error: str | None,
@@ -168,5 +182,6 @@ class Diagnostics:
                     for t in (newest_stamps or [])] or [math.inf] * len(names)
             msg.status = [status] + self._input_statuses(values, names, ages, timeout)
         if measured is not None:
-            msg.status.append(self._measured_status(measured, now_ns, timeout))
+            drops = 0 if report is None else int(dict(report.values).get('measured_dropped', 0))
+            msg.status.append(self._measured_status(measured, now_ns, timeout, drops))
         return msg

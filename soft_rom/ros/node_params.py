@@ -28,6 +28,7 @@ from rcl_interfaces.msg import (
     SetParametersResult,
 )
 import rclpy
+from rclpy.clock import Clock, ClockType
 from rclpy.exceptions import ParameterException
 from rclpy.logging import get_logger_level, LoggingSeverity, set_logger_level
 from rclpy.parameter import Parameter
@@ -40,7 +41,7 @@ from soft_rom.predictor.params import loop_settings as _loop_settings
 from soft_rom.predictor.params import NODE_PARAMS, Param, PARAMS, predictor_config
 
 __all__ = ['NODE_PARAMS', 'NodeSettings', 'ParameterMixin', 'init_rclpy', 'rclpy_reason',
-           'warn_unknown_parameters']
+           'warn_unknown_parameters', 'watch_sim_clock']
 
 ALL_PARAMS = PARAMS + NODE_PARAMS
 _BY_NAME = {p.name: p for p in ALL_PARAMS}
@@ -299,3 +300,23 @@ def warn_unknown_parameters(node: Any) -> list[str]:
             f'parameter(s) {", ".join(unknown)} given but not declared by this node: ignored '
             '(a typo?)')
     return unknown
+
+
+def watch_sim_clock(node: Any, after_s: float = 5.0) -> None:
+    """With ``use_sim_time``, say so once if no ``/clock`` came ``after_s`` s after start.
+
+    Under sim time the node's timers wait for ``/clock``: without it the node publishes
+    nothing (no diagnostics either), which looked like a hang. The check runs on the
+    steady clock.
+    """
+    if not node.get_parameter('use_sim_time').value:
+        return
+
+    def check() -> None:
+        timer.cancel()
+        if node.get_clock().now().nanoseconds == 0:
+            node.get_logger().warning(
+                f'use_sim_time is true and no /clock has come in {after_s:g} s: waiting for '
+                'it (nothing is published until then)')
+
+    timer = node.create_timer(after_s, check, clock=Clock(clock_type=ClockType.STEADY_TIME))

@@ -76,6 +76,7 @@ from soft_rom.ros.node_params import (
     ParameterMixin,
     rclpy_reason,
     warn_unknown_parameters,
+    watch_sim_clock,
 )
 from soft_rom.ros.prediction_publishers import PredictionPublishers
 
@@ -124,6 +125,7 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, PredictionPublishers, No
             self._fail_start(node_name, str(err) if isinstance(err, ConfigError) else
                              f'parameter {rclpy_reason(err)}.')
         warn_unknown_parameters(self)
+        watch_sim_clock(self)
         self.managed = self.settings.lifecycle
         self.loop: RuntimeLoop | None = None
         self.callback_errors = 0
