@@ -115,8 +115,9 @@ def test_ros_loop_tracks_like_the_in_process_loop(setup, input_mode) -> None:
     # the predictor's state at each stamp: the model on the pressures the plant applied.
     # Exact per chamber (stamped commands); in array mode the first 8 arrays are stamped
     # from their reception, which a loaded node may take a step or two off, and the 9th on
-    # the sequence fitted to them: a bound of 1e-2 (2e-3 to 6e-3 under load; 72 ms late, as
-    # before the fix, is 0.3-0.9; a start-up period off the grid, 9.75 ms, 0.1-0.4)
+    # the sequence fitted to them: a bound of 2e-2 (2e-3 to 6e-3 under load, 1.03e-2 in a
+    # clean-clone CI run with a second test run beside it; 72 ms late, as before the fix,
+    # is 0.3-0.9; a start-up period off the grid, 9.75 ms, 0.1-0.4)
     sysd = model.discretize(1e-3)
     X = run_states(sysd.A, sysd.B, np.zeros(sysd.A.shape[0]), U)
     steps = {int(round(k / 1e6)): x for k, x in states.items() if k < DURATION * 1e9}
@@ -126,7 +127,7 @@ def test_ros_loop_tracks_like_the_in_process_loop(setup, input_mode) -> None:
     off = np.linalg.norm(P - X[:, j]) / np.linalg.norm(X[:, j])
     print(f'{input_mode}: predictor state against the model on the applied pressures: '
           f'{off:.2e} relative ({j.size} states)')
-    assert off <= (1e-9 if input_mode == 'per_chamber' else 1e-2), off
+    assert off <= (1e-9 if input_mode == 'per_chamber' else 2e-2), off
     e_ros = relative_deviation_error(ref.at(t), Y, model.y_ref)
     e_in = inproc.tracking_error()
     open_loop = relative_deviation_error(ref.at(t), model.simulate(np.zeros_like(U)),

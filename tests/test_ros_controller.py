@@ -225,3 +225,29 @@ def test_waiting_for_a_sim_clock_is_said(tmp_path, model_path, client, exe) -> N
         assert node.stop(signal.SIGINT) == 0
     finally:
         node.kill()
+
+
+def test_a_best_effort_motion_capture_reaches_the_controller(tmp_path, model_path,
+                                                             client) -> None:
+    # many mocap drivers publish best effort: a reliable reader never matched them
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    model = modal_rom(4)
+    rest = np.stack([model.y_ref[:20], np.zeros(20), model.y_ref[20:]], axis=1)
+    node = NodeProcess(tmp_path, {'model_path': str(model_path), 'measured_topic': '/t/mocap',
+                                  'state_topic': ''}, name='ctl_mocap', exe='controller')
+    try:
+        diags: list[dict[str, str]] = []
+        client.node.create_subscription(
+            DiagnosticArray, '/diagnostics',
+            lambda m: diags.extend({kv.key: kv.value for kv in s.values} for s in m.status), 100)
+        pub = client.node.create_publisher(
+            PoseArray, '/t/mocap', QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
+
+        def measured() -> bool:
+            pub.publish(_poses(rest, client.node.get_clock().now().nanoseconds * 1e-9))
+            return any(int(d.get('measurements', 0)) > 0 for d in diags)
+
+        assert client.spin_until(measured, 60), (diags[-1:], node.log())
+        assert node.stop(signal.SIGINT) == 0
+    finally:
+        node.kill()

@@ -10,7 +10,8 @@ in-process loop (``soft-rom control``) runs. The node:
   ``header.stamp``; samples are interpolated, the last one held);
 * takes the ROM state from the predictor node (``state_topic``, its ``~/state``; the
   predictor runs the model on the commands this node publishes) and corrects the output
-  disturbance with the measured centerline (``measured_topic``); with ``state_topic: ''``
+  disturbance with the measured centerline (``measured_topic``, best effort by default:
+  ``measured_qos``); with ``state_topic: ''``
   it estimates the state itself from the measured centerline, as ``soft-rom control`` does;
 * every ``step_s`` (sim time with ``use_sim_time``) publishes the pressure commands on the
   predictor's inputs, configured with the predictor's own parameters (``input_mode``,
@@ -123,6 +124,9 @@ class ControllerNode(Node):
                                            'PoseArray reference samples'))
         self.measured_topic = str(declare('measured_topic', '/soft_robot/centerline',
                                           'measured centerline (PoseArray)'))
+        self.measured_qos = str(declare('measured_qos', 'sensor_data', 'QoS of the measured '
+                                        'centerline: sensor_data (best effort: takes reliable '
+                                        'and best-effort publishers) or reliable'))
         self.state_topic = str(declare('state_topic', '/soft_rom_predictor/state',
                                        "the predictor's ~/state ('' : estimate it here)"))
         self.input_mode = str(declare('input_mode', 'per_chamber',
@@ -163,6 +167,9 @@ class ControllerNode(Node):
         """
         from soft_rom.models import load_model
         try:
+            if self.measured_qos not in ('sensor_data', 'reliable'):
+                raise ValueError(f'measured_qos {self.measured_qos!r} is not sensor_data or '
+                                 'reliable')
             if self.input_mode not in INPUT_MODES:
                 raise ValueError(f'input_mode {self.input_mode!r} is not one of '
                                  f'{", ".join(INPUT_MODES)}')
@@ -212,7 +219,12 @@ class ControllerNode(Node):
         self.cmd_msgs = [FluidPressure() for _ in self.pubs]    # reused: a tick builds none
         self.pub_ref = self.create_publisher(PoseArray, '~/reference', 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.create_subscription(PoseArray, self.measured_topic, self._on_measured, qos)
+        # a motion-capture driver often publishes best effort: a reliable reader never
+        # matches it; a best-effort one takes both
+        measured_qos = qos if self.measured_qos == 'reliable' else QoSProfile(
+            depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+        self.create_subscription(PoseArray, self.measured_topic, self._on_measured,
+                                 measured_qos)
         if self.state_topic:
             self.create_subscription(JointState, self.state_topic, self._on_state, qos)
         if self.reference_topic:

@@ -8,12 +8,13 @@ Status names are stable (``<node name>: <task>``, the convention of diagnostic_u
   (messages per second since the previous report), ``stamp_age_s`` (node clock minus the
   newest header stamp, as diagnostic_updater's TimeStampStatus), ``age_s`` (since the last
   message was received), ``stamp_lag_s`` (behind the newest stamp of all inputs),
-  ``received``, ``late``, ``dropped``, ``clipped``, ``timed_out``; STALE when nothing arrived
-  yet, nothing for ``input_timeout_s`` or the input timed out, WARN when some were dropped
-  or clipped since the previous report;
-* ``<node>: measured <topic>`` - ``rate_hz``, ``stamp_age_s``, ``received`` of the measured
-  centerline; STALE (it is optional: not an error) when none arrives within
-  ``input_timeout_s``.
+  ``received`` (taken), ``late``, ``dropped``, ``clipped``, ``timed_out``; STALE when nothing
+  was taken yet, nothing for ``input_timeout_s`` or the input timed out, WARN when some were
+  dropped or clipped since the previous report (also when none was taken), or when the
+  newest stamp is more than 10 s from the node's clock (another clock);
+* ``<node>: measured <topic>`` - ``rate_hz``, ``stamp_age_s``, ``received`` (arrived),
+  ``dropped`` of the measured centerline; STALE (it is optional: not an error) when none
+  arrives within ``input_timeout_s``, WARN when some were dropped since the last report.
 
 Every status carries the same ``hardware_id`` (parameter ``hardware_id``, default the
 node's fully qualified name), as diagnostic_updater's FrequencyStatus / TimeStampStatus do.
@@ -31,6 +32,11 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 __all__ = ['Diagnostics', 'TopicMonitor']
 
 _NO_STAMP = -(2 ** 63)
+
+
+#: An input whose newest stamp is further than this from the node's clock (s) is on another
+#: clock (a future stamp, wall time against sim time): WARN on its topic.
+CLOCK_APART_S = 10.0
 
 
 class TopicMonitor:
@@ -121,6 +127,12 @@ class Diagnostics:
                 st.message = f'{new_bad} dropped or clipped since the last report'
             else:
                 st.level, st.message = DiagnosticStatus.OK, f'{fig["rate_hz"]} Hz'
+            if received and math.isfinite(stamp_age) and abs(stamp_age) > CLOCK_APART_S \
+                    and st.level == DiagnosticStatus.OK:
+                st.level = DiagnosticStatus.WARN
+                st.message = (f'stamped {abs(stamp_age):.3g} s '
+                              f'{"ahead of" if stamp_age < 0 else "behind"} this node\'s clock '
+                              '(another clock? use_sim_time?)')
             st.values = [KeyValue(key='rate_hz', value=fig['rate_hz']),
                          KeyValue(key='stamp_age_s', value=f'{stamp_age:.6g}')] + [
                 KeyValue(key=k, value=fig[k]) for k in keys[1:]]

@@ -1,0 +1,40 @@
+"""The predictor node's per-topic statuses, from the figures the core reports."""
+
+from __future__ import annotations
+
+from _ros import require_rclpy
+
+require_rclpy()
+
+from soft_rom.ros.diagnostics import Diagnostics  # noqa: E402
+
+OK, WARN, STALE = 0, 1, 3
+
+
+def _status(received: int, dropped: int, stamp_age: float, age: float = 0.01):
+    diag = Diagnostics('pred', '/pred', ['/t/pressures'])
+    values = {f'input.p{i}.{k}': v for i in (1, 2) for k, v in (
+        ('received', str(received)), ('dropped', str(dropped)), ('clipped', '0'),
+        ('age_s', f'{age:g}'), ('rate_hz', '100'), ('timed_out', 'false'))}
+    st = diag._input_statuses(values, ['p1', 'p2'], [stamp_age, stamp_age], timeout=0.5)[0]
+    level = st.level[0] if isinstance(st.level, bytes) else st.level
+    return level, st.message, {kv.key: kv.value for kv in st.values}
+
+
+def test_an_array_topic_counts_a_whole_dropped_array_once() -> None:
+    level, message, values = _status(0, 7, float('inf'))
+    assert level == WARN and message.startswith('none taken; 7 dropped'), message
+    assert values['dropped'] == '7'
+
+
+def test_stamps_on_another_clock_are_warned() -> None:
+    assert _status(50, 0, 0.003)[:2] == (OK, '100 Hz')
+    level, message, _ = _status(50, 0, -99.9)             # 100 s in the future
+    assert level == WARN and 'stamped 99.9 s ahead of this node' in message
+    level, message, _ = _status(50, 0, 1.8e9)             # wall-time stamps, sim-time node
+    assert level == WARN and 'behind this node' in message
+
+
+def test_silent_topic_with_drops_says_both() -> None:
+    level, message, _ = _status(10, 3, 0.003, age=2.0)
+    assert level == STALE and 'nothing taken for 2 s; 3 dropped' in message, message
