@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import signal
+import time
 
 from _eel_rom import modal_rom
 from _ros import client_fixture, no_noise, NodeProcess, require_rclpy
@@ -251,3 +252,26 @@ def test_a_best_effort_motion_capture_reaches_the_controller(tmp_path, model_pat
         assert node.stop(signal.SIGINT) == 0
     finally:
         node.kill()
+
+
+def test_plant_stops_at_once_while_it_waits_for_commands(tmp_path, client) -> None:
+    # a controller is there but silent: the plant waits at its first lockstep point (up to
+    # command_timeout_s); SIGTERM ends that wait (it waited the 30 s out), quietly
+    pubs = [client.node.create_publisher(FluidPressure, f'/soft_robot/pressure/chamber_{i}',
+                                         100) for i in range(1, 7)]
+    clock: list[float] = []
+    from rosgraph_msgs.msg import Clock
+    client.node.create_subscription(Clock, '/clock', lambda m: clock.append(m.clock.nanosec),
+                                    100)
+    node = NodeProcess(tmp_path, {'command_timeout_s': 30.0}, name='plant_wait', exe='plant')
+    try:
+        assert client.spin_until(lambda: len(clock) >= 5, 60), node.log()
+        client.spin_for(0.5)
+        start = time.monotonic()
+        assert node.stop(signal.SIGTERM, timeout=20) == 0
+        assert time.monotonic() - start < 5.0, node.log()
+        assert 'no command for' not in node.log() and not no_noise(node.log()), node.log()
+    finally:
+        node.kill()
+        for pub in pubs:
+            client.node.destroy_publisher(pub)

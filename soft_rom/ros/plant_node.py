@@ -199,10 +199,11 @@ class PlantNode(Node):
         if self.lockstep > 0 and j > 0 and \
                 abs(t / self.lockstep - round(t / self.lockstep)) < 1e-6:
             deadline = time.monotonic() + self.timeout
-            while np.any(self.newest < t_ns) and time.monotonic() < deadline and not (
-                    self.stop_event is not None and self.stop_event.is_set()):
+            stopping = self.stop_event.is_set if self.stop_event is not None else lambda: False
+            while np.any(self.newest < t_ns) and time.monotonic() < deadline \
+                    and not stopping():
                 spin(0.002)
-            if np.any(self.newest < t_ns):
+            if np.any(self.newest < t_ns) and not stopping():     # not a Ctrl-C
                 self.held += 1
                 self.get_logger().warning(
                     f'no command for t = {t:.3f} s within command_timeout_s '
