@@ -136,8 +136,8 @@ NODE_PARAMS: tuple[Param, ...] = (
           'about half the CPU per message, what 1 kHz inputs need; falls back to '
           'single_threaded where this rclpy lacks it) or single_threaded '
           '(SingleThreadedExecutor).', choices=('events', 'single_threaded')),
-    Param('hardware_id', '', 'hardware_id of the /diagnostics statuses; empty = the node '
-          'name.'),
+    Param('hardware_id', '', "hardware_id of the /diagnostics statuses; empty = the node's "
+          'fully qualified name.'),
 )
 
 #: ``input_min`` / ``input_max`` at this value (their default; ROS 2 cannot declare an empty

@@ -10,11 +10,13 @@ Status names are stable (``<node name>: <task>``, the convention of diagnostic_u
   message was received), ``stamp_lag_s`` (behind the newest stamp of all inputs),
   ``received`` (taken), ``late``, ``dropped``, ``clipped``, ``timed_out``; STALE when nothing
   was taken yet, nothing for ``input_timeout_s`` or the input timed out, WARN when some were
-  dropped or clipped since the previous report (also when none was taken), or when the
-  newest stamp is more than 10 s from the node's clock (another clock);
+  dropped or clipped since the previous report (also when none was taken), when the
+  newest stamp is more than 10 s from the node's clock (another clock), or when the topic
+  has more than one publisher (``publishers``);
 * ``<node>: measured <topic>`` - ``rate_hz``, ``stamp_age_s``, ``received`` (arrived),
   ``dropped`` of the measured centerline; STALE (it is optional: not an error) when none
-  arrives within ``input_timeout_s``, WARN when some were dropped since the last report.
+  arrives within ``input_timeout_s``, WARN when some were dropped since the last report or
+  when its ``frame_id`` (if set) is not the node's ``frame_id`` (no transform is applied).
 
 Every status carries the same ``hardware_id`` (parameter ``hardware_id``, default the
 node's fully qualified name), as diagnostic_updater's FrequencyStatus / TimeStampStatus do.
@@ -42,11 +44,14 @@ CLOCK_APART_S = 10.0
 class TopicMonitor:
     """Counts the messages of one topic and keeps the newest stamp (int ns)."""
 
-    __slots__ = ('topic', 'kind', 'count', 'last_stamp_ns', '_t0', '_n0')
+    __slots__ = ('topic', 'kind', 'count', 'last_stamp_ns', 'frame', 'expected_frame', '_t0',
+                 '_n0')
 
-    def __init__(self, topic: str, kind: str) -> None:
+    def __init__(self, topic: str, kind: str, expected_frame: str = '') -> None:
         self.topic = topic
         self.kind = kind
+        self.expected_frame = expected_frame
+        self.frame = ''         # the newest message's frame_id when not the expected one
         self.count = 0
         self.last_stamp_ns = _NO_STAMP
         self._t0 = _NO_STAMP
@@ -91,7 +96,8 @@ class Diagnostics:
         return DiagnosticStatus(name=f'{self.node_name}: {task}', hardware_id=self.hardware_id)
 
     def _input_statuses(self, values: dict[str, str], names: list[str],
-                        stamp_ages: list[float], timeout: float) -> list[DiagnosticStatus]:
+                        stamp_ages: list[float], timeout: float,
+                        publishers: list[int] | None = None) -> list[DiagnosticStatus]:
         out = []
         per_topic = len(names) == len(self.input_topics)
         keys = ('rate_hz', 'age_s', 'stamp_lag_s', 'received', 'late', 'dropped', 'clipped',
@@ -133,7 +139,12 @@ class Diagnostics:
                 st.message = (f'stamped {abs(stamp_age):.3g} s '
                               f'{"ahead of" if stamp_age < 0 else "behind"} this node\'s clock '
                               '(another clock? use_sim_time?)')
+            senders = publishers[i] if publishers else 0
+            if senders > 1 and st.level == DiagnosticStatus.OK:
+                st.level = DiagnosticStatus.WARN
+                st.message = f'{senders} publishers on this topic (a second sender?)'
             st.values = [KeyValue(key='rate_hz', value=fig['rate_hz']),
+                         KeyValue(key='publishers', value=str(senders)),
                          KeyValue(key='stamp_age_s', value=f'{stamp_age:.6g}')] + [
                 KeyValue(key=k, value=fig[k]) for k in keys[1:]]
             out.append(st)
@@ -153,6 +164,10 @@ class Diagnostics:
         elif not age <= timeout:
             st.level = DiagnosticStatus.STALE
             st.message = f'newest stamp {age:.3g} s old (timeout {timeout:g} s)'
+        elif monitor.frame:
+            st.level = DiagnosticStatus.WARN
+            st.message = (f'frame_id {monitor.frame!r} is not the frame_id of this node '
+                          f'({monitor.expected_frame!r}): no transform is applied')
         elif new_drops > 0:
             st.level = DiagnosticStatus.WARN
             st.message = (f'{new_drops} dropped since the last report (see the prediction '
@@ -168,11 +183,13 @@ class Diagnostics:
 
     def message(self, now_ns: int, stamp: Any, report: Any, startup_error: str | None,
                 measured: TopicMonitor | None, timeout: float,
-                newest_stamps: list[int] | None = None) -> DiagnosticArray:
+                newest_stamps: list[int] | None = None,
+                publishers: list[int] | None = None) -> DiagnosticArray:
         """The whole array at node time ``now_ns``, header stamped ``stamp``.
 
         ``report`` is the loop's :class:`~soft_rom.predictor.loop.Diagnostics` (``None``
-        without a model); ``newest_stamps`` the newest stamp (int ns) of each input.
+        without a model); ``newest_stamps`` the newest stamp (int ns) of each input;
+        ``publishers`` the publishers on each input topic.
         """
         msg = DiagnosticArray()
         msg.header.stamp = stamp
@@ -192,7 +209,8 @@ class Diagnostics:
                 if k.startswith('input.') and k.endswith('.received')]
             ages = [math.inf if t == _NO_STAMP else (now_ns - t) * 1e-9
                     for t in (newest_stamps or [])] or [math.inf] * len(names)
-            msg.status = [status] + self._input_statuses(values, names, ages, timeout)
+            msg.status = [status] + self._input_statuses(values, names, ages, timeout,
+                                                         publishers)
         if measured is not None:
             drops = 0 if report is None else int(dict(report.values).get('measured_dropped', 0))
             msg.status.append(self._measured_status(measured, now_ns, timeout, drops))

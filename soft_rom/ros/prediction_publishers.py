@@ -171,6 +171,8 @@ class PredictionPublishers:
         sec, nsec = ns_to_stamp(now_ns)
         timeout = float(self.settings_value('input_timeout_s'))  # type: ignore[attr-defined]
         newest = None if loop is None else [int(t) for t in loop.predictor.channels.newest]
+        senders = [self.count_publishers(t)  # type: ignore[attr-defined]
+                   for t in self.diagnostics.input_topics]
         self._pub_diag.publish(self.diagnostics.message(
             now_ns, TimeMsg(sec=sec, nanosec=nsec), report, self.startup_error,
-            self.measured_monitor, timeout, newest))
+            self.measured_monitor, timeout, newest, senders))

@@ -137,7 +137,7 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, PredictionPublishers, No
                                    reliability=ReliabilityPolicy.RELIABLE,
                                    durability=DurabilityPolicy.TRANSIENT_LOCAL)
         s = self.settings
-        self.measured_monitor = (TopicMonitor(s.measured_topic, 'measured')
+        self.measured_monitor = (TopicMonitor(s.measured_topic, 'measured', s.frame_id)
                                  if s.measured_topic else None)
         inputs = s.input_topics if s.input_mode == 'per_chamber' else (s.array_topic,)
         self.diagnostics = Diagnostics(self.get_name(), s.hardware_id
@@ -362,7 +362,10 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, PredictionPublishers, No
             return
         try:
             stamp = stamp_to_ns(msg.header.stamp)
-            self.measured_monitor.seen(stamp)
+            monitor = self.measured_monitor
+            monitor.seen(stamp)
+            frame = msg.header.frame_id
+            monitor.frame = '' if not frame or frame == monitor.expected_frame else frame
             self._publish(loop.on_measured(poses_to_points(msg.poses), stamp,
                                            self._now_ns()))
         except Exception as err:  # noqa: BLE001
