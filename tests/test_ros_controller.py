@@ -275,3 +275,36 @@ def test_plant_stops_at_once_while_it_waits_for_commands(tmp_path, client) -> No
         node.kill()
         for pub in pubs:
             client.node.destroy_publisher(pub)
+
+
+def test_measurements_in_another_frame_are_dropped_and_unstamped_ones_taken(
+        tmp_path, model_path, client) -> None:
+    model = modal_rom(4)
+    rest = np.stack([model.y_ref[:20], np.zeros(20), model.y_ref[20:]], axis=1)
+    node = NodeProcess(tmp_path, {'model_path': str(model_path), 'measured_topic': '/t/m2',
+                                  'state_topic': ''}, name='ctl_frames', exe='controller')
+    try:
+        diags: list[dict[str, str]] = []
+        client.node.create_subscription(
+            DiagnosticArray, '/diagnostics',
+            lambda m: diags.extend({kv.key: kv.value for kv in s.values} for s in m.status), 100)
+        pub = client.node.create_publisher(PoseArray, '/t/m2', 100)
+
+        def sent(frame: str, stamped: bool, key: str, least: int = 1) -> bool:
+            msg = _poses(rest, client.node.get_clock().now().nanoseconds * 1e-9 if stamped
+                         else 0.0)
+            msg.header.frame_id = frame
+            pub.publish(msg)
+            client.spin_for(0.05)
+            return any(int(d.get(key, 0)) >= least for d in diags[-3:])
+
+        # a motion-capture frame against the node's world: dropped, said
+        assert client.spin_until(lambda: sent('mocap', True, 'measurements_dropped'), 60)
+        assert all(d.get('measurements', '0') == '0' for d in diags), diags[-1]
+        assert "measurement dropped: frame_id 'mocap' is not this node's" in node.log()
+        # no stamp, in the node's frame: each taken at its arrival (not only the first, at 0)
+        assert client.spin_until(lambda: sent('world', False, 'measurements', 5), 30), \
+            diags[-1]
+        assert node.stop(signal.SIGINT) == 0
+    finally:
+        node.kill()

@@ -377,9 +377,11 @@ def test_startup_failure_exits_1_with_one_line(tmp_path, case) -> None:
 
 def test_wait_for_model_then_load_and_integer_overrides(client, tmp_path) -> None:
     path = model().save(tmp_path / 'm.npz')
-    # an integer written for a double parameter is accepted at start-up
+    # an integer written for a double parameter (and an integer array for a double array)
+    # is accepted at start-up, and at run time
     node = NodeProcess(tmp_path, params(tmp_path / 'later.npz', wait_for_model=True,
-                                        rate_hz=1000, centerline_rate_hz=10))
+                                        rate_hz=1000, centerline_rate_hz=10,
+                                        input_max=[100000]))
     try:
         out = Outputs(client, node.fqn)
         assert client.spin_until(lambda: 'no model' in out.status(': prediction').get(
@@ -387,6 +389,8 @@ def test_wait_for_model_then_load_and_integer_overrides(client, tmp_path) -> Non
         assert out.status(': prediction')['level'] == 2
         assert client.set_parameters(node.fqn, model_path=str(path))[0].successful
         assert client.spin_until(lambda: bool(out.infos), timeout=10.0)
+        assert client.set_parameters(node.fqn, input_max=[200000])[0].successful
+        assert 'INTEGER_ARRAY' not in node.log(), node.log()
         assert node.stop(signal.SIGINT) == 0
     finally:
         node.kill()

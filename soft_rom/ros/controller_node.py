@@ -148,7 +148,8 @@ class ControllerNode(Node):
                                       'hold the command beyond this age'))
         core['duration'] = float(declare('reference_duration_s', 60.0,
                                          'length of a built-in one'))
-        self.frame_id = str(declare('frame_id', 'world', 'frame of ~/reference'))
+        self.frame_id = str(declare('frame_id', 'world', 'frame of ~/reference and of the '
+                                    'measured centerline (another one is dropped)'))
         self.diag_rate = float(declare('diagnostics_rate_hz', 1.0, 'rate of /diagnostics '
                                        '(and at once when the status changes)'))
         self.ref_rate = float(declare('reference_rate_hz', 30.0, 'rate of ~/reference while '
@@ -259,14 +260,22 @@ class ControllerNode(Node):
 
     def _on_measured(self, msg: PoseArray) -> None:
         try:
+            frame = msg.header.frame_id
+            why = ''
             if len(msg.poses) * 2 != self.model.n_outputs:
                 why = (f'{len(msg.poses)} poses; the model has {self.model.n_outputs // 2} '
                        'centerline points')
+            elif frame and frame != self.frame_id:
+                why = (f"frame_id {frame!r} is not this node's frame_id {self.frame_id!r} (no "
+                       'transform is applied)')
+            if why:
                 self.core.counters.measurements_dropped += 1
                 self.core.counters.last_problem = why
             else:
+                # an unstamped message (zero stamp) is taken at its arrival, as the predictor
+                stamp_ns = stamp_to_ns(msg.header.stamp) or self.get_clock().now().nanoseconds
                 why = self.core.measure(_model_outputs(self.model, poses_to_points(msg.poses)),
-                                        stamp_to_ns(msg.header.stamp) * 1e-9)
+                                        stamp_ns * 1e-9)
             if why:
                 self.get_logger().warning(f'measurement dropped: {why}',
                                           throttle_duration_sec=5.0)

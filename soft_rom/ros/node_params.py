@@ -3,8 +3,9 @@
 The core's parameters (names, defaults, ranges, which change at run time) are stated once
 in :mod:`soft_rom.predictor.params`; two more exist only on the node (``NODE_PARAMS``).
 
-* A double parameter accepts an integer (``-p rate_hz:=100``, ``ros2 param set ... 100``):
-  it is converted before rclpy checks the type.
+* A double parameter accepts an integer (``-p rate_hz:=100``, ``ros2 param set ... 100``),
+  and a double array an integer array (``input_max:=[100000]``): they are converted before
+  rclpy checks the type.
 * A refused change is logged at WARN with the reason (read-only, wrong type, out of range,
   undeclared, or refused by the core / the model file) and returned as the reason to the
   caller. Each change of a run-time parameter is checked together with every other setting
@@ -45,6 +46,9 @@ __all__ = ['NODE_PARAMS', 'NodeSettings', 'ParameterMixin', 'init_rclpy', 'rclpy
 
 ALL_PARAMS = PARAMS + NODE_PARAMS
 _BY_NAME = {p.name: p for p in ALL_PARAMS}
+_DOUBLE_ARRAYS = {p.name for p in ALL_PARAMS
+                  if isinstance(p.default, list) and p.default
+                  and all(isinstance(v, float) for v in p.default)}
 _DOUBLES = {p.name for p in ALL_PARAMS
             if isinstance(p.default, float) and not isinstance(p.default, bool)}
 
@@ -117,8 +121,12 @@ def rclpy_reason(err: ParameterException) -> str:
 
 
 def _as_double(param: Parameter) -> Parameter:
+    """An integer (or integer array) given for a double (array) parameter, converted."""
     if param.name in _DOUBLES and param.type_ == Parameter.Type.INTEGER:
         return Parameter(param.name, Parameter.Type.DOUBLE, float(param.value))
+    if param.name in _DOUBLE_ARRAYS and param.type_ == Parameter.Type.INTEGER_ARRAY:
+        return Parameter(param.name, Parameter.Type.DOUBLE_ARRAY,
+                         [float(v) for v in param.value])
     return param
 
 
