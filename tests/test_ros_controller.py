@@ -33,6 +33,21 @@ def _poses(points: np.ndarray, t: float) -> PoseArray:
     return msg
 
 
+def _rest(model) -> np.ndarray:
+    """The model's rest centerline as (points, xyz)."""
+    return np.stack([model.y_ref[:20], np.zeros(20), model.y_ref[20:]], axis=1)
+
+
+def _diagnostics(client) -> list[dict[str, str]]:
+    """Every ``/diagnostics`` status from now on, as its values and ``msg`` (its message)."""
+    diags: list[dict[str, str]] = []
+    client.node.create_subscription(
+        DiagnosticArray, '/diagnostics',
+        lambda m: diags.extend({kv.key: kv.value for kv in s.values} | {'msg': s.message}
+                               for s in m.status), 100)
+    return diags
+
+
 @pytest.fixture(scope='module')
 def model_path(tmp_path_factory):
     return modal_rom(4).save(tmp_path_factory.mktemp('m') / 'eel_modal_r4.npz')
@@ -40,22 +55,18 @@ def model_path(tmp_path_factory):
 
 def test_bad_messages_are_dropped_and_commands_stay_safe(tmp_path, model_path, client) -> None:
     model = modal_rom(4)
-    rest = np.stack([model.y_ref[:20], np.zeros(20), model.y_ref[20:]], axis=1)
+    rest = _rest(model)
     node = NodeProcess(tmp_path, {'model_path': str(model_path), 'reference': '',
                                   'reference_topic': '/t/ref', 'measured_topic': '/t/meas',
                                   'state_topic': '/t/state', 'stale_after_s': 0.3},
                        name='ctl', exe='controller')
     try:
         commands: list[tuple[int, float]] = []
-        diags: list[dict[str, str]] = []
         for i in range(6):
             client.node.create_subscription(
                 FluidPressure, f'/soft_robot/pressure/chamber_{i + 1}',
                 lambda m, i=i: commands.append((i, m.fluid_pressure)), 100)
-        client.node.create_subscription(
-            DiagnosticArray, '/diagnostics',
-            lambda m: diags.extend({kv.key: kv.value for kv in s.values} | {'msg': s.message}
-                                   for s in m.status), 100)
+        diags = _diagnostics(client)
         shapes: list[PoseArray] = []
         client.node.create_subscription(PoseArray, '/ctl/reference', shapes.append, 100)
         pub_meas = client.node.create_publisher(PoseArray, '/t/meas', 100)
@@ -121,7 +132,7 @@ def test_array_mode_publishes_one_scaled_float64multiarray(tmp_path, model_path,
     Written as ``(u - input_offset) / input_scale``, so the predictor reads back ``u``.
     """
     model = modal_rom(4)
-    rest = np.stack([model.y_ref[:20], np.zeros(20), model.y_ref[20:]], axis=1)
+    rest = _rest(model)
     node = NodeProcess(tmp_path, {'model_path': str(model_path), 'reference': '',
                                   'reference_topic': '/a/ref', 'measured_topic': '/a/meas',
                                   'state_topic': '', 'input_mode': 'array',
@@ -233,14 +244,11 @@ def test_a_best_effort_motion_capture_reaches_the_controller(tmp_path, model_pat
     # many mocap drivers publish best effort: a reliable reader never matched them
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     model = modal_rom(4)
-    rest = np.stack([model.y_ref[:20], np.zeros(20), model.y_ref[20:]], axis=1)
+    rest = _rest(model)
     node = NodeProcess(tmp_path, {'model_path': str(model_path), 'measured_topic': '/t/mocap',
                                   'state_topic': ''}, name='ctl_mocap', exe='controller')
     try:
-        diags: list[dict[str, str]] = []
-        client.node.create_subscription(
-            DiagnosticArray, '/diagnostics',
-            lambda m: diags.extend({kv.key: kv.value for kv in s.values} for s in m.status), 100)
+        diags = _diagnostics(client)
         pub = client.node.create_publisher(
             PoseArray, '/t/mocap', QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT))
 
@@ -280,14 +288,11 @@ def test_plant_stops_at_once_while_it_waits_for_commands(tmp_path, client) -> No
 def test_measurements_in_another_frame_are_dropped_and_unstamped_ones_taken(
         tmp_path, model_path, client) -> None:
     model = modal_rom(4)
-    rest = np.stack([model.y_ref[:20], np.zeros(20), model.y_ref[20:]], axis=1)
+    rest = _rest(model)
     node = NodeProcess(tmp_path, {'model_path': str(model_path), 'measured_topic': '/t/m2',
                                   'state_topic': ''}, name='ctl_frames', exe='controller')
     try:
-        diags: list[dict[str, str]] = []
-        client.node.create_subscription(
-            DiagnosticArray, '/diagnostics',
-            lambda m: diags.extend({kv.key: kv.value for kv in s.values} for s in m.status), 100)
+        diags = _diagnostics(client)
         pub = client.node.create_publisher(PoseArray, '/t/m2', 100)
 
         def sent(frame: str, stamped: bool, key: str, least: int = 1) -> bool:
