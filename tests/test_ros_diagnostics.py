@@ -37,6 +37,22 @@ def test_stamps_on_another_clock_are_warned() -> None:
     assert level == WARN and 'behind this node' in message
 
 
+def test_a_chamber_whose_inputs_are_dropped_as_stamped_ahead_says_so() -> None:
+    diag = Diagnostics('pred', '/pred', ['/t/c1', '/t/c2'])
+    values = {f'input.p{i}.{k}': v for i in (1, 2) for k, v in (
+        ('received', '50' if i == 1 else '0'), ('dropped', '0' if i == 1 else '40'),
+        ('clipped', '0'), ('age_s', '0.01' if i == 1 else 'inf'), ('rate_hz', '100'),
+        ('timed_out', 'false'), ('ahead', '0' if i == 1 else '40'),
+        ('ahead_s', 'nan' if i == 1 else '99.9'))}
+    sts = diag._input_statuses(values, ['p1', 'p2'], [0.003, float('inf')], timeout=0.5,
+                               publishers=[1, 1])
+    levels = [st.level[0] if isinstance(st.level, bytes) else st.level for st in sts]
+    assert levels == [OK, WARN], [st.message for st in sts]
+    assert sts[1].message == ("stamped 99.9 s ahead of this node's clock (another clock? "
+                              'use_sim_time?): dropped, 40 so far')
+    assert {kv.key: kv.value for kv in sts[1].values}['ahead'] == '40'
+
+
 def test_silent_topic_with_drops_says_both() -> None:
     level, message, _ = _status(10, 3, 0.003, age=2.0)
     assert level == STALE and 'nothing taken for 2 s; 3 dropped' in message, message

@@ -84,7 +84,7 @@ __all__ = ['COUNTERS', 'MAX_QUEUED_MEASUREMENTS', 'Predictor', 'to_ns']
 Array = NDArray[np.float64]
 
 COUNTERS = ('wrong_length', 'nonfinite', 'bad_time', 'backwards', 'clock_reset', 'late',
-            'timeouts', 'lag_forced', 'input_clipped', 'input_out_of_envelope',
+            'timeouts', 'lag_forced', 'input_clipped', 'input_out_of_envelope', 'input_ahead',
             'measured_dropped', 'diverged', 'clock_jump', 'catchup_skipped', 'steps',
             'inputs', 'measurements')
 _NONE = -(2 ** 63)
@@ -368,6 +368,13 @@ class Predictor(Measuring):
             self._clipped(index, value, stamp_ns)
             value = self._env.clip(index, value)
         return self._take(index, value, stamp_ns)
+
+    def refuse_input(self, index: int | None, counter: str, why: str) -> bool:
+        """Drop an input for a reason only the caller can see (counted ``counter``, WARN).
+
+        ``index`` ``None``: a whole vector (every input counts it). Returns False.
+        """
+        return self._drop(counter, index, None, why, every=index is None)
 
     def _envelope_vector(self, u: Array, stamp_ns: int) -> Array | None:
         """A finite input with values outside the envelope: clipped, or ``None`` (dropped)."""

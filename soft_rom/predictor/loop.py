@@ -25,6 +25,14 @@ A zero stamp (un-stamped sources: ``Float64MultiArray``) is replaced by the send
 sequence on the reception clock (:class:`SequenceClock`; counted ``stamp_fallback``),
 which starts over when the reception clock goes back by more than ``clock_reset_s``;
 a measurement without a stamp takes its reception time.
+
+An input stamped more than :data:`CLOCK_APART_S` ahead of its reception time (a sensor on
+another clock) is dropped before the predictor sees it (counted ``input_ahead`` and in that
+input's ``dropped`` and ``ahead``; WARN): event stepping advances to the newest stamp every
+input has reached, so one input from the future would otherwise carry the model there, time
+out the others and make every later input of theirs late. An input stamped behind is kept
+(a bag played without its clock: every input behind alike). A reception time of 0 (a node
+in sim time before its first ``/clock``) checks nothing.
 """
 
 from __future__ import annotations
@@ -42,10 +50,15 @@ from soft_rom.predictor.conversions import check_components, outputs_to_points, 
 from soft_rom.predictor.core import Predictor
 from soft_rom.predictor.seqclock import SequenceClock
 
-__all__ = ['Diagnostics', 'LoopSettings', 'MARKER_STYLES', 'Publish', 'RuntimeLoop',
-           'SequenceClock']
+__all__ = ['CLOCK_APART_S', 'Diagnostics', 'LoopSettings', 'MARKER_STYLES', 'Publish',
+           'RuntimeLoop', 'SequenceClock']
 
 Array = NDArray[np.float64]
+
+#: An input stamped further than this (s) from its reception time is on another clock: WARN on
+#: its topic, and dropped when it is ahead (it would carry the model's event time with it).
+CLOCK_APART_S = 10.0
+_AHEAD_NS = int(CLOCK_APART_S * 1e9)
 
 #: ``kind -> (namespace, id, rgba, line width)`` of the centerline markers.
 MARKER_STYLES: dict[str, tuple[str, int, tuple[float, float, float, float], float]] = {
@@ -182,6 +195,8 @@ class RuntimeLoop:
         self._moved: list[int | None] = [None] * pred.model.n_inputs    # stamp last advanced
         self._seen = list(pred.channels.newest)
         self._recv_measured: int | None = None
+        self._ahead = [0] * pred.model.n_inputs     # dropped: stamped ahead (count)
+        self._ahead_last: list[tuple[int, float] | None] = [None] * pred.model.n_inputs
 
     def set_settings(self, settings: LoopSettings) -> None:
         """New publish rates / conversion (checked against the model first)."""
@@ -259,6 +274,8 @@ class RuntimeLoop:
 
     def on_channel(self, index: int, value: float, stamp_ns: int, now_ns: int) -> Publish:
         """One per-chamber value (raw units; scale and offset applied here)."""
+        if stamp_ns - now_ns > _AHEAD_NS and now_ns and 0 <= index < len(self._ahead):
+            return self._refuse_ahead(index, stamp_ns - now_ns, now_ns)
         s = self.settings
         if self.predictor.set_channel_ns(index, s.input_scale * value + s.input_offset,
                                          self._stamp(stamp_ns, now_ns,
@@ -268,6 +285,8 @@ class RuntimeLoop:
 
     def on_array(self, values: ArrayLike, stamp_ns: int, now_ns: int) -> Publish:
         """All inputs at once (``Float64MultiArray``: pass ``stamp_ns=0`` for ``now_ns``)."""
+        if stamp_ns - now_ns > _AHEAD_NS and now_ns:
+            return self._refuse_ahead(None, stamp_ns - now_ns, now_ns)
         s = self.settings
         u = np.asarray(values, dtype=np.float64).reshape(-1)
         if s.input_scale != 1.0 or s.input_offset != 0.0:
@@ -275,6 +294,18 @@ class RuntimeLoop:
         if self.predictor.set_input_ns(u, self._stamp(stamp_ns, now_ns, self._clock(None))):
             for i in range(len(self._recv)):
                 self._received(i, now_ns)
+        return self._collect(now_ns)
+
+    def _refuse_ahead(self, index: int | None, ahead_ns: int, now_ns: int) -> Publish:
+        """Drop an input stamped ``ahead_ns`` ahead of its reception (another clock)."""
+        pred = self.predictor
+        names = pred.model.input_names
+        for i in range(len(self._ahead)) if index is None else (index,):
+            self._ahead[i] += 1
+            self._ahead_last[i] = (now_ns, ahead_ns * 1e-9)     # received then, so far ahead
+        pred.refuse_input(index, 'input_ahead', f'{"inputs" if index is None else names[index]} '
+                                                f'stamped {ahead_ns * 1e-9:.3g} s ahead of '
+                                                'the reception clock (another clock?)')
         return self._collect(now_ns)
 
     def _received(self, i: int, now_ns: int) -> None:
@@ -368,6 +399,8 @@ class RuntimeLoop:
         than ``input_timeout_s``, measurements stopped for longer than ``error_window_s``.
         Per input: ``rate_hz``, ``age_s`` (since the last message received), ``stamp_lag_s``
         (behind the newest input stamp), ``received``, ``late``, ``dropped``, ``clipped``,
+        ``ahead`` (dropped: stamped more than :data:`CLOCK_APART_S` ahead of the reception
+        clock), ``ahead_s`` (how far, when the newest arrival was dropped so; else nan),
         ``timed_out``.
         """
         from soft_rom.predictor.config import Level, SEVERITY
@@ -384,6 +417,9 @@ class RuntimeLoop:
         silent = []
         for i, name in enumerate(ch.names):
             recv = self._recv[i]
+            last = self._ahead_last[i]      # how far ahead, if the newest arrival was so
+            ahead_s = last[1] if last is not None and (recv is None or last[0] > recv) \
+                else math.nan
             age = math.inf if recv is None else (now_ns - recv) * 1e-9
             if recv is not None and age > cfg.input_timeout_s:
                 silent.append(f'{name} {age:.2f} s')
@@ -396,6 +432,8 @@ class RuntimeLoop:
                        (f'input.{name}.late', str(ch.late[i])),
                        (f'input.{name}.dropped', str(ch.dropped[i])),
                        (f'input.{name}.clipped', str(ch.clipped[i])),
+                       (f'input.{name}.ahead', str(self._ahead[i])),
+                       (f'input.{name}.ahead_s', _fmt(ahead_s)),
                        (f'input.{name}.timed_out', str(ch.timed_out[i]).lower())]
         if silent:
             reasons.append((Level.STALE, f'nothing received from input(s) {", ".join(silent)} '

@@ -11,8 +11,10 @@ Status names are stable (``<node name>: <task>``, the convention of diagnostic_u
   ``received`` (taken), ``late``, ``dropped``, ``clipped``, ``timed_out``; STALE when nothing
   was taken yet, nothing for ``input_timeout_s`` or the input timed out, WARN when some were
   dropped or clipped since the previous report (also when none was taken), when the
-  newest stamp is more than 10 s from the node's clock (another clock), or when the topic
-  has more than one publisher (``publishers``);
+  newest stamp is more than 10 s from the node's clock (another clock), when messages stamped
+  more than 10 s ahead of it were dropped since the previous report (``ahead``: counted, not
+  used, so that they do not carry the model's time), or when the topic has more than one
+  publisher (``publishers``);
 * ``<node>: measured <topic>`` - ``rate_hz``, ``stamp_age_s``, ``received`` (arrived),
   ``dropped`` of the measured centerline; STALE (it is optional: not an error) when none
   arrives within ``input_timeout_s``, WARN when some were dropped since the last report or
@@ -31,14 +33,15 @@ from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
+# CLOCK_APART_S: an input whose newest stamp is further than this from the node's clock (s)
+# is on another clock (a future stamp, wall time against sim time): WARN on its topic; one
+# stamped that far ahead is dropped by the loop (it would carry the model's event time along)
+from soft_rom.predictor.loop import CLOCK_APART_S
+
 __all__ = ['Diagnostics', 'TopicMonitor']
 
 _NO_STAMP = -(2 ** 63)
 
-
-#: An input whose newest stamp is further than this from the node's clock (s) is on another
-#: clock (a future stamp, wall time against sim time): WARN on its topic.
-CLOCK_APART_S = 10.0
 
 
 class TopicMonitor:
@@ -71,6 +74,17 @@ class TopicMonitor:
         return (self.count - n0) / ((now_ns - t0) * 1e-9)
 
 
+def _ahead_s(values: dict[str, str], names: list[str]) -> float:
+    """How far ahead the newest arrival was stamped if dropped so (s; nan if none was)."""
+    got = []
+    for n in names:
+        try:
+            got.append(float(values.get(f'input.{n}.ahead_s', 'nan')))
+        except ValueError:
+            pass
+    return max((g for g in got if math.isfinite(g)), default=math.nan)
+
+
 def _level(level: int) -> bytes:
     return bytes([int(level)])
 
@@ -101,7 +115,7 @@ class Diagnostics:
         out = []
         per_topic = len(names) == len(self.input_topics)
         keys = ('rate_hz', 'age_s', 'stamp_lag_s', 'received', 'late', 'dropped', 'clipped',
-                'timed_out')
+                'timed_out', 'ahead')
         for i, topic in enumerate(self.input_topics):
             mine = names if not per_topic else [names[i]]
             st = self._status(f'input {topic}')
@@ -120,7 +134,18 @@ class Diagnostics:
             self._dropped[topic] = bad
             dropped = (f'; {new_bad} dropped or clipped since the last report (see the '
                        'prediction status)' if new_bad > 0 else '')
-            if received == 0:
+            ahead = max((int(values.get(f'input.{n}.ahead', '0') or 0) for n in mine),
+                        default=0)
+            new_ahead = ahead - self._dropped.get(f'{topic} ahead', 0)
+            self._dropped[f'{topic} ahead'] = ahead
+            ahead_s = _ahead_s(values, mine)    # finite: the newest arrival was so ahead
+            if new_ahead > 0 or math.isfinite(ahead_s):     # the cause of all else here
+                st.level = DiagnosticStatus.WARN
+                st.message = ((f'stamped {ahead_s:.3g} s' if math.isfinite(ahead_s) else
+                               f'{new_ahead} stamped more than {CLOCK_APART_S:g} s')
+                              + " ahead of this node's clock (another clock? use_sim_time?): "
+                              f'dropped, {ahead} so far')
+            elif received == 0:
                 st.level, st.message = ((DiagnosticStatus.WARN, f'none taken{dropped}')
                                         if bad else (DiagnosticStatus.STALE, 'no messages yet'))
             elif fig['timed_out'] == 'true' or silent:

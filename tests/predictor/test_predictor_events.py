@@ -458,6 +458,49 @@ def test_loop_zero_stamp_falls_back_to_reception_time_and_scales_inputs() -> Non
     np.testing.assert_allclose(loop.predictor.u[0], 2.0)             # step 1 not complete
 
 
+def test_loop_drops_inputs_stamped_ahead_of_their_reception_and_keeps_the_others() -> None:
+    # one chamber on another clock, 100 s ahead: before, the model's event time followed it
+    # (clock_jump, 100 s skipped), the other chambers timed out and every value of theirs
+    # was applied late
+    model = _model(m=3)
+    loop = RuntimeLoop(Predictor(model), LoopSettings())
+    pred = loop.predictor
+    k = 800                                         # beyond input_timeout_s (0.5 s)
+    for j in range(k):
+        now = T0_NS + j * H_NS + 200_000            # received 0.2 ms after its stamp
+        for i in range(3):
+            loop.on_channel(i, float(i + 1), T0_NS + j * H_NS + (100 * 10**9 if i == 2 else 0),
+                            now)
+    assert pred.t_ns is not None and T0_NS + (k - 2) * H_NS <= pred.t_ns <= T0_NS + k * H_NS
+    assert pred.counters['input_ahead'] == k and pred.counters['clock_jump'] == 0
+    assert pred.counters['late'] == 0 and pred.channels.late == [0, 0, 0]
+    assert pred.channels.dropped == [0, 0, k] and pred.channels.received[2] == 0
+    np.testing.assert_allclose(pred.u, [1.0, 2.0, 0.0])     # never used
+    values = dict(loop.diagnostics(T0_NS + k * H_NS).values)
+    assert values['input.chamber_3.ahead'] == str(k)
+    assert float(values['input.chamber_3.ahead_s']) == pytest.approx(100.0 - 2e-4)
+    assert values['input.chamber_1.ahead'] == '0' and values['input.chamber_1.ahead_s'] == 'nan'
+    assert 'chamber_3 stamped 100 s ahead of the reception clock' in pred.health().message
+    # the sensor back on the node's clock: taken, and no longer said to be ahead
+    loop.on_channel(2, 3.0, T0_NS + k * H_NS, T0_NS + k * H_NS + 200_000)
+    assert pred.channels.received[2] == 1
+    assert dict(loop.diagnostics(T0_NS + (k + 1) * H_NS).values)['input.chamber_3.ahead_s'] \
+        == 'nan'
+    # stamped far behind the reception clock (a bag played without its clock): kept, as a
+    # zero reception time (sim time before the first /clock) checks nothing
+    for now in (T0_NS + 3600 * 10**9, 0):
+        other = RuntimeLoop(Predictor(model), LoopSettings())
+        for i in range(3):
+            other.on_channel(i, 1.0, T0_NS, now)
+        assert other.predictor.channels.received == [1, 1, 1]
+        assert other.predictor.counters['input_ahead'] == 0
+    # an array stamped ahead: dropped on every input
+    other = RuntimeLoop(Predictor(model), LoopSettings())
+    other.on_array(np.ones(3), T0_NS + 11 * 10**9, T0_NS)
+    assert other.predictor.channels.dropped == [1, 1, 1]
+    assert other.predictor.t_ns is None
+
+
 class _Cubic:
     """A non-linear model of the predictor protocol (not a LinearROM)."""
 
