@@ -211,12 +211,21 @@ class Stepping:
 
         It is applied from the current step on, so the prediction departs from the offline
         simulation of the same inputs (a pause of the node longer than ``max_lag_s``, an
-        input faster than the step rate).
+        input faster than the step rate). The lag said is from the input's own step (event
+        stepping) or stamp to the first output it reaches: at least one step, never negative.
         """
         self.counters['late'] += 1
         self.channels.late_one(index)
-        assert self._k is not None                  # late only once anchored
-        lag = (self._time_of(self._k) - stamp_ns) * 1e-9
+        k = self._k
+        assert k is not None                        # late only once anchored
+        if self.config.stepping == 'event':
+            # from its step to the first output it reaches: this step's, or the next one's
+            # if this one is out (a stamp up to h/2 after the grid belongs to the step: its
+            # own time against the step's gave a negative lag, '-0.1 ms behind the model')
+            lag = (self._time_of(k + (1 if self._done else 0))
+                   - self._time_of(self._step_of(stamp_ns))) * 1e-9
+        else:
+            lag = (self._time_of(k) - stamp_ns) * 1e-9     # before the model time: > 0
         names = self.model.input_names
         name = 'all inputs' if index is None else f'input {names[index]}'
         self._alarm('late', None, f'{self.counters["late"]} input(s) arrived after their step '

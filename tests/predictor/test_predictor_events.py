@@ -458,6 +458,29 @@ def test_loop_zero_stamp_falls_back_to_reception_time_and_scales_inputs() -> Non
     np.testing.assert_allclose(loop.predictor.u[0], 2.0)             # step 1 not complete
 
 
+def test_a_late_input_stamped_after_its_grid_time_has_a_positive_lag() -> None:
+    # a held-up chamber stamping 0.1 ms after the grid catches up with a model that
+    # max_lag_s pushed on: its input for the step already put out is late, and its lag was
+    # its stamp against that step's grid time: '-0.1 ms behind the model'
+    import re
+
+    model = _model(m=3)
+    loop = RuntimeLoop(Predictor(model, PredictorConfig(max_lag_s=0.1)))
+    for j in range(200):
+        for i in (0, 1) if j >= 50 else (0, 1, 2):
+            loop.on_channel(i, 1.0, T0_NS + j * H_NS + (100_000 if i == 2 else 0), T0_NS)
+    lags = []
+    for j in range(50, 200):                        # the held-up chamber's backlog
+        loop.on_channel(2, 1.0, T0_NS + j * H_NS + 100_000, T0_NS)
+        got = re.search(r'\(the last: input chamber_3, ([-0-9.e]+) ms behind the model\)',
+                        loop.predictor.health().message)
+        if got:
+            lags.append(float(got.group(1)))
+    late = loop.predictor.counters['late']
+    assert late == 50 and lags, lags                # steps 50..99: the model was at 99
+    assert min(lags) == 1.0 and max(lags) == 50.0, (min(lags), max(lags))   # 99 + 1 - 50
+
+
 def test_loop_drops_inputs_stamped_ahead_of_their_reception_and_keeps_the_others() -> None:
     # one chamber on another clock, 100 s ahead: before, the model's event time followed it
     # (clock_jump, 100 s skipped), the other chambers timed out and every value of theirs
