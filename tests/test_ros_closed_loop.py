@@ -172,6 +172,7 @@ def test_a_plant_alone_says_what_it_waits_for(tmp_path) -> None:
     ({'dt': 'abc'}, 'parameter dt must be of type DOUBLE; got STRING abc'),
     ({'sensor_rate_hz': 0.0}, 'sensor_rate_hz must be finite and positive; got 0.0'),
     ({'resolution': 99}, 'resolution must be 1 to 4 (a plant steps in real time); got 99'),
+    ({'input_qos': 'fast'}, "input_qos must be reliable or sensor_data; got 'fast'"),
 ])
 def test_a_bad_plant_parameter_is_one_line_and_exit_1(tmp_path, params, message) -> None:
     plant = NodeProcess(tmp_path, params, name='soft_rom_plant', exe='plant')
@@ -181,4 +182,45 @@ def test_a_bad_plant_parameter_is_one_line_and_exit_1(tmp_path, params, message)
         assert f'soft_rom plant: cannot start: {message}' in log, log
         assert 'Traceback' not in log and len(log.strip().splitlines()) == 1, log
     finally:
+        plant.kill()
+
+
+def test_a_best_effort_commander_drives_the_plant(tmp_path) -> None:
+    """``input_qos: sensor_data``: a best-effort commander's pressures reach the plant.
+
+    The plant's pressure subscriptions were reliable only: it saw the publisher, started,
+    and then held zero pressures at every lockstep point (``no command for t = …``).
+    """
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import FluidPressure
+
+    record = tmp_path / 'plant.npz'
+    plant = NodeProcess(tmp_path, {'input_qos': 'sensor_data', 'duration_s': 0.05,
+                                   'command_timeout_s': 2.0, 'record_path': str(record),
+                                   'sensor_noise': 0.0}, name='plant_be', exe='plant')
+    client = Client('best_effort_commander')
+    try:
+        best = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+        pubs = [client.node.create_publisher(FluidPressure, f'/soft_robot/pressure/chamber_{i}',
+                                             best) for i in range(1, 7)]
+        want = [1000.0 * i for i in range(1, 7)]
+
+        def command(msg: Clock) -> None:            # at every plant step, stamped with it
+            for pub, value in zip(pubs, want):
+                cmd = FluidPressure(fluid_pressure=value)
+                cmd.header.stamp = msg.clock
+                pub.publish(cmd)
+
+        client.node.create_subscription(Clock, '/clock', command, 100)
+        assert client.spin_until(record.exists, 90), plant.log()
+        client.spin_for(0.2)
+        data = np.load(record)
+        assert data['U'].shape[0] == 6 and data['U'].shape[1] == 50, data['U'].shape
+        np.testing.assert_array_equal(data['U'][:, -1], want)      # applied, not held at 0
+        assert int(data['held']) == 0 and 'no command for' not in plant.log(), plant.log()
+        assert plant.stop(signal.SIGINT, timeout=20) == 0
+        assert not no_noise(plant.log()), plant.log()
+    finally:
+        client.close()
         plant.kill()

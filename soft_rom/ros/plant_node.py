@@ -8,6 +8,9 @@ applied from the plant time at which it arrives), steps the FOM at
 the plant's pace, and the measured centerline (``geometry_msgs/PoseArray``, with Gaussian
 noise ``sensor_noise`` at ``sensor_rate_hz``, stamped with the plant time).
 
+The pressure subscriptions are reliable (``input_qos``, as the controller publishes);
+``input_qos: sensor_data`` makes them best effort, which a best-effort commander needs (a
+reliable reader never matches it: the plant held the last pressures at every lockstep point).
 A pressure stamped ``t`` applies from the first plant step at or after ``t``. With
 ``lockstep_s`` > 0 (default 0.01, the controller's step), at each multiple of it the plant
 waits (up to ``command_timeout_s`` of wall time, then holds) for a command stamped at that
@@ -81,6 +84,10 @@ class PlantNode(Node):
         self.topics = list(declare('input_topics', DEFAULT_TOPICS, 'chamber pressure topics'))
         self.array_topic = str(declare('array_topic', '/soft_robot/pressures',
                                        'Float64MultiArray pressures (input_mode array)'))
+        self.input_qos = str(declare('input_qos', 'reliable', 'QoS of the pressure '
+                                     'subscriptions: reliable (as the controller publishes) '
+                                     'or sensor_data (best effort: takes best-effort '
+                                     'commanders too)'))
         self.measured_topic = str(declare('measured_topic', '/soft_robot/centerline',
                                           'measured centerline topic'))
         self.frame_id = str(declare('frame_id', 'world', 'frame of the centerline'))
@@ -106,7 +113,10 @@ class PlantNode(Node):
         self.value = np.zeros(m)
         self.pending: list[list[tuple[int, float]]] = [[] for _ in range(m)]
         self.newest = np.full(m, -1, dtype=np.int64)
-        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        # a reliable reader never matches a best-effort writer (and the plant, waiting for
+        # commands, would hold at every lockstep point); a best-effort reader takes both
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE
+                         if self.input_qos == 'reliable' else ReliabilityPolicy.BEST_EFFORT)
         if self.input_mode not in ('per_chamber', 'array'):
             raise ValueError(f'input_mode {self.input_mode!r} is not per_chamber or array')
         self.t_ns = 0
@@ -230,6 +240,8 @@ class PlantNode(Node):
                                  ('duration_s', self.duration, 'zero or positive')):
             if not (math.isfinite(value) and (value > 0 or (value == 0 and low != 'positive'))):
                 raise ValueError(f'{name} must be finite and {low}; got {value!r}')
+        if self.input_qos not in ('reliable', 'sensor_data'):
+            raise ValueError(f'input_qos must be reliable or sensor_data; got {self.input_qos!r}')
         if self.wait_for_subscribers < 0:
             raise ValueError(f'wait_for_subscribers must be 0 or more; got '
                              f'{self.wait_for_subscribers}')
