@@ -313,3 +313,64 @@ def test_measurements_in_another_frame_are_dropped_and_unstamped_ones_taken(
         assert node.stop(signal.SIGINT) == 0
     finally:
         node.kill()
+
+
+def test_a_second_sender_or_commander_on_its_topics_is_warned(tmp_path, model_path,
+                                                              client) -> None:
+    # the predictor counted the publishers on its inputs; the controller did not: a second
+    # commander on its pressure topics (fighting it) or a second measured centerline sender
+    # left it OK
+    model = modal_rom(4)
+    rest = _rest(model)
+    node = NodeProcess(tmp_path, {'model_path': str(model_path), 'measured_topic': '/t/m3',
+                                  'reference': '', 'reference_topic': '/t/ref3',
+                                  'state_topic': '', 'diagnostics_rate_hz': 5.0},
+                       name='ctl_graph', exe='controller')
+    try:
+        got: list[tuple[int, dict[str, str]]] = []
+        client.node.create_subscription(
+            DiagnosticArray, '/diagnostics',
+            lambda m: got.extend((s.level[0] if isinstance(s.level, bytes) else s.level,
+                                  {kv.key: kv.value for kv in s.values} | {'msg': s.message})
+                                 for s in m.status if s.name.endswith('ctl_graph: control')),
+            100)
+        pub_meas = client.node.create_publisher(PoseArray, '/t/m3', 100)
+        pub_ref = client.node.create_publisher(PoseArray, '/t/ref3', 100)
+        target = rest.copy()
+        target[10:, 2] += 0.002
+        extra: list = []
+
+        def controlling(want: str, seconds: float = 0.3) -> bool:
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                t = client.node.get_clock().now().nanoseconds * 1e-9
+                pub_meas.publish(_poses(rest, t))
+                pub_ref.publish(_poses(target, t + 0.5))
+                client.spin_for(0.02)
+            return bool(got) and got[-1][1]['status'] == 'ok' and want in got[-1][1]['msg']
+
+        assert client.spin_until(lambda: controlling('ok'), 60), (got[-1:], node.log())
+        level, values = got[-1]
+        assert level == 0 and values['msg'] == 'ok', got[-1]
+        assert values['measured_publishers'] == '1' and values['command_publishers'] == '1'
+        assert values['reference_publishers'] == '1', values
+        # a second commander on chamber 3 and a second sender of the measured centerline
+        extra.append(client.node.create_publisher(FluidPressure,
+                                                  '/soft_robot/pressure/chamber_3', 10))
+        extra.append(client.node.create_publisher(PoseArray, '/t/m3', 10))
+        assert client.spin_until(lambda: controlling('second commander'), 30), got[-1:]
+        level, values = got[-1]
+        assert level == 1 and values['status'] == 'ok', got[-1]
+        assert ('1 other publisher(s) on /soft_robot/pressure/chamber_3, which this node '
+                'commands (a second commander fighting it?)') in values['msg']
+        assert '2 publishers on /t/m3 (a second sender?)' in values['msg'], values['msg']
+        assert values['command_publishers'] == '2' and values['measured_publishers'] == '2'
+        for pub in extra:                           # gone: OK again
+            client.node.destroy_publisher(pub)
+        assert client.spin_until(lambda: controlling('ok') and got[-1][1]['msg'] == 'ok', 30), \
+            got[-1:]
+        assert got[-1][0] == 0
+        assert node.stop(signal.SIGINT) == 0
+    finally:
+        node.kill()
+

@@ -21,7 +21,8 @@ in-process loop (``soft-rom control``) runs. The node:
   ``array_topic`` (``array``; no header: the receiver stamps it on arrival), as
   ``(u - input_offset) / input_scale`` so that the predictor reads back ``u``;
 * publishes ``/diagnostics`` (status, solve and step time, the previous tick's time and the
-  longest since the last message, tracking error, saturation, counters) at
+  longest since the last message, tracking error, saturation, counters, publishers on its
+  topics: :mod:`soft_rom.ros.control_diagnostics`) at
   ``diagnostics_rate_hz`` (default 1 Hz, as the predictor) and at once when the status
   changes, and the reference shape on ``~/reference`` (``PoseArray``) at
   ``reference_rate_hz`` (default 30 Hz) while someone subscribes: both on timers of their
@@ -46,7 +47,7 @@ import time
 from typing import Any
 
 from builtin_interfaces.msg import Time as TimeMsg
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Pose, PoseArray
 import numpy as np
 from rcl_interfaces.msg import ParameterDescriptor
@@ -56,7 +57,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import FluidPressure, JointState
-from std_msgs.msg import Float64MultiArray, Header
+from std_msgs.msg import Float64MultiArray
 
 from soft_rom.control import Controller, EstimatorConfig, MPCConfig, parse_reference, Reference
 from soft_rom.control.reference import _model_outputs
@@ -67,6 +68,7 @@ from soft_rom.predictor.conversions import (
     set_points,
     stamp_to_ns,
 )
+from soft_rom.ros.control_diagnostics import control_diagnostics
 from soft_rom.ros.node_params import (
     init_rclpy,
     rclpy_reason,
@@ -393,46 +395,13 @@ class ControllerNode(Node):
                 f'{period:g} ms step')
 
     def _diagnostics(self, stamp: TimeMsg, cmd: Any) -> None:
-        c = self.core.counters
-        level = DiagnosticStatus.OK if cmd.status == 'ok' and not self.distrust \
-            else DiagnosticStatus.WARN
-        if cmd.status in ('failed', 'infeasible'):
-            level = DiagnosticStatus.ERROR
-        last_tick = self.ticks[-1][0] * 1e3 if self.ticks else float('nan')
-        # the longest tick since the last message (the last tick if none ran since)
-        longest = self.tick_max * 1e3 if self.tick_max > 0 else last_tick
-        self.tick_max = 0.0
-        values = {
-            'status': cmd.status, 'solve_ms': f'{cmd.solve_s * 1e3:.3f}',
-            'step_ms': f'{cmd.step_s * 1e3:.3f}', 'tick_ms': f'{last_tick:.3f}',
-            'tick_max_ms': f'{longest:.3f}',
-            'tracking_error_m': f'{cmd.tracking_error:.6g}',
-            'saturated_inputs': str(cmd.saturated), 'qp_infeasible': str(c.qp_infeasible),
-            'qp_failed': str(c.qp_failed), 'held': str(c.held),
-            'measurements': str(c.measurements),
-            'measurements_dropped': str(c.measurements_dropped),
-            'states_dropped': str(c.states_dropped),
-            'references_refused': str(c.references_refused),
-            'clock_resets': str(c.clock_resets),
-            'model_trust': self.distrust or 'trusted',
-            'callback_errors': str(self.callback_errors), 'last_problem': c.last_problem,
-        }
-        status = DiagnosticStatus(level=level, name=f'{self.get_name()}: control',
-                                  message=(cmd.detail or cmd.status) + (
-                                      ' (model not trusted)' if self.distrust else ''),
-                                  hardware_id=self.get_name(),
-                                  values=[KeyValue(key=k, value=v) for k, v in values.items()])
-        self.pub_diag.publish(DiagnosticArray(header=_header(stamp), status=[status]))
+        self.pub_diag.publish(control_diagnostics(self, stamp, cmd))
 
 
 def _time_msg(t: float) -> TimeMsg:
     """A ROS time message for ``t`` seconds on the node's clock."""
     sec, nsec = ns_to_stamp(int(round(t * 1e9)))
     return TimeMsg(sec=sec, nanosec=nsec)
-
-
-def _header(stamp: TimeMsg) -> Header:
-    return Header(stamp=stamp)
 
 
 def main(args: list[str] | None = None) -> int:

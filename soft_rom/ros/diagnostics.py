@@ -38,7 +38,7 @@ from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 # stamped that far ahead is dropped by the loop (it would carry the model's event time along)
 from soft_rom.predictor.loop import CLOCK_APART_S
 
-__all__ = ['Diagnostics', 'TopicMonitor']
+__all__ = ['Diagnostics', 'publisher_counts', 'sender_warning', 'TopicMonitor']
 
 _NO_STAMP = -(2 ** 63)
 
@@ -72,6 +72,25 @@ class TopicMonitor:
         if t0 == _NO_STAMP or now_ns <= t0:
             return math.nan
         return (self.count - n0) / ((now_ns - t0) * 1e-9)
+
+
+def publisher_counts(node: Any, topics: list[str]) -> list[int]:
+    """Publishers on each of ``topics`` as ``node``'s graph sees them (its own included)."""
+    return [node.count_publishers(t) for t in topics]
+
+
+def sender_warning(count: int, own: int = 0, where: str = 'this topic') -> str:
+    """Why ``count`` publishers on a topic are too many; ``''`` when they are not.
+
+    ``own``: how many of them are the node's own. On a topic the node reads (``own`` 0) a
+    second publisher is a second sender; on one it writes (its commands: ``own`` 1) any
+    other publisher is a second commander, fighting it.
+    """
+    if own:
+        others = count - own
+        return (f'{others} other publisher(s) on {where}, which this node commands (a second '
+                'commander fighting it?)') if others > 0 else ''
+    return f'{count} publishers on {where} (a second sender?)' if count > 1 else ''
 
 
 def _ahead_s(values: dict[str, str], names: list[str]) -> float:
@@ -165,9 +184,9 @@ class Diagnostics:
                               f'{"ahead of" if stamp_age < 0 else "behind"} this node\'s clock '
                               '(another clock? use_sim_time?)')
             senders = publishers[i] if publishers else 0
-            if senders > 1 and st.level == DiagnosticStatus.OK:
+            if (second := sender_warning(senders)) and st.level == DiagnosticStatus.OK:
                 st.level = DiagnosticStatus.WARN
-                st.message = f'{senders} publishers on this topic (a second sender?)'
+                st.message = second
             st.values = [KeyValue(key='rate_hz', value=fig['rate_hz']),
                          KeyValue(key='publishers', value=str(senders)),
                          KeyValue(key='stamp_age_s', value=f'{stamp_age:.6g}')] + [

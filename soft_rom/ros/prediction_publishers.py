@@ -22,7 +22,7 @@ from visualization_msgs.msg import Marker
 
 from soft_rom.predictor.conversions import array_to_data, model_info_json, ns_to_stamp, set_points
 from soft_rom.predictor.loop import MARKER_STYLES, Publish, RuntimeLoop
-from soft_rom.ros.diagnostics import Diagnostics, TopicMonitor
+from soft_rom.ros.diagnostics import Diagnostics, publisher_counts, TopicMonitor
 from soft_rom.ros.node_params import NodeSettings
 
 __all__ = ['PredictionPublishers']
@@ -171,8 +171,7 @@ class PredictionPublishers:
         sec, nsec = ns_to_stamp(now_ns)
         timeout = float(self.settings_value('input_timeout_s'))  # type: ignore[attr-defined]
         newest = None if loop is None else [int(t) for t in loop.predictor.channels.newest]
-        senders = [self.count_publishers(t)  # type: ignore[attr-defined]
-                   for t in self.diagnostics.input_topics]
+        senders = publisher_counts(self, self.diagnostics.input_topics)
         self._pub_diag.publish(self.diagnostics.message(
             now_ns, TimeMsg(sec=sec, nanosec=nsec), report, self.startup_error,
             self.measured_monitor, timeout, newest, senders))
