@@ -374,3 +374,34 @@ def test_a_second_sender_or_commander_on_its_topics_is_warned(tmp_path, model_pa
     finally:
         node.kill()
 
+
+def test_the_last_dropped_measurement_stays_in_the_diagnostics(tmp_path, model_path,
+                                                               client) -> None:
+    # a held command's reason overwrote last_problem at every tick, so why a measurement was
+    # dropped showed only in the log; last_dropped keeps it
+    model = modal_rom(4)
+    rest = _rest(model)
+    node = NodeProcess(tmp_path, {'model_path': str(model_path), 'measured_topic': '/t/m4',
+                                  'state_topic': '', 'reference': ''},
+                       name='ctl_dropped', exe='controller')
+    try:
+        diags = _diagnostics(client)
+        pub = client.node.create_publisher(PoseArray, '/t/m4', 100)
+        bad = rest.copy()
+        bad[3, 2] = np.nan
+
+        def dropped() -> bool:
+            pub.publish(_poses(bad, client.node.get_clock().now().nanoseconds * 1e-9))
+            client.spin_for(0.05)
+            return any(int(d.get('measurements_dropped', 0)) > 0 for d in diags)
+
+        assert client.spin_until(dropped, 60), (diags[-1:], node.log())
+        client.spin_for(1.5)                        # more reports, every tick held since
+        last = diags[-1]
+        assert last['status'] != 'ok' and int(last['held']) > 0, last      # held: no reference
+        assert 'NaN' not in last['last_problem'], last                     # overwritten
+        assert last['last_dropped'] == ('measurement dropped: measurement with 1 NaN/Inf '
+                                        'value(s)'), last
+        assert node.stop(signal.SIGINT) == 0
+    finally:
+        node.kill()

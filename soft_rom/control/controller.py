@@ -98,6 +98,7 @@ class _Counters:
     held: int = 0
     clock_resets: int = 0
     last_problem: str = ''
+    last_dropped: str = ''      # the last measurement, state or reference dropped, and why
     by_status: dict[str, int] = field(default_factory=dict)
 
 
@@ -177,10 +178,20 @@ class Controller:
             why = f'reference ends at {ref.t[-1]:.3f} s, before now ({now:.3f} s)'
         if why:
             self.counters.references_refused += 1
-            self.counters.last_problem = why
-            return why
+            return self.refused('reference refused', why)
         self.reference = ref
         return ''
+
+    def refused(self, kind: str, why: str) -> str:
+        """Record an input refused (``kind``: ``'measurement dropped'``...) for ``why``.
+
+        ``counters.last_problem`` (which a held command overwrites at every step) and
+        ``counters.last_dropped`` (``'<kind>: <why>'``, kept until the next one); returns
+        ``why``. The counts are the caller's.
+        """
+        self.counters.last_problem = why
+        self.counters.last_dropped = f'{kind}: {why}'
+        return why
 
     def measure(self, y: ArrayLike, t: float) -> str:
         """A measured absolute output at time ``t``; returns ``''`` or why it was dropped."""
@@ -208,16 +219,14 @@ class Controller:
             why = f'measurement at {t:.4f} s is not newer than the last ({self.t_measured:.4f} s)'
         if why:
             self.counters.measurements_dropped += 1
-            self.counters.last_problem = why
-            return why
+            return self.refused('measurement dropped', why)
         if not self.started or self._restarted(self.t_measured, t):
             self.start(t)
         try:
             self.estimator.predict_to(t)
         except DimensionError as e:          # an unstable model carried over a long gap
             self.counters.measurements_dropped += 1
-            self.counters.last_problem = why = f'measurement at {t:.4f} s: {e}'
-            return why
+            return self.refused('measurement dropped', f'measurement at {t:.4f} s: {e}')
         self.estimator.correct(y)
         self.t_measured = t
         self.counters.measurements += 1
@@ -240,8 +249,7 @@ class Controller:
             why = f'state at {t:.4f} s is older than the last ({self.state[0]:.4f} s)'
         if why:
             self.counters.states_dropped += 1
-            self.counters.last_problem = why
-            return why
+            return self.refused('state dropped', why)
         self.state = (float(t), x.copy())
         return ''
 

@@ -11,7 +11,9 @@ or was infeasible.
 
 Values: the command's status, solve / step / tick times (the previous tick and the longest
 since the last message), tracking error, saturation, counters, ``last_problem`` (the last
-reason anything was held or dropped).
+reason anything was held or dropped: a held command overwrites it at every tick) and
+``last_dropped`` (the last measurement, state or reference dropped, with the reason: kept
+until the next one, so a dropped measurement's reason is seen also while commands are held).
 """
 
 from __future__ import annotations
@@ -70,7 +72,8 @@ def control_diagnostics(node: Any, stamp: Any, cmd: Any) -> DiagnosticArray:
         'references_refused': str(c.references_refused),
         'clock_resets': str(c.clock_resets),
         'model_trust': node.distrust or 'trusted',
-        'callback_errors': str(node.callback_errors), 'last_problem': c.last_problem, **graph,
+        'callback_errors': str(node.callback_errors), 'last_problem': c.last_problem,
+        'last_dropped': c.last_dropped, **graph,
     }
     message = '; '.join([(cmd.detail or cmd.status)
                          + (' (model not trusted)' if node.distrust else '')] + problems)

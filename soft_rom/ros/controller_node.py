@@ -21,8 +21,8 @@ in-process loop (``soft-rom control``) runs. The node:
   ``array_topic`` (``array``; no header: the receiver stamps it on arrival), as
   ``(u - input_offset) / input_scale`` so that the predictor reads back ``u``;
 * publishes ``/diagnostics`` (status, solve and step time, the previous tick's time and the
-  longest since the last message, tracking error, saturation, counters, publishers on its
-  topics: :mod:`soft_rom.ros.control_diagnostics`) at
+  longest since the last message, tracking error, saturation, counters, the last input
+  dropped and why, publishers on its topics: :mod:`soft_rom.ros.control_diagnostics`) at
   ``diagnostics_rate_hz`` (default 1 Hz, as the predictor) and at once when the status
   changes, and the reference shape on ``~/reference`` (``PoseArray``) at
   ``reference_rate_hz`` (default 30 Hz) while someone subscribes: both on timers of their
@@ -272,7 +272,7 @@ class ControllerNode(Node):
                        'transform is applied)')
             if why:
                 self.core.counters.measurements_dropped += 1
-                self.core.counters.last_problem = why
+                self.core.refused('measurement dropped', why)
             else:
                 # an unstamped message (zero stamp) is taken at its arrival, as the predictor
                 stamp_ns = stamp_to_ns(msg.header.stamp) or self.get_clock().now().nanoseconds
@@ -309,7 +309,7 @@ class ControllerNode(Node):
                 why = f'stamped {now - t:.3f} s in the past'
             if why:
                 self.core.counters.references_refused += 1
-                self.core.counters.last_problem = f'reference sample refused: {why}'
+                self.core.refused('reference sample refused', why)
                 self.get_logger().warning(f'reference sample refused: {why}',
                                           throttle_duration_sec=5.0)
                 return

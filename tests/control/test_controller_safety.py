@@ -77,6 +77,20 @@ def test_bad_measurements_are_dropped_with_the_reason(model, bad, why) -> None:
     assert 'not newer' in ctl.measure(model.y_ref, 0.01)
 
 
+def test_the_last_dropped_input_is_kept_while_held_commands_overwrite_last_problem(
+        model) -> None:
+    ctl = _controller(model)
+    bad = model.y_ref.copy()
+    bad[3] = np.nan
+    why = ctl.measure(bad, 0.0)
+    assert ctl.counters.last_dropped == f'measurement dropped: {why}' and 'NaN' in why
+    cmd = ctl.step(0.01)                            # no reference, no measurement: held
+    assert cmd.status != 'ok' and ctl.counters.last_problem == cmd.detail != why
+    assert ctl.counters.last_dropped == f'measurement dropped: {why}'
+    ctl.set_state(np.zeros(3), 0.0)
+    assert ctl.counters.last_dropped.startswith('state dropped: state of 3 values')
+
+
 def test_bad_references_are_refused_and_the_old_one_stays(model) -> None:
     ctl = _controller(model)
     good = _ref(model)
