@@ -26,13 +26,17 @@ sequence on the reception clock (:class:`SequenceClock`; counted ``stamp_fallbac
 which starts over when the reception clock goes back by more than ``clock_reset_s``;
 a measurement without a stamp takes its reception time.
 
-An input stamped more than :data:`CLOCK_APART_S` ahead of its reception time (a sensor on
-another clock) is dropped before the predictor sees it (counted ``input_ahead`` and in that
-input's ``dropped`` and ``ahead``; WARN): event stepping advances to the newest stamp every
-input has reached, so one input from the future would otherwise carry the model there, time
-out the others and make every later input of theirs late. An input stamped behind is kept
-(a bag played without its clock: every input behind alike). A reception time of 0 (a node
-in sim time before its first ``/clock``) checks nothing.
+A per-chamber input stamped more than :data:`CLOCK_APART_S` ahead of its reception time
+*and* of another input's clock (a sensor on another clock than the others) is dropped before
+the predictor sees it (counted ``input_ahead`` and in that input's ``dropped`` and ``ahead``;
+WARN): event stepping advances to the newest stamp every input has reached, so one input
+from the future would otherwise carry the model there, time out the others and make every
+later input of theirs late. Until another input has been heard, the node's clock is the
+other clock. Inputs that are all on one clock, ahead or behind the node's (a robot's clock
+not synchronized with this machine's; a bag played without its clock), and an array (one
+sender, one clock) are kept: the model runs on their clock, and the diagnostics WARN that
+it is not the node's. A reception time of 0 (a node in sim time before its first
+``/clock``) checks nothing.
 """
 
 from __future__ import annotations
@@ -197,6 +201,7 @@ class RuntimeLoop:
         self._recv_measured: int | None = None
         self._ahead = [0] * pred.model.n_inputs     # dropped: stamped ahead (count)
         self._ahead_last: list[tuple[int, float] | None] = [None] * pred.model.n_inputs
+        self._offset: list[int | None] = [None] * pred.model.n_inputs   # stamp - reception
 
     def set_settings(self, settings: LoopSettings) -> None:
         """New publish rates / conversion (checked against the model first)."""
@@ -274,8 +279,10 @@ class RuntimeLoop:
 
     def on_channel(self, index: int, value: float, stamp_ns: int, now_ns: int) -> Publish:
         """One per-chamber value (raw units; scale and offset applied here)."""
-        if stamp_ns - now_ns > _AHEAD_NS and now_ns and 0 <= index < len(self._ahead):
-            return self._refuse_ahead(index, stamp_ns - now_ns, now_ns)
+        if now_ns and 0 <= index < len(self._offset):
+            self._offset[index] = offset = stamp_ns - now_ns
+            if offset > _AHEAD_NS and self._ahead_of_the_others(index, offset):
+                return self._refuse_ahead(index, offset, now_ns)
         s = self.settings
         if self.predictor.set_channel_ns(index, s.input_scale * value + s.input_offset,
                                          self._stamp(stamp_ns, now_ns,
@@ -285,8 +292,6 @@ class RuntimeLoop:
 
     def on_array(self, values: ArrayLike, stamp_ns: int, now_ns: int) -> Publish:
         """All inputs at once (``Float64MultiArray``: pass ``stamp_ns=0`` for ``now_ns``)."""
-        if stamp_ns - now_ns > _AHEAD_NS and now_ns:
-            return self._refuse_ahead(None, stamp_ns - now_ns, now_ns)
         s = self.settings
         u = np.asarray(values, dtype=np.float64).reshape(-1)
         if s.input_scale != 1.0 or s.input_offset != 0.0:
@@ -296,16 +301,25 @@ class RuntimeLoop:
                 self._received(i, now_ns)
         return self._collect(now_ns)
 
-    def _refuse_ahead(self, index: int | None, ahead_ns: int, now_ns: int) -> Publish:
-        """Drop an input stamped ``ahead_ns`` ahead of its reception (another clock)."""
+    def _ahead_of_the_others(self, index: int, offset: int) -> bool:
+        """Whether input ``index``, ``offset`` ahead of its reception, is on a clock of its own.
+
+        It is when another input's last stamp was more than :data:`CLOCK_APART_S` less
+        ahead of its own reception, or when no other input has been heard yet (the node's
+        clock is then the only other one). A single input has no other to disagree with.
+        """
+        others = [o for j, o in enumerate(self._offset) if j != index and o is not None]
+        return len(self._offset) > 1 and (not others or min(others) < offset - _AHEAD_NS)
+
+    def _refuse_ahead(self, index: int, ahead_ns: int, now_ns: int) -> Publish:
+        """Drop input ``index``, stamped ``ahead_ns`` ahead of its reception (another clock)."""
         pred = self.predictor
-        names = pred.model.input_names
-        for i in range(len(self._ahead)) if index is None else (index,):
-            self._ahead[i] += 1
-            self._ahead_last[i] = (now_ns, ahead_ns * 1e-9)     # received then, so far ahead
-        pred.refuse_input(index, 'input_ahead', f'{"inputs" if index is None else names[index]} '
-                                                f'stamped {ahead_ns * 1e-9:.3g} s ahead of '
-                                                'the reception clock (another clock?)')
+        self._ahead[index] += 1
+        self._ahead_last[index] = (now_ns, ahead_ns * 1e-9)     # received then, so far ahead
+        pred.refuse_input(index, 'input_ahead',
+                          f'{pred.model.input_names[index]} stamped {ahead_ns * 1e-9:.3g} s '
+                          'ahead of the reception clock and of the other inputs (another '
+                          'clock?)')
         return self._collect(now_ns)
 
     def _received(self, i: int, now_ns: int) -> None:

@@ -517,11 +517,41 @@ def test_loop_drops_inputs_stamped_ahead_of_their_reception_and_keeps_the_others
             other.on_channel(i, 1.0, T0_NS, now)
         assert other.predictor.channels.received == [1, 1, 1]
         assert other.predictor.counters['input_ahead'] == 0
-    # an array stamped ahead: dropped on every input
+    # an array stamped ahead (one sender, one clock): kept, the model runs on its clock
     other = RuntimeLoop(Predictor(model), LoopSettings())
     other.on_array(np.ones(3), T0_NS + 11 * 10**9, T0_NS)
-    assert other.predictor.channels.dropped == [1, 1, 1]
-    assert other.predictor.t_ns is None
+    assert other.predictor.channels.received == [1, 1, 1]
+    assert other.predictor.counters['input_ahead'] == 0
+
+
+def test_loop_keeps_inputs_that_are_all_ahead_on_one_clock() -> None:
+    # a robot whose clock runs 3 h ahead of this machine's: every chamber alike, so nothing
+    # drags the event time; only the first value, heard before any other chamber, is dropped
+    model = _model(m=3)
+    ahead = 3 * 3600 * 10**9
+    loop = RuntimeLoop(Predictor(model), LoopSettings())
+    pred = loop.predictor
+    for j in range(300):
+        now = T0_NS + j * H_NS + 200_000
+        for i in range(3):
+            loop.on_channel(i, float(i + 1), T0_NS + ahead + j * H_NS, now)
+    assert pred.counters['input_ahead'] == 1 and pred.channels.dropped == [1, 0, 0]
+    assert pred.counters['late'] == 0 and pred.counters['timeouts'] == 0
+    assert pred.t_ns is not None and pred.t_ns >= T0_NS + ahead + 298 * H_NS
+    np.testing.assert_allclose(pred.u, [1.0, 2.0, 3.0])
+    # two chambers ahead together, one on the node's clock: the two are on a clock of their
+    # own against it, and dropped
+    loop = RuntimeLoop(Predictor(model), LoopSettings())
+    for j in range(300):
+        now = T0_NS + j * H_NS + 200_000
+        for i in range(3):
+            loop.on_channel(i, 1.0, T0_NS + j * H_NS + (ahead if i else 0), now)
+    assert loop.predictor.channels.dropped == [0, 300, 300]
+    assert loop.predictor.t_ns is not None and loop.predictor.t_ns < T0_NS + 10**9
+    # a single input has no other clock to disagree with
+    single = RuntimeLoop(Predictor(_model(m=1)), LoopSettings())
+    single.on_channel(0, 1.0, T0_NS + ahead, T0_NS)
+    assert single.predictor.channels.received == [1]
 
 
 class _Cubic:
