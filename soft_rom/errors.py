@@ -1,4 +1,4 @@
-"""Exceptions raised by soft_rom.
+"""Exceptions raised by soft_rom, and the warnings it gives.
 
 Every error is also a built-in exception (``ValueError``, ``FileNotFoundError``, ...) so
 that callers who do not know this package can still catch it, and every message says what
@@ -18,12 +18,16 @@ __all__ = [
     'ModelFileError',
     'NotFittedError',
     'OutputExistsError',
+    'ReferenceReachWarning',
     'ResourceError',
     'SoftRomError',
+    'SoftRomWarning',
     'SolverError',
+    'UntrustedModelWarning',
     'dask_worker',
     'one_line',
     'show_value',
+    'warn',
 ]
 
 
@@ -69,6 +73,30 @@ class ResourceError(SoftRomError, MemoryError):
 
 class ClusterError(SoftRomError, ConnectionError):
     """A Dask cluster could not be reached, was lost, or one of its workers failed."""
+
+
+class SoftRomWarning(UserWarning):
+    """Base class of the warnings soft_rom gives (``warnings.simplefilter('ignore', ...)``)."""
+
+
+class UntrustedModelWarning(SoftRomWarning):
+    """A model that loads but cannot be trusted is used (``model.trust_issues()`` says why)."""
+
+
+class ReferenceReachWarning(SoftRomWarning):
+    """A reference the controlled model cannot reach within the input bounds."""
+
+
+def warn(message: str, category: type[Warning]) -> None:
+    """``warnings.warn`` pointing at the first caller outside soft_rom (the user's line)."""
+    import os
+    import warnings
+    here = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    level, frame = 2, sys._getframe(1)
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(here):
+        level += 1
+        frame = frame.f_back     # type: ignore[assignment]
+    warnings.warn(message, category, stacklevel=level)
 
 
 def show_value(value: object) -> str:

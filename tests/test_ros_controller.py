@@ -177,6 +177,7 @@ def test_array_mode_publishes_one_scaled_float64multiarray(tmp_path, model_path,
     ({'stale_after_s': -1.0}, 'stale_after must be a positive number of seconds; got -1.0'),
     ({'reference_duration_s': -5.0}, 'reference_duration_s must be finite and > 0; got -5.0'),
     ({'model_path': ''}, 'model_path is empty (give -p model_path:=FILE)'),
+    ({'reference': 'wave:f=200'}, 'at or above the Nyquist rate (50 Hz) of the 10 ms control'),
 ])
 def test_bad_parameter_is_one_line_and_exit_1(tmp_path, model_path, params, message) -> None:
     node = NodeProcess(tmp_path, {'model_path': str(model_path), **params},
@@ -186,6 +187,37 @@ def test_bad_parameter_is_one_line_and_exit_1(tmp_path, model_path, params, mess
         log = node.log()
         assert message in log, log
         assert 'Traceback' not in log
+    finally:
+        node.kill()
+
+
+def test_an_untrusted_model_and_a_target_out_of_reach_are_logged_once(tmp_path, client
+                                                                      ) -> None:
+    """The node's own log lines; the library's warnings are not printed beside them."""
+    from soft_rom.models import SecondOrderModel
+    m = modal_rom(4)
+    # a skew part in the damping: stable, but not trusted ('C is not symmetric')
+    C = m.C.copy()
+    C[0, 1] += 0.5 * np.abs(C).max()
+    C[1, 0] -= 0.5 * np.abs(C).max()
+    bad = SecondOrderModel(m.K, C, m.B, m.E, dt=m.dt, y_ref=m.y_ref,
+                           output_names=m.output_names, input_units=['Pa'] * 6,
+                           output_units=['m'] * 40, metadata=m.metadata)
+    assert bad.trust_issues() == ['C is not symmetric']
+    sys_ = bad.discretize(0.01)
+    G = sys_.C @ np.linalg.solve(np.eye(sys_.A.shape[0]) - sys_.A, sys_.B) + sys_.D
+    Y = np.repeat(m.y_ref[:, None], 3, axis=1)
+    Y[:, 1:] += (G @ (200e3 * np.array([1.0, -1.0] * 3)))[:, None]   # 4 x the +-50 kPa
+    np.savez(tmp_path / 'far.npz', t=np.array([0.0, 0.05, 1.0]), Y=Y)
+    node = NodeProcess(tmp_path, {'model_path': str(bad.save(tmp_path / 'bad.npz')),
+                                  'reference': str(tmp_path / 'far.npz')},
+                       name='ctl_untrusted', exe='controller')
+    try:
+        assert client.spin_until(lambda: 'out of reach' in node.log(), 60), node.log()
+        assert node.stop(signal.SIGINT) == 0
+        log = node.log()
+        assert log.count('not trusted') == 1 and log.count('out of reach') == 1, log
+        assert 'Warning:' not in log and 'warnings.warn' not in log, log
     finally:
         node.kill()
 

@@ -15,6 +15,7 @@ import argparse
 from pathlib import Path
 import sys
 from typing import Any
+import warnings
 
 from soft_rom.cli._common import (
     a_path,
@@ -24,7 +25,7 @@ from soft_rom.cli._common import (
     finite_float,
     int_range,
 )
-from soft_rom.errors import ConfigError
+from soft_rom.errors import ConfigError, SoftRomWarning
 
 __all__ = ['add_parser', 'run']
 
@@ -179,6 +180,7 @@ def run(args: argparse.Namespace) -> int:
     eel = EelModel(resolution=args.resolution)
     ref = parse_reference(args.reference, model, duration=args.duration, plant=eel)
     check_moves(ref, model, args.duration)
+    said = _check_with_controller(model, mpc, ref)
     plant = FOMPlant(model, eel)
     bar: Any = None
     if not args.quiet:
@@ -194,14 +196,17 @@ def run(args: argparse.Namespace) -> int:
     est = EstimatorConfig(measurement_noise=max(args.sensor_noise, 1e-5),
                           sensor_rate=args.sensor_rate)
     try:
-        res: ClosedLoopResult = run_closed_loop(model, ref, plant=plant, mpc=mpc, estimator=est,
-                                                sensor=sensor, duration=args.duration,
-                                                progress=progress)
+        with warnings.catch_warnings():
+            warnings.simplefilter('ignore', SoftRomWarning)     # said before the run
+            res: ClosedLoopResult = run_closed_loop(model, ref, plant=plant, mpc=mpc,
+                                                    estimator=est, sensor=sensor,
+                                                    duration=args.duration, progress=progress)
     finally:
         if bar is not None:
             bar.close()
     summary = res.summary()
     summary.update({'model': str(args.model), 'reference_spec': args.reference,
+                    'model_trust': model.trust_issues(), 'warnings': said,
                     'fom_resolution': args.resolution,
                     'u_min': res.u_min.tolist(), 'u_max': res.u_max.tolist()})
     with atomic_dir(out, overwrite=args.overwrite, kind='control',
@@ -219,6 +224,28 @@ def run(args: argparse.Namespace) -> int:
               f'record of the run is in {out}', file=sys.stderr)
         return 1
     return 0
+
+
+def _check_with_controller(model: Any, mpc: Any, ref: Any) -> list[str]:
+    """The controller's verdict on ``ref`` before the run (a refusal is an error).
+
+    Its warnings (an untrusted model, a target out of reach) are printed now, one line each,
+    and returned.
+    """
+    from soft_rom.control import Controller
+    with warnings.catch_warnings(record=True) as held:
+        warnings.simplefilter('always', SoftRomWarning)
+        refused = Controller(model, mpc).check_reference(ref)
+    if refused:
+        raise ConfigError(refused)
+    said = []
+    for w in held:
+        if issubclass(w.category, SoftRomWarning):
+            said.append(str(w.message))
+            print(f'soft-rom control: warning: {w.message}', file=sys.stderr, flush=True)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return said
 
 
 def _print_summary(model: Any, plant: Any, ref: Any, res: Any, summary: dict[str, Any]

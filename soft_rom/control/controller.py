@@ -6,8 +6,10 @@ never returns a command outside the bounds or not finite:
 
 * a measurement of the wrong size, with NaN/Inf, or older than the last one is dropped
   (counted, with the reason);
-* a reference of the wrong size, with NaN/Inf, or ending before the current time is
-  refused; the one in force stays;
+* a reference of the wrong size, with NaN/Inf, ending before the current time, or moving
+  at or above the control step's Nyquist rate is refused; the one in force stays; a static
+  target out of the model's reach within the bounds is taken, with a
+  :class:`~soft_rom.errors.ReferenceReachWarning` (once per target);
 * without a measurement yet (``missing``), or with none for ``stale_after`` seconds
   (``stale``), the last command is held (clipped into the bounds); with an external state
   estimate (``external_state``, the predictor node's ``~/state``) the same holds for it;
@@ -37,8 +39,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.control.estimator import EstimatorConfig, OffsetFreeEstimator
 from soft_rom.control.mpc import MPC, MPCConfig
-from soft_rom.control.reference import Reference
-from soft_rom.errors import DimensionError
+from soft_rom.control.reference import reach_miss, REACH_TOLERANCE, Reference, sampling_problem
+from soft_rom.errors import DimensionError, ReferenceReachWarning, warn
 
 __all__ = ['Command', 'Controller']
 
@@ -146,6 +148,8 @@ class Controller:
         self.started = False
         self.counters = _Counters()
         self._y_bound = MEASUREMENT_FACTOR * self.mpc.y_scale
+        self._reach_checked: Array | None = None      # the static target last checked
+        self._stable: bool | None = None               # the model at the step (reach checks)
 
     @property
     def h(self) -> float:
@@ -166,6 +170,19 @@ class Controller:
     # -- inputs -------------------------------------------------------------------------
     def set_reference(self, ref: Reference, now: float | None = None) -> str:
         """Use ``ref`` from now on; returns ``''`` or why it was refused (the old one stays)."""
+        why = self.check_reference(ref, now)
+        if why:
+            self.counters.references_refused += 1
+            return self.refused('reference refused', why)
+        self.reference = ref
+        return ''
+
+    def check_reference(self, ref: Reference, now: float | None = None) -> str:
+        """Why :meth:`set_reference` would refuse ``ref``, or ``''``; nothing is changed.
+
+        A static target out of the model's reach within the input bounds is not refused:
+        it gives a :class:`~soft_rom.errors.ReferenceReachWarning` (once per target).
+        """
         why = ''
         if not isinstance(ref, Reference):
             why = (f'not a Reference but {type(ref).__name__} (parse a text with '
@@ -176,11 +193,35 @@ class Controller:
             why = 'reference has NaN/Inf'
         elif now is not None and ref.t[-1] < now and ref.t.size > 1:
             why = f'reference ends at {ref.t[-1]:.3f} s, before now ({now:.3f} s)'
-        if why:
-            self.counters.references_refused += 1
-            return self.refused('reference refused', why)
-        self.reference = ref
-        return ''
+        else:
+            why = sampling_problem(ref, self.h)
+        if not why:
+            self._check_reach(ref)
+        return why
+
+    def _check_reach(self, ref: Reference) -> None:
+        """Warn (once per static target) when the model cannot reach it within the bounds.
+
+        Not for an unstable model: it has no steady state to reach (and is not trusted).
+        """
+        target = ref.Y[:, -1]
+        if self._reach_checked is not None and np.array_equal(target, self._reach_checked):
+            return
+        self._reach_checked = target.copy()
+        if self._stable is None:
+            eig = np.linalg.eigvals(self.mpc.system.A)
+            self._stable = bool(np.all(np.isfinite(eig)) and np.max(np.abs(eig), initial=0.0)
+                                < 1.0 - 1e-9)
+        if not self._stable:
+            return
+        miss = reach_miss(ref, self.mpc.steady_gain(), self.mpc.lo, self.mpc.hi,
+                          self.estimator.y_ref)
+        if miss is not None and miss[2] > REACH_TOLERANCE:
+            warn(f'the reference {ref.label or "given"!r} is out of reach within the input '
+                 "bounds: the model's best steady state within them misses its static target "
+                 f'by {100 * miss[0]:.0f} % of the commanded deviation ({100 * miss[1]:.0f} % '
+                 'with unbounded inputs); the inputs will sit at their bounds short of it.',
+                 ReferenceReachWarning)
 
     def refused(self, kind: str, why: str) -> str:
         """Record an input refused (``kind``: ``'measurement dropped'``...) for ``why``.

@@ -284,7 +284,9 @@ def run_closed_loop(model: Any, reference: Reference, *, plant: Any = None,
         raise ConfigError(f'the reference has {reference.n_outputs} outputs; the model has '
                           f'{ctl.mpc.p}.')
     check_moves(reference, model, duration)
-    ctl.set_reference(reference)
+    refused = ctl.set_reference(reference)     # too fast for the control step
+    if refused:
+        raise ConfigError(refused)
     plant = plant if plant is not None else FOMPlant(model)
     dt = float(plant.dt)
     every = _control_every(ctl.h, dt)

@@ -27,7 +27,9 @@ constraint matrix are fixed and factorized once; each step forms the linear term
 state, disturbance, reference and last input, and solves with the warm-started solver of
 :mod:`soft_rom.control.qp`. Only the first input is applied (receding horizon).
 
-The cubic LOpInf (nonlinear restoring force) is refused: the MPC is linear.
+The cubic LOpInf (nonlinear restoring force) is refused: the MPC is linear. A model that
+cannot be trusted (``model.trust_issues()``: unstable, absurd gain, ...) is controlled all
+the same, with an :class:`~soft_rom.errors.UntrustedModelWarning` (once per model).
 """
 
 from __future__ import annotations
@@ -35,18 +37,23 @@ from __future__ import annotations
 from dataclasses import dataclass
 import math
 from typing import Any
+import weakref
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.control.qp import make_solver, QPResult
-from soft_rom.errors import ConfigError, DimensionError
+from soft_rom.errors import ConfigError, DimensionError, UntrustedModelWarning, warn
 
-__all__ = ['MPC', 'MPCConfig', 'MPCStep', 'TERMINAL_COSTS', 'input_bounds', 'require_linear']
+__all__ = ['MPC', 'MPCConfig', 'MPCStep', 'TERMINAL_COSTS', 'input_bounds', 'require_linear',
+           'warn_untrusted']
 
 Array = NDArray[np.float64]
 
 TERMINAL_COSTS = ('riccati', 'none')
+
+#: The untrusted models already warned about (each once).
+_WARNED: weakref.WeakSet[Any] = weakref.WeakSet()
 
 
 @dataclass(frozen=True)
@@ -189,6 +196,17 @@ def require_linear(model: Any, what: str) -> None:
                           'linear ROM (LOpInf, DMDc, ERA/OKID).')
 
 
+def warn_untrusted(model: Any) -> None:
+    """An :class:`UntrustedModelWarning` naming why, once per model that cannot be trusted."""
+    issues = model.trust_issues() if callable(getattr(model, 'trust_issues', None)) else []
+    if not issues or model in _WARNED:
+        return
+    _WARNED.add(model)
+    warn(f'{getattr(model, "method", "the")} r={getattr(model, "r", "?")} model is not '
+         f'trusted: {"; ".join(issues)}; the MPC controls with it all the same (its '
+         'predictions, and so its commands, may be wrong).', UntrustedModelWarning)
+
+
 @dataclass(frozen=True)
 class MPCStep:
     """One MPC solve.
@@ -239,6 +257,7 @@ class MPC:
     def __init__(self, model: Any, config: MPCConfig | None = None) -> None:
         cfg = config or MPCConfig()
         require_linear(model, 'the MPC')
+        warn_untrusted(model)
         ratio = cfg.step / float(model.dt)
         j = int(round(ratio))
         if j < 1 or abs(ratio - j) > 1e-6:
@@ -298,7 +317,7 @@ class MPC:
         wy = self.config.output_weight / (p * self.y_scale ** 2)
         wd = self.config.rate_weight / m
         # Input directions the steady-state gain does not see.
-        gain = self._steady_gain() @ S
+        gain = self.steady_gain() @ S
         _U, sv, Vt = np.linalg.svd(gain)
         weak = np.ones(m, dtype=bool)
         if sv.size and sv[0] > 0:
@@ -384,7 +403,8 @@ class MPC:
         self.terminal = 'riccati'
         return E.T @ P @ E
 
-    def _steady_gain(self) -> Array:
+    def steady_gain(self) -> Array:
+        """``(p, m)``: the outputs' steady-state deviation per unit input held."""
         A, B, C, D, _ = self.system
         try:
             return C @ np.linalg.solve(np.eye(self.n) - A, B) + D

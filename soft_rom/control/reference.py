@@ -17,6 +17,13 @@ Built-ins (``--reference`` on the command line):
   3), commanded from rest at ``at`` seconds.
 * ``episode:PATH`` -- a feasible reference: the outputs of a recorded episode (a bag of the
   bag contract, converted on the fly, or a ``.npz`` with ``t`` and ``Y``).
+
+A reference that moves at or above the Nyquist rate of the control step (a wave of
+``f >= 1 / (2 h)``) is refused (:func:`sampling_problem`): sampled every ``h`` it is another,
+slower motion (``wave:f=200`` at 10 ms: a static shape). A static target (a reference held
+over the last fifth of its duration) that the model's steady state cannot reach within the
+input bounds is controlled all the same, with a
+:class:`~soft_rom.errors.ReferenceReachWarning` (:func:`reach_miss`).
 """
 
 from __future__ import annotations
@@ -32,10 +39,15 @@ from numpy.typing import ArrayLike, NDArray
 from soft_rom.data import all_finite
 from soft_rom.errors import ConfigError, DimensionError
 
-__all__ = ['Reference', 'check_moves', 'load_reference', 'parse_reference',
-           'step_reference', 'training_deviation', 'wave_reference']
+__all__ = ['REACH_TOLERANCE', 'Reference', 'check_moves', 'load_reference', 'parse_reference',
+           'reach_miss', 'sampling_problem', 'step_reference', 'training_deviation',
+           'wave_reference']
 
 Array = NDArray[np.float64]
+
+#: A static target of which the input bounds cut off more than this fraction of the commanded
+#: deviation is out of reach (:func:`reach_miss`'s ``cut``).
+REACH_TOLERANCE = 0.1
 
 
 @dataclass(frozen=True)
@@ -52,12 +64,16 @@ class Reference:
         What it is, for reports.
     U : ndarray, shape (m, k) or None
         The inputs that produce it on the FOM, when known (feasible references).
+    frequency : float or None
+        The highest frequency of its motion (Hz), when known (a wave's ``f``): a control step
+        whose Nyquist rate it reaches is refused (:func:`sampling_problem`).
     """
 
     t: Array
     Y: Array
     label: str = ''
     U: Array | None = None
+    frequency: float | None = None
 
     def __post_init__(self) -> None:
         t = np.asarray(self.t, dtype=np.float64).reshape(-1)
@@ -155,7 +171,7 @@ def wave_reference(model: Any, duration: float, *, f: float = 2.0, wavelength: f
     Y[zs] += a[:, None] * np.sin(2 * np.pi * (s[:, None] / wavelength - f * t[None, :])) * fade
     label = (f'wave f={f:g} Hz, wavelength={wavelength:g} L, tail amplitude '
              f'{amplitude * 1e3:.3g} mm')
-    return Reference(t=t, Y=Y, label=label)
+    return Reference(t=t, Y=Y, label=label, frequency=float(f))
 
 
 def step_reference(model: Any, u: ArrayLike, duration: float, *, at: float = 0.1,
@@ -284,6 +300,48 @@ def check_moves(ref: Reference, model: Any, duration: float | None = None) -> No
                           f"output, {dev / trained:.2g} x the training data's largest deviation"
                           f" ({trained:.3g}): give it in the model's output units ({units}), "
                           'within its reach.')
+
+
+def sampling_problem(ref: Reference, step: float) -> str:
+    """Why ``ref`` cannot be sampled every ``step`` seconds (its Nyquist rate), or ``''``."""
+    f = ref.frequency
+    if f is None or not (f > 0 and step > 0) or f < 0.5 / step:
+        return ''
+    fs = 1.0 / step
+    alias = abs(f - round(f / fs) * fs)
+    seen = 'a static shape' if alias < 1e-9 * fs else f'a {alias:.3g} Hz motion'
+    return (f'the reference {ref.label!r} moves at {f:g} Hz, at or above the Nyquist rate '
+            f'({0.5 * fs:g} Hz) of the {step * 1e3:g} ms control step: sampled every step it '
+            f'is {seen}. Give a frequency below {0.5 * fs:g} Hz, or a shorter control step.')
+
+
+def reach_miss(ref: Reference, gain: Array, lo: Array, hi: Array, y_ref: Array
+               ) -> tuple[float, float, float] | None:
+    """How far a static target lies outside a model's steady-state reach, or ``None``.
+
+    A reference held over the last fifth of its duration (a step, a bend) has a static
+    target ``r``; ``gain`` (p, m) is the model's steady-state gain, ``lo``/``hi`` the input
+    bounds. Returns ``(bounded, free, cut)``: ``min ‖gain u − (r − y_ref)‖ / ‖r − y_ref‖``
+    over ``lo <= u <= hi`` (:func:`scipy.optimize.lsq_linear`, ``u_b``) and over any ``u``
+    (``u_f``), and ``‖gain (u_b − u_f)‖ / ‖r − y_ref‖``, the part of the target in the
+    model's steady shapes that the bounds cut off (``bounded² = free² + cut²``; ``free`` is
+    the model's shape error, which the offset-free estimate absorbs, ``cut`` is not).
+    ``None`` for a reference that moves at its end or does not leave ``y_ref``.
+    """
+    from scipy.optimize import lsq_linear
+    end = ref.t >= ref.t[-1] - 0.2 * (ref.t[-1] - ref.t[0])
+    target = ref.Y[:, -1]
+    scale = max(1.0, float(np.max(np.abs(target))))
+    dev = target - np.asarray(y_ref, dtype=np.float64)
+    norm = float(np.linalg.norm(dev))
+    if np.any(np.abs(ref.Y[:, end] - target[:, None]) > 1e-9 * scale) or norm <= 1e-9 * scale \
+            or not np.all(np.isfinite(gain)):
+        return None
+    bounded = lsq_linear(gain, dev, bounds=(lo, hi), method='bvls')
+    free = np.linalg.lstsq(gain, dev, rcond=None)[0]
+    return (float(np.linalg.norm(gain @ bounded.x - dev)) / norm,
+            float(np.linalg.norm(gain @ free - dev)) / norm,
+            float(np.linalg.norm(gain @ (bounded.x - free))) / norm)
 
 
 def parse_reference(spec: str, model: Any, *, duration: float | None = None,

@@ -33,6 +33,7 @@ import math
 from pathlib import Path
 import time
 from typing import Any
+import warnings
 
 import numpy as np
 
@@ -46,6 +47,7 @@ from soft_rom.control.loop import (
 )
 from soft_rom.control.mpc import MPCConfig
 from soft_rom.control.reference import parse_reference, Reference, step_reference
+from soft_rom.errors import UntrustedModelWarning
 from soft_rom.metrics import relative_deviation_error
 
 __all__ = ['ControlStudyConfig', 'run_control_study']
@@ -100,8 +102,10 @@ def _task(args: tuple) -> tuple[float, dict[str, Any], Any]:
     eel = _EEL.setdefault('eel', EelModel())
     model = load_model(path)
     ref = Reference(t=t, Y=Y, label=label)
-    res = run_closed_loop(model, ref, plant=FOMPlant(model, eel), mpc=mpc, sensor=Sensor(),
-                          duration=duration)
+    with warnings.catch_warnings():      # an untrusted model: the study says it once
+        warnings.simplefilter('ignore', UntrustedModelWarning)
+        res = run_closed_loop(model, ref, plant=FOMPlant(model, eel), mpc=mpc, sensor=Sensor(),
+                              duration=duration)
     return res.tracking_error(), res.summary(), res if keep else None
 
 
@@ -111,7 +115,9 @@ def _open_loop_task(args: tuple) -> Any:
     path, t, Y, mpc, duration = args
     eel = _EEL.setdefault('eel', EelModel())
     model = load_model(path)
-    U = open_loop_plan(model, Reference(t=t, Y=Y), mpc=mpc, duration=duration)
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', UntrustedModelWarning)
+        U = open_loop_plan(model, Reference(t=t, Y=Y), mpc=mpc, duration=duration)
     return simulate_inputs(model, U, eel=eel)
 
 
@@ -150,8 +156,12 @@ def run_control_study(out: str | Path, models: dict[str, Any],
         'train_seed': cfg.train_seed, 'train_episode': cfg.train_episode,
         'rate_weights': list(cfg.rate_weights), 'wave': cfg.wave, 'bend_pa': list(cfg.bend),
         'step_s': cfg.mpc.step, 'horizon_s': cfg.mpc.horizon, 'jobs': jobs},
-        'models': {k: {'method': m.method, 'r': int(m.r), 'file': str(models[k])}
-                   for k, m in loaded.items()}}
+        'models': {k: {'method': m.method, 'r': int(m.r), 'file': str(models[k]),
+                       'trust': m.trust_issues()} for k, m in loaded.items()}}
+    for k, m in loaded.items():      # said once here; the closed loops' own warnings are not
+        if m.trust_issues():
+            log(f'  {k}: model NOT TRUSTED ({"; ".join(m.trust_issues())}); controlled all '
+                'the same')
     # spawned, not forked: the parent has threads by now (the FOM's solver, the pool's own),
     # and a forked worker can inherit a lock held by one of them and wait on it forever
     pool = ProcessPoolExecutor(max_workers=jobs, mp_context=multiprocessing.get_context(
@@ -322,8 +332,10 @@ def _reach_floor(model: Any, ref: Reference, mpc: MPCConfig, duration: float) ->
     tracks better, closed loop or open loop.
     """
     free = replace(mpc, u_min=(-1e7,), u_max=(1e7,), rate_max=1e12)
-    res = run_closed_loop(model, ref, plant=ROMPlant(model), mpc=free,
-                          sensor=Sensor(noise=0.0), duration=duration)
+    with warnings.catch_warnings():      # said once by run_control_study
+        warnings.simplefilter('ignore', UntrustedModelWarning)
+        res = run_closed_loop(model, ref, plant=ROMPlant(model), mpc=free,
+                              sensor=Sensor(noise=0.0), duration=duration)
     return res.tracking_error()
 
 
@@ -391,7 +403,8 @@ def _figures(out: Path, s: dict[str, Any]) -> None:
 def _report(s: dict[str, Any]) -> str:
     labels = list(s['experiment1'])
     refs = list(next(iter(s['experiment1'].values())))
-    names = ', '.join(f'{k}' for k in s['models'])
+    names = ', '.join(f'{k}' + (' (NOT TRUSTED: ' + '; '.join(v['trust']) + ')'
+                                 if v.get('trust') else '') for k, v in s['models'].items())
     lines = ['# Closed-loop study on the embedded eel', '',
              f'Controllers: {names}; control step {s["config"]["step_s"] * 1e3:g} ms, horizon '
              f'{s["config"]["horizon_s"]:g} s, rate weight {s["weight"]["chosen_rate_weight"]:g} '

@@ -45,6 +45,7 @@ import sys
 import threading
 import time
 from typing import Any
+import warnings
 
 from builtin_interfaces.msg import Time as TimeMsg
 from diagnostic_msgs.msg import DiagnosticArray
@@ -61,6 +62,7 @@ from std_msgs.msg import Float64MultiArray
 
 from soft_rom.control import Controller, EstimatorConfig, MPCConfig, parse_reference, Reference
 from soft_rom.control.reference import _model_outputs
+from soft_rom.errors import ReferenceReachWarning, UntrustedModelWarning
 from soft_rom.predictor.conversions import (
     array_to_data,
     ns_to_stamp,
@@ -201,14 +203,29 @@ class ControllerNode(Node):
             est = EstimatorConfig(measurement_noise=max(c['noise'], 1e-5),
                                   sensor_rate=c['sensor_rate'],
                                   **({'process_noise': 0.0} if external else {}))
-            self.core = Controller(self.model, MPCConfig(step=c['step'], horizon=c['horizon'],
-                                                         rate_weight=c['rate_weight']), est,
-                                   stale_after=c['stale'], external_state=external)
+            with warnings.catch_warnings():     # logged above, as the node's own line
+                warnings.simplefilter('ignore', UntrustedModelWarning)
+                self.core = Controller(self.model, MPCConfig(
+                    step=c['step'], horizon=c['horizon'], rate_weight=c['rate_weight']), est,
+                    stale_after=c['stale'], external_state=external)
             self.fixed_ref = parse_reference(c['spec'], self.model, duration=c['duration']) \
                 if c['spec'] else None
+            why = self._logged(self.core.check_reference, self.fixed_ref) \
+                if self.fixed_ref is not None else ''
+            if why:                             # a wave too fast for the control step
+                raise ValueError(why)
         except (OSError, ValueError) as err:
             self.get_logger().error(f'cannot start: {err}')
             raise StartupError(str(err)) from None
+
+    def _logged(self, fn: Any, *args: Any) -> Any:
+        """``fn(*args)`` with the warnings it gives (a target out of reach) logged, not printed."""
+        with warnings.catch_warnings(record=True) as held:
+            warnings.simplefilter('always', ReferenceReachWarning)
+            out = fn(*args)
+        for w in held:
+            self.get_logger().warning(str(w.message), throttle_duration_sec=5.0)
+        return out
 
     def _create_entities(self) -> None:
         """The command and reference publishers, the subscriptions and the control timer."""
@@ -316,8 +333,8 @@ class ControllerNode(Node):
             self.samples = [s for s in self.samples if s[0] < t and s[0] >= now - 1.0]
             self.samples.append((t, y))
             ts = np.array([s[0] for s in self.samples])
-            self.core.set_reference(Reference(t=ts, Y=np.stack([s[1] for s in self.samples],
-                                                                axis=1), label='topic'))
+            self._logged(self.core.set_reference, Reference(
+                t=ts, Y=np.stack([s[1] for s in self.samples], axis=1), label='topic'))
         except Exception as err:  # noqa: BLE001
             self._guard('reference', err)
 

@@ -136,6 +136,8 @@ def test_what_a_hostile_input_audit_found_is_one_line(run_dir, model_file, refer
         (['--reference', 'wave:f=2,f=3'], 'f= given twice'),
         (['--reference', 'wave:f=2', '--seed', '-1'], '--seed'),
         (['--reference', 'step:u=1e12/0/0/0/0/0'], 'at most'),
+        (['--reference', 'wave:f=200'], 'at or above the Nyquist rate (50 Hz)'),
+        (['--reference', 'wave:f=2', '--step', '0.5', '--horizon', '1'], 'Nyquist rate (1 Hz)'),
     ]
     for i, (args, why) in enumerate(cases):
         code = main(['control', str(model_file), *args, '-o', str(tmp_path / f'o{i}'),
@@ -172,10 +174,40 @@ def test_a_run_where_no_control_step_succeeded_is_an_error(tmp_path, capsys) -> 
     last = err.strip().splitlines()[-1]
     assert code == 1 and 'Traceback' not in err, err
     assert last.startswith('soft-rom control: error: no control step succeeded ('), err
+    # the model is not trusted: said once, on one line, before the run
+    assert err.count('not trusted') == 1 and err.startswith(
+        f'soft-rom control: warning: {bad.method} r=6 model is not trusted: unstable'), err
     with open(tmp_path / 'out' / 'summary.json') as fh:
-        counts = json.load(fh)['status_counts']
+        summary = json.load(fh)
+    counts = summary['status_counts']
+    assert summary['model_trust'] == bad.trust_issues() != []
     assert sum(counts.values()) == 5 and 'ok' not in counts, counts
     assert set(counts) <= {'failed', 'infeasible'}, counts
+
+
+def test_a_static_target_out_of_reach_is_said_once_before_the_run(model_file, reference,
+                                                                   tmp_path, capsys) -> None:
+    """The run goes on (exit 0); the warning is one line, not repeated after the run."""
+    m = modal_rom(6)
+    gain = m.discretize(0.01)
+    G = gain.C @ np.linalg.solve(np.eye(gain.A.shape[0]) - gain.A, gain.B) + gain.D
+    Y = np.repeat(m.y_ref[:, None], 3, axis=1)
+    Y[:, 1:] += (G @ (200e3 * np.array([1.0, -1.0] * 3)))[:, None]   # 4 x the +-50 kPa
+    np.savez(tmp_path / 'far.npz', t=np.array([0.0, 0.05, 1.0]), Y=Y)
+    short = ['--duration', '0.02', '--quiet']
+    assert main(['control', str(model_file), '--reference', str(reference), '-o',
+                 str(tmp_path / 'near'), *short]) == 0
+    err = capsys.readouterr().err
+    assert 'warning' not in err.lower(), err          # the 4 mm bend is within reach
+    assert main(['control', str(model_file), '--reference', str(tmp_path / 'far.npz'), '-o',
+                 str(tmp_path / 'far'), *short]) == 0
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if 'out of reach' in line]
+    assert len(lines) == 1 and lines[0].startswith(
+        "soft-rom control: warning: the reference 'far.npz' is out of reach within the input "
+        'bounds'), err
+    with open(tmp_path / 'far' / 'summary.json') as fh:
+        assert json.load(fh)['warnings'] == [lines[0].split('warning: ', 1)[1]]
 
 
 def test_simulate_inputs_refuses_what_is_not_pressures_over_time(tmp_path, capsys) -> None:
