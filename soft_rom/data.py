@@ -17,6 +17,7 @@ coordinates.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import math
 from typing import Any
 
 import numpy as np
@@ -24,7 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.errors import DimensionError
 
-__all__ = ['Episode', 'all_finite', 'as_signal', 'check_finite']
+__all__ = ['Episode', 'all_finite', 'as_signal', 'check_finite', 'step_length']
 
 
 def as_signal(name: str, values: ArrayLike, *, rows: int | None = None,
@@ -89,6 +90,17 @@ def check_finite(name: str, arr: NDArray[Any], before: str = 'fitting') -> None:
         raise DimensionError(
             f'{name} contains NaN or Inf (first at index {tuple(int(i) for i in bad)}); '
             f'clean or drop those samples before {before}.')
+
+
+def step_length(dt: Any) -> float:
+    """``dt`` as a positive finite number of seconds, or :class:`DimensionError`."""
+    try:
+        h = float(dt)
+    except (TypeError, ValueError):
+        raise DimensionError(f'dt must be a positive number of seconds; got {dt!r}.') from None
+    if not (math.isfinite(h) and h > 0):
+        raise DimensionError(f'dt must be positive; got {dt!r}.')
+    return h
 
 
 @dataclass(frozen=True)

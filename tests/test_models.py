@@ -289,3 +289,62 @@ def test_stability_margin_and_eigenvalues() -> None:
     assert 0 < model.stability_margin() < 1
     unstable = DiscreteModel(np.diag([1.1, 0.5]), np.ones((2, 1)), np.ones((1, 2)), dt=1.0)
     assert unstable.stability_margin() == pytest.approx(-0.1)
+
+
+def test_non_finite_inputs_are_named_not_propagated() -> None:
+    """A NaN pressure is named with its index, not propagated or misreported.
+
+    It made every later output NaN (linear models, a RuntimeWarning at most); the cubic
+    model said its implicit step "did not converge".
+    """
+    from soft_rom.models import CubicSecondOrderModel
+    base = _second_order()
+    r = base.r
+    cubic = CubicSecondOrderModel(base.K, base.C, np.zeros((r, r, r)), np.zeros((r, r, r, r)),
+                                  base.B, base.E, dt=base.dt, y_ref=base.y_ref)
+    for model in (_discrete(), base, cubic):
+        m, n = model.n_inputs, model.n_states
+        for bad in (np.nan, np.inf):
+            U = np.ones((m, 20))
+            U[m - 1, 7] = bad
+            with pytest.raises(DimensionError,
+                               match=re.escape(f'U contains NaN or Inf (first at index '
+                                               f'({m - 1}, 7))')):
+                model.simulate(U)
+            u = np.ones(m)
+            u[0] = bad
+            with pytest.raises(DimensionError, match='u .*(NaN or Inf|must be finite)'):
+                model.step(model.initial_state(), u)
+            x = np.zeros(n)
+            x[1] = bad
+            with pytest.raises(DimensionError, match='x .*(NaN or Inf|must be finite)'):
+                model.step(x, np.ones(m))
+
+
+def test_a_step_length_that_is_not_a_number_is_one_line() -> None:
+    """``discretize('0.01')`` was a TypeError traceback for a DMDc/ERA model."""
+    for model in (_discrete(), _second_order()):
+        with pytest.raises(DimensionError, match='dt must be a positive number of seconds'):
+            model.discretize('ten ms')
+        with pytest.raises(DimensionError, match='dt must be a positive number of seconds'):
+            model.step(model.initial_state(), np.zeros(model.n_inputs), dt=[0.01, 0.02])
+        with pytest.raises(DimensionError, match='dt must be positive'):
+            model.discretize(-model.dt)
+        assert model.discretize(np.float64(2 * model.dt)).dt == pytest.approx(2 * model.dt)
+
+
+def test_a_newer_version_of_a_known_class_says_so_with_an_extra_array(tmp_path) -> None:
+    """A known class's file of a newer version: its version and an upgrade hint (README).
+
+    Also when it holds arrays this version does not know: a SecondOrderModel file of
+    version 2 with a new array was called "not a soft_rom model file"; without the array,
+    "at most 1, not 2" (no hint).
+    """
+    good = _second_order().save(tmp_path / 'good.npz')
+    newer = tmp_path / 'newer.npz'
+    for arrays in ({'N': np.eye(4)}, None):
+        _rewrite(good, newer, arrays=arrays, header_update={'format_version': FORMAT_VERSION + 1})
+        with pytest.raises(ModelFileError, match=f'SecondOrderModel file of format version '
+                                                 f'{FORMAT_VERSION + 1} is newer than this '
+                                                 'soft_rom reads.*upgrade soft_rom'):
+            load_model(newer)

@@ -33,7 +33,7 @@ from typing import Any, cast, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from soft_rom.data import all_finite, as_signal
+from soft_rom.data import all_finite, as_signal, check_finite
 from soft_rom.errors import DimensionError, ModelFileError
 from soft_rom.gain import gain_issue
 from soft_rom.models.archive import valid_text
@@ -273,8 +273,13 @@ class LinearROM(ABC):
             Absolute inputs (the models have no input offset).
         dt : float, optional
             Step length; default the native :attr:`dt`.
+
+        ``x`` (n_states, k) with ``u`` (m, k) steps ``k`` states at once. A non-finite
+        entry of ``x`` or ``u`` raises :class:`~soft_rom.errors.DimensionError`.
         """
         xs, us = _state_and_input(x, u, self.n_states, self.n_inputs)
+        check_finite('x', xs, 'stepping')     # a NaN would turn every later state into NaN
+        check_finite('u', us, 'stepping')
         sys_ = self.system if dt is None else self.discretize(dt)
         return sys_.A @ xs + sys_.B @ us
 
@@ -297,7 +302,8 @@ class LinearROM(ABC):
         Parameters
         ----------
         U : ndarray, shape (m, k)
-            Absolute inputs, one column per sample.
+            Absolute inputs, one column per sample (finite: a NaN or Inf raises
+            :class:`~soft_rom.errors.DimensionError` naming its index).
         x0 : ndarray, shape (n_states,), optional
             Initial state; default :meth:`initial_state`.
         return_states : bool
@@ -311,6 +317,7 @@ class LinearROM(ABC):
             States (only with ``return_states``).
         """
         U = as_signal('U', U, rows=self.n_inputs)
+        check_finite('U', U, 'simulating')      # else every output from there on is NaN
         A, B, C, D, _ = self.system
         k = U.shape[1]
         x = self.initial_state() if x0 is None else _arr('x0', x0, (self.n_states,)).copy()

@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from soft_rom.data import as_signal
+from soft_rom.data import as_signal, check_finite, step_length
 from soft_rom.errors import DimensionError, SolverError
 from soft_rom.gain import gain_issue
 from soft_rom.models.base import _arr, _leading, DiscreteSystem, LinearROM
@@ -222,9 +222,7 @@ class CubicSecondOrderModel(LinearROM):
     # -- stepping ------------------------------------------------------------------------
     def step_cache(self, dt: float | None = None) -> StepCache:
         """The matrices of a step of length ``dt`` (cached)."""
-        h = self.dt if dt is None else float(dt)
-        if not np.isfinite(h) or h <= 0:
-            raise DimensionError(f'dt must be positive; got {dt!r}.')
+        h = self.dt if dt is None else step_length(dt)
         cache = self._caches.get(h)
         if cache is None:
             sys_ = self._linear.discretize(h)
@@ -352,7 +350,7 @@ class CubicSecondOrderModel(LinearROM):
         dt : float, optional
             Step length; default the native :attr:`dt`.
         """
-        h = self.dt if dt is None else float(dt)
+        h = self.dt if dt is None else step_length(dt)
         return self._advance(*self._finite_step_args(x, u, h), h)
 
     def _finite_step_args(self, x: ArrayLike, u: ArrayLike, h: float) -> tuple[Array, Array]:
@@ -379,7 +377,7 @@ class CubicSecondOrderModel(LinearROM):
         A : ndarray, shape (2r, 2r)
         Bu : ndarray, shape (2r, m)
         """
-        h = self.dt if dt is None else float(dt)
+        h = self.dt if dt is None else step_length(dt)
         x, u = self._finite_step_args(x, u, h)
         cache = self.step_cache(h)
         out = self._solve_step(cache, x, cache.Bd @ u, None)
@@ -426,7 +424,8 @@ class CubicSecondOrderModel(LinearROM):
             Only with ``return_states``.
         """
         U = as_signal('U', U, rows=self.n_inputs)
-        h = self.dt if dt is None else float(dt)
+        check_finite('U', U, 'simulating')      # else a misleading "did not converge"
+        h = self.dt if dt is None else step_length(dt)
         cache = self.step_cache(h)
         k = U.shape[1]
         n = self.n_states

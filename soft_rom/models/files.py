@@ -185,11 +185,13 @@ def read_model(path: str | os.PathLike[str], *, strict: bool = False) -> Any:
             header = _header_of(path, meta)
         except ModelFileError:
             return
-        _check_version(path, header)
-        if str(header.get('class'))[:100] not in _CLASSES:
+        version = _check_version(path, header)
+        cls = _CLASSES.get(str(header.get('class'))[:100])
+        if cls is None:
             raise ModelFileError(f'{path}: unknown model class '
                                  f'{str(header.get("class"))[:60]!r} (a newer soft_rom may '
                                  'read it).')
+        _check_class_version(path, cls, version)
 
     raw = read_archive(path, allowed, first=_META_KEY, explain=newer)
     header = _header_of(path, raw.pop(_META_KEY))
@@ -201,6 +203,14 @@ def read_model(path: str | os.PathLike[str], *, strict: bool = False) -> Any:
     return model
 
 
+def _check_class_version(path: Path, cls: Any, version: int) -> None:
+    cls_version = int(getattr(cls, '_format_version', FORMAT_VERSION))
+    if version > cls_version:
+        raise ModelFileError(f'{path}: a {cls.__name__} file of format version {version} is '
+                             f'newer than this soft_rom reads (at most {cls_version}); upgrade '
+                             'soft_rom or re-export the model.')
+
+
 def _class_and_fields(path: Path, header: dict[str, Any], raw: dict[str, NDArray[Any]]
                       ) -> tuple[Any, dict[str, Any]]:
     """The registered class a file names and its checked constructor fields."""
@@ -208,10 +218,7 @@ def _class_and_fields(path: Path, header: dict[str, Any], raw: dict[str, NDArray
     cls = _CLASSES.get(str(header.get('class'))[:100])
     if cls is None:
         raise ModelFileError(f'{path}: unknown model class {str(header.get("class"))[:60]!r}.')
-    cls_version = int(getattr(cls, '_format_version', FORMAT_VERSION))
-    if version > cls_version:
-        raise ModelFileError(f'{path}: a {cls.__name__} file has format version at most '
-                             f'{cls_version}, not {version}.')
+    _check_class_version(path, cls, version)
     needed = set(cls._matrix_names) | {'y_ref'}
     if not needed <= set(raw) <= needed | set(cls._optional_matrices):
         raise ModelFileError(

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 import scipy.linalg as sla
 
+from soft_rom.data import step_length
 from soft_rom.errors import DimensionError
 from soft_rom.models.base import (
     _arr,
@@ -122,9 +123,7 @@ class SecondOrderModel(LinearROM):
         return np.asarray(np.linalg.eigvals(self.first_order()[0]), dtype=np.complex128)
 
     def discretize(self, dt: float | None = None) -> DiscreteSystem:
-        dt = self.dt if dt is None else float(dt)
-        if not np.isfinite(dt) or dt <= 0:
-            raise DimensionError(f'dt must be positive; got {dt!r}.')
+        dt = self.dt if dt is None else step_length(dt)
         Ac, Bc, Cc = self.first_order()
         key = np.concatenate([Ac.ravel(), Bc.ravel()]).tobytes()
         Ad, Bd = _zoh_cached(key, self.r, self.n_inputs, dt)
@@ -217,10 +216,11 @@ class DiscreteModel(LinearROM):
         A multiple ``j`` gives ``A^j`` and ``(A^{j-1} + ... + I) B`` (input held for ``j``
         native steps).
         """
-        if dt is None or abs(dt - self.dt) <= 1e-9 * self.dt:
+        if dt is None:
             return DiscreteSystem(self.A, self.B, self.C, self.D, self.dt)
-        if not np.isfinite(dt) or dt <= 0:
-            raise DimensionError(f'dt must be positive; got {dt!r}.')
+        dt = step_length(dt)
+        if abs(dt - self.dt) <= 1e-9 * self.dt:
+            return DiscreteSystem(self.A, self.B, self.C, self.D, self.dt)
         ratio = dt / self.dt
         j = int(round(ratio))
         if j < 1 or abs(ratio - j) > 1e-6:
