@@ -25,7 +25,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.errors import DimensionError
 
-__all__ = ['Episode', 'all_finite', 'as_signal', 'check_finite', 'step_length']
+__all__ = ['Episode', 'all_finite', 'as_signal', 'check_finite', 'nonuniform_message',
+           'step_length']
 
 
 def as_signal(name: str, values: ArrayLike, *, rows: int | None = None,
@@ -103,6 +104,26 @@ def step_length(dt: Any) -> float:
     return h
 
 
+def nonuniform_message(name: str, t: ArrayLike, rtol: float = 1e-6) -> str:
+    """Why the sample times ``t`` of episode ``name`` are not uniform to ``rtol``, in words.
+
+    Names the smallest and largest step; a spread that small (under 1e-3 of the step) is
+    what float32 times give (about 7 digits), so it says to pass float64 times.
+    """
+    d = np.diff(np.asarray(t, dtype=np.float64))
+    mean = float(np.mean(d)) if d.size else math.nan
+    spread = float(np.max(np.abs(d - mean))) / mean if d.size and mean > 0 else math.nan
+    head = f'episode {name!r} is not uniformly sampled'
+    if not math.isfinite(spread):
+        return f'{head} (fewer than 2 samples); resample it first (soft-rom convert --dt).'
+    head += (f': its steps range from {float(d.min()):.9g} s to {float(d.max()):.9g} s '
+             f'(relative spread {spread:.2g}, allowed {rtol:g})')
+    if spread < 1e-3:
+        return (f'{head}; times stored as float32 are this coarse: give the times as float64 '
+                '(e.g. np.arange(k) * dt).')
+    return f'{head}; resample it first (soft-rom convert --dt).'
+
+
 @dataclass(frozen=True)
 class Episode:
     """One recorded or simulated episode.
@@ -110,7 +131,7 @@ class Episode:
     Parameters
     ----------
     t : ndarray, shape (k,)
-        Sample times in seconds, strictly increasing (uniform for fitting).
+        Sample times in seconds, finite and strictly increasing (uniform for fitting).
     U : ndarray, shape (m, k)
         Inputs (e.g. chamber pressures in Pa), absolute.
     Y : ndarray, shape (p, k)
@@ -134,6 +155,10 @@ class Episode:
     def __post_init__(self) -> None:
         t = np.asarray(self.t, dtype=np.float64).reshape(-1)
         k = t.size
+        if not all_finite(t):
+            bad = int(np.flatnonzero(~np.isfinite(t))[0])
+            raise DimensionError(f'episode {self.name!r}: time stamps must be finite; '
+                                 f't[{bad}] = {t[bad]}.')
         object.__setattr__(self, 't', t)
         object.__setattr__(self, 'U', as_signal('U', self.U, cols=k))
         object.__setattr__(self, 'Y', as_signal('Y', self.Y, cols=k))

@@ -24,22 +24,26 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+import math
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from soft_rom.data import check_finite, Episode
+from soft_rom.data import check_finite, Episode, nonuniform_message
 from soft_rom.errors import ConfigError, DimensionError
 from soft_rom.metrics import relative_error_from_squares
 from soft_rom.models import DiscreteModel, LinearROM, run_states, SecondOrderModel
 from soft_rom.reduce import episode_head
 
-__all__ = ['Evaluation', 'evaluate', 'held_out_errors', 'predict']
+__all__ = ['Evaluation', 'MAX_STEP_RATIO', 'evaluate', 'held_out_errors', 'predict']
 
 Array = NDArray[np.float64]
 
 _INITIAL = ('reference', 'output')
+#: Most by which the data step and the model step may differ (either way) in :func:`predict`:
+#: beyond it the times are in other units (ms taken for s: a factor of 1000), not resampled.
+MAX_STEP_RATIO = 100.0
 
 
 def _check_sizes(model: LinearROM, ep: Episode) -> None:
@@ -50,6 +54,15 @@ def _check_sizes(model: LinearROM, ep: Episode) -> None:
             f'{model.n_outputs} outputs. Evaluate on data of the same robot/layout.')
 
 
+def _check_step_ratio(model: LinearROM, name: str, h: float) -> None:
+    ratio = h / model.dt
+    if not 1.0 / MAX_STEP_RATIO <= ratio <= MAX_STEP_RATIO:
+        raise DimensionError(
+            f'episode {name!r} is sampled every {h:g} s and the {model.method} model steps by '
+            f'{model.dt:g} s (a factor of {ratio:.3g}): are the episode times in seconds? '
+            f'Steps that differ by more than a factor of {MAX_STEP_RATIO:g} are refused.')
+
+
 def predict(model: LinearROM, episode: Episode, *, initial: str = 'reference') -> Array:
     """Simulate ``model`` on the inputs of ``episode``; outputs at the episode's times.
 
@@ -57,7 +70,8 @@ def predict(model: LinearROM, episode: Episode, *, initial: str = 'reference') -
     ----------
     model : LinearROM
     episode : Episode
-        Uniformly sampled; ``U (m, k)`` absolute inputs.
+        Uniformly sampled, times in seconds (a step within a factor of
+        :data:`MAX_STEP_RATIO` of the model's); ``U (m, k)`` absolute inputs, finite.
     initial : {'reference', 'output'}
         Initial state: the reference configuration (zero deviation, at rest), or the
         least-squares state matching the first measured output (``state_from_output``).
@@ -71,14 +85,16 @@ def predict(model: LinearROM, episode: Episode, *, initial: str = 'reference') -
         raise ConfigError(f"initial must be 'reference' or 'output'; got {initial!r}.")
     _check_sizes(model, episode)
     ep = episode
+    check_finite(f'U of episode {ep.name!r}', ep.U, 'predicting')   # else NaN from there on
     k = ep.n_samples
     x0 = (model.state_from_output(ep.Y[:, 0], ep.U[:, 0]) if initial == 'output'
           else model.initial_state())
     if k == 1:
         return model.output(x0, ep.U[:, 0])[:, None]
     if not ep.is_uniform():
-        raise DimensionError(f'episode {ep.name!r} is not uniformly sampled; resample it first.')
+        raise DimensionError(nonuniform_message(ep.name, ep.t))
     h = ep.dt
+    _check_step_ratio(model, ep.name, h)
     if getattr(model, 'is_nonlinear', False):    # continuous nonlinear model: its own stepper
         return np.asarray(model.simulate(ep.U, x0, dt=h))  # type: ignore[call-arg]
     if isinstance(model, SecondOrderModel):
@@ -151,6 +167,19 @@ def _row(episode: str, segment: str, sq: dict[str, float], n: int) -> dict[str, 
             'relative_deviation_error': relative_error_from_squares(sq['err'], sq['dev'])}
 
 
+def _check_split(t_split: float, eps: Sequence[Episode]) -> None:
+    """A ``t_split`` that leaves the pooled train or test part empty (NaN rows) is refused."""
+    longest = max(float(ep.t[-1] - ep.t[0]) for ep in eps)
+    try:
+        ok = math.isfinite(t_split) and 1e-12 < t_split <= longest + 1e-12
+    except TypeError:
+        ok = False
+    if not ok:
+        raise ConfigError(f't_split={t_split!r} leaves no training or no test samples: it is '
+                          "in seconds from each episode's first sample, and the episodes "
+                          f'last at most {longest:g} s.')
+
+
 def evaluate(model: LinearROM, episodes: Episode | Sequence[Episode], *,
              t_split: float | None = None, initial: str = 'reference',
              return_predictions: bool = False) -> Evaluation:
@@ -164,7 +193,9 @@ def evaluate(model: LinearROM, episodes: Episode | Sequence[Episode], *,
     model : LinearROM
     episodes : Episode or sequence of Episode
     t_split : float, optional
-        Split time in seconds from each episode's first sample.
+        Split time in seconds from each episode's first sample, in ``(0, T]`` with ``T`` the
+        longest episode's duration (else :class:`~soft_rom.errors.ConfigError`: the train or
+        test part would be empty everywhere).
     initial : {'reference', 'output'}
         See :func:`predict`.
     return_predictions : bool
@@ -177,6 +208,8 @@ def evaluate(model: LinearROM, episodes: Episode | Sequence[Episode], *,
     eps = [episodes] if isinstance(episodes, Episode) else list(episodes)
     if not eps:
         raise DimensionError('no episodes to evaluate on.')
+    if t_split is not None:
+        _check_split(t_split, eps)
     segments = ['all'] if t_split is None else ['all', 'train', 'test']
     pooled = {s: {'err': 0.0, 'abs': 0.0, 'dev': 0.0, 'n': 0} for s in segments}
     rows: list[dict[str, Any]] = []

@@ -71,10 +71,14 @@ def relative_deviation_error(Y: ArrayLike, Y_hat: ArrayLike, y_ref: ArrayLike, *
         Returned when the deviations are all zero (default NaN), as in :func:`relative_error`.
     """
     Y = as_signal('Y', Y)
+    Y_hat = as_signal('Y_hat', Y_hat)
+    if Y.shape != Y_hat.shape:      # before ``- y_ref``, which broadcasts or fails in numpy
+        raise DimensionError(f'Y and Y_hat must have the same shape; got {Y.shape}, '
+                             f'{Y_hat.shape}.')
     y_ref = np.asarray(y_ref, dtype=np.float64).reshape(-1, 1)
     if y_ref.shape[0] != Y.shape[0]:
         raise DimensionError(f'y_ref must have {Y.shape[0]} entries; got {y_ref.shape[0]}.')
-    return relative_error(Y - y_ref, as_signal('Y_hat', Y_hat) - y_ref, if_zero=if_zero)
+    return relative_error(Y - y_ref, Y_hat - y_ref, if_zero=if_zero)
 
 
 def output_errors(Y: ArrayLike, Y_hat: ArrayLike, y_ref: ArrayLike) -> dict[str, float]:

@@ -187,3 +187,65 @@ def test_a_nan_in_the_data_is_refused_not_averaged_into_nan_errors():
     with pytest.raises(DimensionError, match=r"Y of episode 'ep1' contains NaN or Inf "
                                              r'\(first at index \(1, 7\)\).*evaluating'):
         evaluate(m, [Episode(t=np.arange(20) * m.dt, U=U, Y=Y, name='ep1')])
+
+
+def test_times_in_other_units_are_refused_not_predicted():
+    """Times in ms are refused; within a factor of 100 either way is still predicted.
+
+    A step 1000 times the model's gave a LOpInf prediction at 1 s steps (deviation error
+    1.77 on the demo's ep3, no word said) and DMDc/ERA 1000 steps per sample (overflow, NaN).
+    """
+    for model in (_second_order(dt=1e-3), _discrete(dt=1e-3)[0]):
+        m, p = model.n_inputs, model.n_outputs
+        U = np.ones((m, 50))
+        for t in (np.arange(50) * 1.0, np.arange(50) * 1e-6):     # ms, or ns, taken for s
+            ep = Episode(t=t, U=U, Y=np.zeros((p, 50)), name='ms')
+            with pytest.raises(DimensionError, match=r"episode 'ms' is sampled every .* "
+                                                     r'\(a factor of .*\): are the episode '
+                                                     'times in seconds'):
+                predict(model, ep)
+        ok = Episode(t=np.arange(50) * 0.1, U=U, Y=np.zeros((p, 50)))
+        assert np.isfinite(predict(model, ok)).all()
+
+
+def test_predict_refuses_non_finite_inputs():
+    """NaN inputs: ``evaluate`` refused them, ``predict`` (under it) returned NaN outputs."""
+    model = _second_order()
+    U = np.ones((1, 30))
+    U[0, 12] = np.inf
+    ep = Episode(t=np.arange(30) * 1e-3, U=U, Y=np.zeros((2, 30)), name='e')
+    with pytest.raises(DimensionError, match=r"U of episode 'e' contains NaN or Inf \(first "
+                                             r'at index \(0, 12\)\)'):
+        predict(model, ep)
+
+
+@pytest.mark.parametrize('t_split', [float('nan'), -0.5, 0.0, 3000.0, 'soon'])
+def test_a_split_that_leaves_a_part_empty_is_refused(t_split):
+    """t_split in ms (3000 for 3 s), negative or NaN gave rows of 0 samples and NaN errors."""
+    model = _second_order()
+    ep = Episode(t=np.arange(200) * 1e-3, U=np.ones((1, 200)), Y=np.ones((2, 200)))
+    with pytest.raises(ConfigError, match=r'leaves no training or no test samples: it is in '
+                                          r'seconds .* at most 0\.199 s'):
+        evaluate(model, ep, t_split=t_split)
+    res = evaluate(model, ep, t_split=0.199)        # the last sample alone is a test part
+    assert res.get(segment='test')['n_samples'] == 1
+
+
+def test_an_episode_refuses_non_finite_times_and_names_float32_times():
+    """A NaN time is refused; float32 times are named as the cause of a non-uniform step.
+
+    A NaN time was accepted (dt NaN), then called "not uniformly sampled"; float32 times
+    (uniform, but to 7 digits) were told to "resample" with no hint.
+    """
+    with pytest.raises(DimensionError, match=r"episode 'x': time stamps must be finite; "
+                                             r't\[3\] = nan'):
+        Episode(t=[0.0, 1.0, 2.0, np.nan], U=np.ones((1, 4)), Y=np.ones((1, 4)), name='x')
+    t32 = (np.arange(2000) * 1e-3).astype(np.float32)
+    ep = Episode(t=t32, U=np.ones((1, 2000)), Y=np.ones((2, 2000)), name='f32')
+    with pytest.raises(DimensionError, match=r"episode 'f32' is not uniformly sampled: its "
+                                             r'steps range from .*float32.*float64'):
+        predict(_second_order(), ep)
+    jitter = np.arange(20) * 1e-3 + np.r_[0, 4e-4, np.zeros(18)]
+    ep = Episode(t=jitter, U=np.ones((1, 20)), Y=np.ones((2, 20)), name='j')
+    with pytest.raises(DimensionError, match='resample it first'):
+        predict(_second_order(), ep)

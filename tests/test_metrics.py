@@ -42,3 +42,20 @@ def test_zero_reference_and_pooled_squares() -> None:
                                          float(np.sum(Y1 ** 2) + np.sum(Y2 ** 2)))
     whole = relative_error(np.hstack([Y1, Y2]), np.hstack([Y1 + E1, Y2 + E2]))
     assert pooled == pytest.approx(whole, rel=1e-12)
+
+
+def test_deviation_error_names_a_transposed_prediction() -> None:
+    """A prediction of another shape is named, as relative_error does.
+
+    ``Y_hat`` (k, p) against ``Y`` (p, k) was numpy's broadcast ValueError, and a ``Y_hat``
+    of one row (or 1-D) was broadcast against ``y_ref`` to p rows and scored silently.
+    """
+    Y = np.ones((3, 5))
+    with pytest.raises(DimensionError, match=r'Y and Y_hat must have the same shape; got '
+                                             r'\(3, 5\), \(5, 3\)'):
+        relative_deviation_error(Y, Y.T, np.zeros(3))
+    with pytest.raises(DimensionError, match='same shape'):
+        output_errors(Y, Y.T, np.zeros(3))
+    for one_row in (np.ones(5), np.ones((1, 5))):
+        with pytest.raises(DimensionError, match=r'same shape; got \(3, 5\), \(1, 5\)'):
+            relative_deviation_error(Y, one_row, np.zeros(3))

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from soft_rom.data import as_signal, check_finite, Episode
+from soft_rom.data import as_signal, check_finite, Episode, nonuniform_message
 from soft_rom.errors import ConfigError, DimensionError
 
 __all__ = ['BASES', 'ReducedData', 'TrainingData']
@@ -38,8 +38,7 @@ def _common_dt(t: Sequence[Array], names: Sequence[str]) -> float:
     for ti, name in zip(t, names):
         d = np.diff(ti)
         if ti.size < 2 or (ti.size > 2 and np.max(np.abs(d - d.mean())) > 1e-6 * d.mean()):
-            raise DimensionError(f'episode {name!r} is not uniformly sampled (or has fewer '
-                                 'than 2 samples); resample it first (soft-rom convert --dt).')
+            raise DimensionError(nonuniform_message(name, ti))
         dts.append(float(np.mean(d)))
     if any(abs(d - dts[0]) > 1e-6 * dts[0] for d in dts):
         raise DimensionError(f'episodes have different sample times {dts}; resample first '

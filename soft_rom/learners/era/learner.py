@@ -32,7 +32,7 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from soft_rom.data import as_signal, check_finite, Episode
+from soft_rom.data import as_signal, check_finite, Episode, nonuniform_message
 from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError, DimensionError, NotFittedError
 from soft_rom.learners.era import select as era_select
@@ -241,7 +241,7 @@ class ERAOKID(ERASteps):
         t0 = time.perf_counter()
         ep = _one_episode(episode)
         if not ep.is_uniform():
-            raise DimensionError(f'episode {ep.name!r} is not uniformly sampled.')
+            raise DimensionError(nonuniform_message(ep.name, ep.t))
         check_finite(f'U of episode {ep.name!r}', ep.U)
         check_finite(f'Y of episode {ep.name!r}', ep.Y)
         p = ep.Y.shape[0]
