@@ -396,7 +396,12 @@ class TrainingSet:
                        metadata=self.metadata(name))
 
     def episodes(self, names: Sequence[str] | None = None) -> list[Episode]:
-        """Episodes ``names`` (default all, in order); ``Q`` is lazy (zarr) or ``None``."""
+        """Episodes ``names`` (default all, in order); ``Q`` is lazy (zarr) or ``None``.
+
+        One name as a string is a list of that episode (not of its letters).
+        """
+        if isinstance(names, str):
+            names = [names]
         return [self[n] for n in (self.episode_names if names is None else names)]
 
     def __iter__(self) -> Iterator[Episode]:

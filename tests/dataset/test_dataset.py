@@ -208,3 +208,13 @@ def test_q_has_one_write_path_and_chunk_files_match_zarr(tmp_path):
     for name in names:
         assert (tmp_path / 'a.zarr/episodes/ep/Q' / name).read_bytes() == \
             (tmp_path / 'z.zarr' / name).read_bytes()
+
+
+def test_episodes_of_one_name_given_as_a_string(tmp_path):
+    """``ts.episodes('ep12')`` iterated the letters: "no episode 'e'"."""
+    ts = TrainingSet.from_episodes(tmp_path / 't.zarr', [_episode(10, name='ep12'),
+                                                         _episode(12, seed=1, name='ep3')],
+                                   **NAMES)
+    (one,) = ts.episodes('ep12')
+    assert one.name == 'ep12' and one.n_samples == 10
+    assert [e.name for e in ts.episodes(['ep3', 'ep12'])] == ['ep3', 'ep12']
