@@ -76,7 +76,7 @@ from soft_rom.predictor.envelope import Envelopes
 from soft_rom.predictor.health import assess
 from soft_rom.predictor.measuring import _finite, MAX_QUEUED_MEASUREMENTS, Measuring
 from soft_rom.predictor.monitor import ErrorMonitor
-from soft_rom.predictor.stepping import _HISTORY, _ok_ns, to_ns
+from soft_rom.predictor.stepping import _HISTORY, _ok_ns, time_problem, to_ns
 from soft_rom.predictor.thresholds import Thresholds
 
 __all__ = ['COUNTERS', 'MAX_QUEUED_MEASUREMENTS', 'Predictor', 'to_ns']
@@ -305,9 +305,9 @@ class Predictor(Measuring):
         when = self.stamp_now() if t_ns is None else t_ns
         self._alarms[key] = (_NONE if when is None else when), why
 
-    def _bad_time(self, what: str) -> bool:
+    def _bad_time(self, what: str, t_ns: Any = None) -> bool:
         self.counters['bad_time'] += 1
-        self._alarm('dropped', None, f'{what}: time not finite or out of range')
+        self._alarm('dropped', None, f'{what}: {time_problem(t_ns)}')
         return False
 
     # -- inputs --------------------------------------------------------------------------
@@ -324,13 +324,13 @@ class Predictor(Measuring):
     def set_input_ns(self, u: ArrayLike, stamp_ns: int) -> bool:
         """Take a whole input vector stamped ``stamp_ns``; returns whether it was used."""
         if not _ok_ns(stamp_ns):
-            return self._bad_time('input')
+            return self._bad_time('input', stamp_ns)
         stamp_ns = int(stamp_ns)
         vec = np.asarray(u, dtype=np.float64)
         m = self._dyn.m
         if vec.shape != (m,):
             return self._drop('wrong_length', None, stamp_ns,
-                              f'input of length {vec.size}, expected {m}', every=True)
+                              f'input of shape {vec.shape}, expected ({m},)', every=True)
         env = self._env
         if env.u_lo is None:
             if not _finite(vec):
@@ -349,7 +349,7 @@ class Predictor(Measuring):
     def set_channel_ns(self, index: int, value: float, stamp_ns: int) -> bool:
         """Take one input channel (per-chamber topics); returns whether it was used."""
         if not _ok_ns(stamp_ns):
-            return self._bad_time(f'input {index}')
+            return self._bad_time(f'input {index}', stamp_ns)
         stamp_ns = int(stamp_ns)
         m = self._dyn.m
         if not (isinstance(index, (int, np.integer)) and 0 <= index < m):

@@ -37,6 +37,11 @@ __all__ = ['Dynamics', 'is_linear', 'kalman_gain', 'model_info']
 Array = NDArray[np.float64]
 
 
+#: What every model the predictor runs has (the rest of the protocol is checked on use).
+_PROTOCOL = ('dt', 'y_ref', 'n_states', 'n_inputs', 'n_outputs', 'input_names',
+             'output_names', 'initial_state', 'output')
+
+
 def is_linear(model: Any) -> bool:
     """Whether ``model`` takes the linear fast path.
 
@@ -136,6 +141,11 @@ class Dynamics:
 
     def __init__(self, model: Any, config: Any,
                  path: str | os.PathLike[str] | None = None) -> None:
+        missing = [a for a in _PROTOCOL if not hasattr(model, a)]
+        if missing:
+            raise TypeError(f'the predictor needs a model (a LinearROM, a model file path or a '
+                            f'model of the predictor protocol); got {type(model).__name__} '
+                            f'{str(model)[:40]!r}, without {", ".join(missing[:4])}.')
         self.model = model
         self.path = None if path is None else str(path)
         self.sha256 = file_sha256(path) if path is not None else None

@@ -51,7 +51,8 @@ def assess(pred: Any, now_ns: int | None, Level: Any, severity: dict[Any, int]) 
     for key, (t_alarm, why) in sorted(pred._alarms.items()):
         latched = key == 'diverged' and pred._diverged_latched and not cfg.auto_reset
         early = t_alarm == NO_STAMP       # before any time was known: until one is
-        if latched or (now_ns is None and early) or (
+        # no time known yet (every input so far dropped): each alarm so far says why
+        if latched or now_ns is None or (
                 now_ns is not None and not early and now_ns - t_alarm <= hold):
             reasons.append((Level(_ALARM_LEVEL.get(key, 1)), why))
     if pred._dyn.trust_issues:

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.predictor.monitor import ErrorMonitor
-from soft_rom.predictor.stepping import _HISTORY, _ok_ns, Stepping, to_ns
+from soft_rom.predictor.stepping import _HISTORY, _ok_ns, Stepping, time_problem, to_ns
 
 __all__ = ['MAX_QUEUED_MEASUREMENTS', 'Measuring']
 
@@ -81,8 +81,7 @@ class Measuring(Stepping):
         d = self._dyn
         if not _ok_ns(stamp_ns):
             self.counters['measured_dropped'] += 1
-            self._alarm('measured', None, 'measurement dropped: time not finite or out of '
-                                          'range')
+            self._alarm('measured', None, f'measurement dropped: {time_problem(stamp_ns)}')
             return None
         stamp_ns = int(stamp_ns)
         if y.shape != (d.p,):

@@ -37,6 +37,14 @@ def _ok_ns(t: Any) -> bool:
                 and -_T_LIMIT <= t <= _T_LIMIT)
 
 
+def time_problem(t_ns: Any = None) -> str:
+    """Why a time was refused, in words (``t_ns``: what an ``*_ns`` method was given)."""
+    if isinstance(t_ns, (float, np.floating)) and math.isfinite(t_ns):
+        return (f'time {float(t_ns)!r} is a float; the *_ns methods take an int of '
+                'nanoseconds (the others float seconds)')
+    return 'time not finite or out of range'
+
+
 class Stepping:
     """Time stepping, outputs and divergence checks (mixed into ``Predictor``)."""
 
@@ -82,7 +90,7 @@ class Stepping:
 
         def _alarm(self, key: str, t_ns: int | None, why: str) -> None: ...
 
-        def _bad_time(self, what: str) -> bool: ...
+        def _bad_time(self, what: str, t_ns: Any = None) -> bool: ...
 
         def _latch(self, index: int | None, value: Any) -> None: ...
 
@@ -119,7 +127,7 @@ class Stepping:
         ``bad_time``.
         """
         if not _ok_ns(t_ns):
-            return int(self._bad_time('advance'))
+            return int(self._bad_time('advance', t_ns))
         t_ns = int(t_ns)
         limit = self.config.clock_reset_s
         if self.config.stepping == 'fixed' and self._k is not None and limit > 0 and \

@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+import pytest
 
 from soft_rom.models import SecondOrderModel
 from soft_rom.predictor import Level, Predictor, PredictorConfig
@@ -108,4 +109,36 @@ def test_a_measurement_of_wrong_length_or_time_is_dropped_with_the_reason() -> N
     assert pred.measure(y, float('nan')) is None
     assert pred.measure_ns(y, 1.7e18) is None                    # float where int ns is due
     assert pred.counters['measured_dropped'] == 2
-    assert 'time not finite or out of range' in pred.health().message
+    assert ('time 1.7e+18 is a float; the *_ns methods take an int of nanoseconds'
+            in pred.health().message)
+
+
+def test_a_caller_whose_every_input_is_dropped_is_told_why() -> None:
+    """Every input dropped (shape (m, 1), NaN, float-ns stamps): health says why.
+
+    It said only "no value yet on input(s) ... (holding 0)" (no accepted stamp: the alarm
+    was never shown), and a shape (m, 1) was called "input of length m, expected m".
+    """
+    model = _model()
+    m = model.n_inputs
+    cases = [(lambda p, j: p.set_input(np.ones((m, 1)), j * 1e-3),
+              f'input of shape ({m}, 1), expected ({m},)'),
+             (lambda p, j: p.set_input(np.full(m, np.nan), j * 1e-3), 'input with NaN/Inf'),
+             (lambda p, j: p.set_input_ns(np.ones(m), j * 1e6),
+              'is a float; the *_ns methods take an int of nanoseconds')]
+    for feed, why in cases:
+        pred = Predictor(model)
+        for j in range(20):
+            assert not feed(pred, j)
+        health = pred.health()
+        assert health.level == Level.STALE
+        assert why in health.message, health.message
+        assert 'no value yet' in health.message
+
+
+def test_something_that_is_not_a_model_is_one_type_error() -> None:
+    """``Predictor(42)`` was "AttributeError: 'int' object has no attribute 'dt'"."""
+    for bad in (42, np.eye(3), None):
+        with pytest.raises(TypeError, match=f'the predictor needs a model .*got '
+                                            f'{type(bad).__name__}'):
+            Predictor(bad)
