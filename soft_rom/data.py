@@ -66,7 +66,10 @@ def as_signal(name: str, values: ArrayLike, *, rows: int | None = None,
             f'{" (one channel)" if len(given) == 1 else ""}. '
             'Arrays are (n_channels, n_samples): transpose if you passed (samples, channels).')
     if cols is not None and arr.shape[1] != cols:
-        raise DimensionError(f'{name} must have {cols} samples (columns); got shape {arr.shape}.')
+        flipped = (' Arrays are (n_channels, n_samples): transpose if you passed (samples, '
+                   'channels).' if arr.shape[0] == cols else '')
+        raise DimensionError(f'{name} must have {cols} samples (columns); got shape '
+                             f'{arr.shape}.{flipped}')
     return arr
 
 
@@ -167,8 +170,10 @@ class Episode:
             if shape is None:
                 object.__setattr__(self, 'Q', as_signal('Q', self.Q, cols=k))
             elif len(shape) != 2 or shape[1] != k:
+                flipped = ' (transposed? arrays are (n_channels, n_samples))' if len(
+                    shape) == 2 and shape[0] == k else ''
                 raise DimensionError(
-                    f'Q must have shape (n, {k}) to match t; got {tuple(shape)}.')
+                    f'Q must have shape (n, {k}) to match t; got {tuple(shape)}{flipped}.')
         if k > 1 and np.any(np.diff(t) <= 0):
             raise DimensionError(
                 f'episode {self.name!r}: time stamps must be strictly increasing.')

@@ -249,3 +249,13 @@ def test_an_episode_refuses_non_finite_times_and_names_float32_times():
     ep = Episode(t=jitter, U=np.ones((1, 20)), Y=np.ones((2, 20)), name='j')
     with pytest.raises(DimensionError, match='resample it first'):
         predict(_second_order(), ep)
+
+
+def test_an_episode_of_transposed_arrays_says_transpose():
+    """U, Y or Q as (samples, channels) were refused without the hint simulate gives."""
+    t = np.arange(50) * 1e-3
+    for U, Y, Q, what in ((np.ones((50, 2)), np.ones((3, 50)), None, 'U'),
+                          (np.ones((2, 50)), np.ones((50, 3)), None, 'Y'),
+                          (np.ones((2, 50)), np.ones((3, 50)), np.ones((50, 7)), 'Q')):
+        with pytest.raises(DimensionError, match=f'{what} must have .*transpose'):
+            Episode(t=t, U=U, Y=Y, Q=Q)
