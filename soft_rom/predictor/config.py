@@ -8,6 +8,8 @@ import enum
 import math
 from typing import Any
 
+import numpy as np
+
 from soft_rom.errors import ConfigError
 
 __all__ = ['Health', 'Level', 'PredictorConfig', 'REBUILD_FIELDS', 'SEVERITY']
@@ -137,6 +139,11 @@ class PredictorConfig:
     strict_model: bool = False
 
     def __post_init__(self) -> None:
+        for name in self.__dataclass_fields__:      # numpy scalars as the Python ones
+            value = getattr(self, name)
+            if isinstance(value, np.generic) and not isinstance(value, (np.str_, np.bytes_)):
+                object.__setattr__(self, name, value.item())
+
         def bad(name: str, expected: str) -> ConfigError:
             return ConfigError(f'predictor {name} must be {expected}; got '
                                f'{getattr(self, name)!r}.')

@@ -461,8 +461,8 @@ class Predictor(Measuring):
         Default :meth:`stamp_now`, which is right whatever clock the sensors stamp with;
         the runtime loop adds what only the reception clock can tell (nothing received).
         """
-        if isinstance(now, float):
-            now = to_ns(now)
+        if isinstance(now, (float, np.floating)):      # np.float32 too (was ignored)
+            now = to_ns(float(now))
         elif now is not None and not _ok_ns(now):
             now = None
         return assess(self, self.stamp_now() if now is None else int(now), Level, SEVERITY)

@@ -7,6 +7,7 @@ import threading
 import numpy as np
 import pytest
 
+from soft_rom.errors import ConfigError
 from soft_rom.models import SecondOrderModel
 from soft_rom.predictor import Level, Predictor, PredictorConfig
 
@@ -142,3 +143,27 @@ def test_something_that_is_not_a_model_is_one_type_error() -> None:
         with pytest.raises(TypeError, match=f'the predictor needs a model .*got '
                                             f'{type(bad).__name__}'):
             Predictor(bad)
+
+
+def test_numpy_scalars_are_settings_and_times_like_python_numbers() -> None:
+    """Numpy scalars work as settings and as ``health(now)`` times.
+
+    ``rate_hz=np.int64(100)`` was refused as "must be a finite number >= 0", and
+    ``health(np.float32(t))`` ignored ``t`` (not a Python float) and reported at the newest
+    stamp instead (OK where the inputs were silent for 4 s: STALE).
+    """
+    cfg = PredictorConfig(rate_hz=np.int64(1000), error_window=np.int64(50),
+                          kalman=np.bool_(False), warn_threshold=np.float32(0.25))
+    assert (cfg.rate_hz, cfg.error_window, cfg.kalman) == (1000, 50, False)
+    assert type(cfg.error_window) is int and type(cfg.warn_threshold) is float
+    assert cfg == PredictorConfig(rate_hz=1000, error_window=50, kalman=False,
+                                  warn_threshold=float(np.float32(0.25)))
+    with pytest.raises(ConfigError, match='error_window must be an integer >= 1'):
+        PredictorConfig(error_window=np.float64(2.5))
+    model = _model()
+    pred = Predictor(model)
+    assert pred.set_input(np.zeros(model.n_inputs), 1.0)
+    assert pred.health(5.0).level == Level.STALE
+    for now in (np.float64(5.0), np.float32(5.0)):
+        assert pred.health(now).level == Level.STALE, now
+    assert pred.health(np.float32(1.0)).level != Level.STALE
