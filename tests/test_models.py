@@ -348,3 +348,48 @@ def test_a_newer_version_of_a_known_class_says_so_with_an_extra_array(tmp_path) 
                                                  f'{FORMAT_VERSION + 1} is newer than this '
                                                  'soft_rom reads.*upgrade soft_rom'):
             load_model(newer)
+
+
+def test_a_string_is_one_name_or_every_input_s_unit_not_its_letters(tmp_path) -> None:
+    """A string is every channel's unit, or one name.
+
+    ``input_units='Pa'`` for two inputs gave units ['P', 'a'] (saved so in the file);
+    ``input_names='pq'`` gave two inputs named 'p' and 'q'.
+    """
+    rng = np.random.default_rng(0)
+    K, C = _random_spd(rng, 2, 10.0, 20.0), np.eye(2)
+    model = SecondOrderModel(K, C, np.ones((2, 2)), np.eye(2), dt=1e-3, input_units='Pa',
+                             output_units='m')
+    assert model.input_units == ['Pa', 'Pa'] and model.output_units == ['m', 'm']
+    assert load_model(model.save(tmp_path / 'u.npz')).input_units == ['Pa', 'Pa']
+    with pytest.raises(DimensionError, match='input_names must list 2 names; got 1'):
+        SecondOrderModel(K, C, np.ones((2, 2)), np.eye(2), dt=1e-3, input_names='pq')
+    one = SecondOrderModel(K, C, np.ones((2, 1)), np.eye(2), dt=1e-3, input_names='chamber')
+    assert one.input_names == ['chamber']
+
+
+def test_metadata_of_numpy_values_and_nan_is_saved_as_json(tmp_path) -> None:
+    """Metadata: numpy values become Python ones, NaN and Inf None (JSON has neither).
+
+    Numpy values were a TypeError at construction ("Object of type int64 is not JSON
+    serializable"); a NaN diagnostic made save() fail with "Out of range float values are
+    not JSON compliant".
+    """
+    meta = {'n': np.int64(3), 'scale': np.ones(2, dtype=np.float32), 'fit': (1, 2),
+            'diagnostics': {'training_error': float('nan'), 'margin': np.float64(np.inf)}}
+    model = _second_order()
+    model = SecondOrderModel(model.K, model.C, model.B, model.E, dt=model.dt, metadata=meta)
+    expected = {'n': 3, 'scale': [1.0, 1.0], 'fit': [1, 2],
+                'diagnostics': {'training_error': None, 'margin': None}}
+    assert model.metadata == expected and type(model.metadata['n']) is int
+    assert load_model(model.save(tmp_path / 'm.npz')).metadata == expected
+
+
+def test_a_model_dt_that_is_not_a_number_is_one_line() -> None:
+    """``dt='0.001'`` was numpy's "ufunc 'isfinite' not supported" TypeError."""
+    model = _second_order()
+    for bad, words in (('1 ms', 'a positive number of seconds'), (None, 'a positive number'),
+                       (0.0, 'positive'), (float('nan'), 'positive')):
+        with pytest.raises(DimensionError, match=f'dt must be {words}'):
+            SecondOrderModel(model.K, model.C, model.B, model.E, dt=bad)
+    assert SecondOrderModel(model.K, model.C, model.B, model.E, dt='0.002').dt == 0.002

@@ -45,6 +45,7 @@ __all__ = [
     'MAX_JSON_DEPTH',
     'parse_json',
     'read_archive',
+    'json_safe',
     'read_user_arrays',
     'valid_text',
 ]
@@ -244,6 +245,24 @@ def read_archive(path: str | os.PathLike[str], allowed: Collection[str],
     except Exception as err:  # BadZipFile, zlib.error, NotImplementedError, ...
         detail = str(err)[:160] or type(err).__name__
         raise _fail(path, f'corrupt or not an .npz archive ({detail}).') from None
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` as plain JSON data (what a model file's metadata holds).
+
+    Numpy scalars and arrays become Python numbers and lists, tuples lists, and NaN or
+    infinite numbers ``None`` (JSON has none of them).
+    """
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [json_safe(v) for v in (value.tolist() if isinstance(value, np.ndarray)
+                                       else value)]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
 
 
 def valid_text(value: Any) -> Any:

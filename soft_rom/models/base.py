@@ -33,10 +33,10 @@ from typing import Any, cast, ClassVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from soft_rom.data import all_finite, as_signal, check_finite
+from soft_rom.data import all_finite, as_signal, check_finite, step_length
 from soft_rom.errors import DimensionError, ModelFileError
 from soft_rom.gain import gain_issue
-from soft_rom.models.archive import valid_text
+from soft_rom.models.archive import json_safe, valid_text
 from soft_rom.models.files import _META_KEY, FORMAT_NAME, FORMAT_VERSION, MAX_STATES, read_model
 
 __all__ = ['ABSURD_OFFSET', 'DiscreteSystem', 'LinearROM', 'TRUST_TOL', 'load_model', 'run_states']
@@ -170,9 +170,11 @@ def _finite_or_none(value: float) -> float | None:
     return value if np.isfinite(value) else None
 
 
-def _names(kind: str, names: Sequence[str] | None, count: int, prefix: str) -> list[str]:
+def _names(kind: str, names: Sequence[str] | str | None, count: int, prefix: str) -> list[str]:
     if names is None:
         return [f'{prefix}{i + 1}' for i in range(count)]
+    if isinstance(names, str):      # one unit for every channel; one name (not its letters)
+        names = [names] * count if kind.endswith('units') else [names]
     names = [str(n) for n in names]
     if len(names) != count:
         raise DimensionError(f'{kind} must list {count} names; got {len(names)}.')
@@ -193,7 +195,8 @@ class LinearROM(ABC):
     input_names, output_names : list of str
     input_units, output_units : list of str
     metadata : dict
-        JSON-serialisable provenance and fit diagnostics.
+        Provenance and fit diagnostics, as JSON data (numpy values as Python ones, NaN and
+        infinite numbers as ``None``).
     """
 
     method: ClassVar[str] = ''
@@ -209,9 +212,7 @@ class LinearROM(ABC):
                  input_units: Sequence[str] | None = None,
                  output_units: Sequence[str] | None = None,
                  metadata: Mapping[str, Any] | None = None) -> None:
-        if not np.isfinite(dt) or dt <= 0:
-            raise DimensionError(f'dt must be a positive number of seconds; got {dt!r}.')
-        self.dt = float(dt)
+        self.dt = step_length(dt)
         self.y_ref = _arr('y_ref', np.zeros(n_outputs) if y_ref is None else y_ref,
                           (n_outputs,))
         self.input_names = _names('input_names', input_names, n_inputs, 'u')
@@ -219,7 +220,7 @@ class LinearROM(ABC):
         self.input_units = _names('input_units', input_units or [''] * n_inputs, n_inputs, '')
         self.output_units = _names('output_units', output_units or [''] * n_outputs,
                                    n_outputs, '')
-        self.metadata: dict[str, Any] = json.loads(json.dumps(dict(metadata or {})))
+        self.metadata: dict[str, Any] = json_safe(dict(metadata or {}))  # NaN -> None
         self._native: DiscreteSystem | None = None
         self._trust: list[str] | None = None
 
