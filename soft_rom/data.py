@@ -111,7 +111,8 @@ def nonuniform_message(name: str, t: ArrayLike, rtol: float = 1e-6) -> str:
     """Why the sample times ``t`` of episode ``name`` are not uniform to ``rtol``, in words.
 
     Names the smallest and largest step; a spread that small (under 1e-3 of the step) is
-    what float32 times give (about 7 digits), so it says to pass float64 times.
+    what float32 times (about 7 digits) or float epoch seconds (about 0.2 us at 1.7e9 s)
+    give, so it says to pass float64 times from the episode's start.
     """
     d = np.diff(np.asarray(t, dtype=np.float64))
     mean = float(np.mean(d)) if d.size else math.nan
@@ -122,8 +123,8 @@ def nonuniform_message(name: str, t: ArrayLike, rtol: float = 1e-6) -> str:
     head += (f': its steps range from {float(d.min()):.9g} s to {float(d.max()):.9g} s '
              f'(relative spread {spread:.2g}, allowed {rtol:g})')
     if spread < 1e-3:
-        return (f'{head}; times stored as float32 are this coarse: give the times as float64 '
-                '(e.g. np.arange(k) * dt).')
+        return (f'{head}; float32 times, or float seconds since the epoch (1.7e9), are this '
+                "coarse: give float64 times from the episode's start (e.g. np.arange(k) * dt).")
     return f'{head}; resample it first (soft-rom convert --dt).'
 
 

@@ -259,3 +259,12 @@ def test_an_episode_of_transposed_arrays_says_transpose():
                           (np.ones((2, 50)), np.ones((3, 50)), np.ones((50, 7)), 'Q')):
         with pytest.raises(DimensionError, match=f'{what} must have .*transpose'):
             Episode(t=t, U=U, Y=Y, Q=Q)
+
+
+def test_epoch_float_times_are_named_as_the_cause():
+    """Float seconds since the epoch have 0.2 us steps: a 1 ms grid varies by 2e-4."""
+    t = 1.7e9 + np.arange(200) * 1e-3
+    ep = Episode(t=t, U=np.ones((1, 200)), Y=np.ones((2, 200)), name='epoch')
+    with pytest.raises(DimensionError, match=r'float seconds since the epoch .* give float64 '
+                                             r"times from the episode's start"):
+        predict(_second_order(), ep)

@@ -3,7 +3,7 @@
 Layout (zarr format 2 on disk, so zarr 2.16+ and zarr 3.x both read and write it, and
 :func:`dask.array.from_zarr` reads it on a cluster)::
 
-    OUT.zarr/                      attrs: format='soft_rom.trainingset', format_version=2,
+    OUT.zarr/                      attrs: format='soft_rom.trainingset', format_version=3,
                                           input_names, input_units, output_names,
                                           output_units, episode_names, provenance,
                                           all_chunks_stored=true, ...
@@ -32,6 +32,10 @@ so a recording stamped at 1.7e9 s keeps its sample times exact. Format version 1
 absolute seconds; such a set is read with its times shifted to ``t[0] = 0`` when its stamps
 are small enough to be exact (below 1e4 s), and refused with the command that converts its
 bags again otherwise.
+
+Format version 3 ends every chunk with its CRC-32C (numcodecs' ``crc32c`` filter, which zarr 2
+and 3 both read), checked at every read (:mod:`~soft_rom.dataset.checksum`); sets of version 2
+(no checksums) are still read.
 
 Every chunk of every array is stored, chunks of zeros too (``all_chunks_stored``; before
 that attribute, zarr 3 left chunks of zeros out). The reader therefore takes a missing chunk

@@ -236,21 +236,21 @@ class TrainingSet:
                       q_chunks: tuple[int, int] = (Q_CHUNK_ROWS, Q_CHUNK_COLS)) -> TrainingSet:
         """Write in-memory episodes to ``path`` and open the result (tests, small data).
 
-        Names default to ``u1..um`` / ``y1..yp`` and units to ``''``; an episode's
+        Names default to ``u1..um`` / ``y1..yp`` and units to ``''`` (one string: the unit
+        of every channel); an episode's
         ``metadata['t0_ns']`` (default 0) is its absolute start.
         """
         if not episodes:
             raise DatasetError('from_episodes needs at least one episode.')
         m, p = episodes[0].U.shape[0], episodes[0].Y.shape[0]
-        in_names = list(input_names) if input_names is not None else [
-            f'u{i + 1}' for i in range(m)]
-        out_names = list(output_names) if output_names is not None else [
+        in_names = input_names if input_names is not None else [f'u{i + 1}' for i in range(m)]
+        out_names = output_names if output_names is not None else [
             f'y{i + 1}' for i in range(p)]
         with TrainingSetWriter(
                 path, input_names=in_names,
-                input_units=list(input_units) if input_units is not None else [''] * m,
+                input_units=input_units if input_units is not None else [''] * m,
                 output_names=out_names,
-                output_units=list(output_units) if output_units is not None else [''] * p,
+                output_units=output_units if output_units is not None else [''] * p,
                 attrs=attrs, overwrite=overwrite, q_chunks=q_chunks) as w:
             for i, ep in enumerate(episodes):
                 writer = w.begin_episode(ep.name or f'ep{i + 1}', metadata=ep.metadata,

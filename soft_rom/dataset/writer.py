@@ -292,8 +292,14 @@ class TrainingSetWriter:
         """Set the channel names and units; allowed until the first sample is appended."""
         if any(ep.n_samples or ep.n_q for ep in getattr(self, '_episodes', {}).values()):
             raise DatasetError('names and units are fixed once samples were appended.')
-        names = ([str(s) for s in input_names], [str(s) for s in input_units],
-                 [str(s) for s in output_names], [str(s) for s in output_units])
+        def listed(values: Sequence[str] | str, like: Sequence[str] | str) -> list[str]:
+            """A string is one name, or (``like`` given) the unit of every channel."""
+            if isinstance(values, str):
+                return [values] * (1 if isinstance(like, str) else len(like))
+            return [str(s) for s in values]
+
+        names = (listed(input_names, ''), listed(input_units, input_names),
+                 listed(output_names, ''), listed(output_units, output_names))
         if len(names[1]) != len(names[0]) or not names[0]:
             raise DatasetError('input_names and input_units must be non-empty and of equal '
                                f'length; got {len(names[0])} and {len(names[1])}.')

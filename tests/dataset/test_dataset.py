@@ -218,3 +218,14 @@ def test_episodes_of_one_name_given_as_a_string(tmp_path):
     (one,) = ts.episodes('ep12')
     assert one.name == 'ep12' and one.n_samples == 10
     assert [e.name for e in ts.episodes(['ep3', 'ep12'])] == ['ep3', 'ep12']
+
+
+def test_one_unit_string_is_every_channel_s_unit(tmp_path):
+    """``input_units='Pa'`` for two inputs was stored as units ['P', 'a']."""
+    ts = TrainingSet.from_episodes(tmp_path / 't.zarr', [_episode(10)], input_units='Pa',
+                                   output_units='m')
+    assert ts.input_units == ['Pa', 'Pa'] and ts.output_units == ['m'] * 3
+    with pytest.raises(DatasetError, match='input_names and input_units must be non-empty '
+                                           'and of equal length; got 1 and 2'):
+        TrainingSet.from_episodes(tmp_path / 'u.zarr', [_episode(10)], input_names='p',
+                                  input_units=['Pa', 'Pa'])
