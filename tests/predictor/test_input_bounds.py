@@ -7,6 +7,8 @@ bound as it is in force, so that the two can be set one at a time.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -134,3 +136,22 @@ def test_node_default_means_from_the_model_file_per_bound() -> None:
     assert cfg.input_min == (0.0, 0.0)            # a zero bound written out per input
     with pytest.raises(ConfigError, match='must not exceed'):
         predictor_config(dict(values, input_min=[5.0], input_max=[1.0]))
+
+
+@pytest.mark.parametrize('lo, hi, ratio', [(-0.001, 0.005, '0.0006'), (-1e5, 1e5, '2e+04')])
+def test_an_envelope_in_other_units_than_the_training_range_is_refused(lo, hi, ratio) -> None:
+    """Bounds 1000 x off the training range (kPa for Pa) are refused, as the MPC does.
+
+    They clipped every input to a thousandth of its range (a WARN 'clipped' at run time,
+    predictions near zero).
+    """
+    model = _model()                    # training range [0, 10]
+    words = (rf'span {re.escape(ratio)} x the training range \[0, 10\]: '
+             r"give them in the model's input units \(unnamed")
+    with pytest.raises(ConfigError, match=words):
+        Predictor(model, PredictorConfig(input_min=(lo,), input_max=(hi,)))
+    # a hundredth or a hundred times the range is a choice, and so is one bound alone
+    Predictor(model, PredictorConfig(input_min=(0.0,), input_max=(0.1,)))
+    Predictor(model, PredictorConfig(input_min=(-500.0,), input_max=(500.0,)))
+    Predictor(model, PredictorConfig(input_max=(0.001,)))
+    Predictor(_model(trained=False), PredictorConfig(input_min=(lo,), input_max=(hi,)))
