@@ -9,7 +9,7 @@ import scipy.linalg as sla
 
 from soft_rom.data import Episode
 from soft_rom.ddt import FiniteDifference
-from soft_rom.errors import DimensionError, NotFittedError
+from soft_rom.errors import DimensionError, NotFittedError, ResourceError
 from soft_rom.learners.lopinf import LOpInf
 from soft_rom.learners.lopinf.solvers import (
     CvxpySolver,
@@ -375,3 +375,18 @@ def test_model_for_equals_a_fit_at_that_r() -> None:
     for bad in (0, 7, 2.5):
         with pytest.raises(ConfigError):
             big.model_for(bad)
+
+
+def test_an_r_whose_solve_cannot_fit_in_memory_is_one_line() -> None:
+    """A too large r is refused before the solve, with the memory it would need.
+
+    LOpInf(r=500) (the POD allows r up to the number of singular values) ended in numpy's
+    MemoryError "Unable to allocate 117. GiB for an array with shape (125250, 125250)".
+    """
+    rng = np.random.default_rng(0)
+    k = 620
+    ep = Episode(t=np.arange(k) * 1e-3, U=rng.normal(size=(2, k)), Y=rng.normal(size=(3, k)),
+                 Q=rng.normal(size=(600, k)), name='wide')
+    with pytest.raises(ResourceError, match=r'the LOpInf operator solve at r=500 \(250500 '
+                                            r'unknowns\) needs about .* GiB.*smaller r'):
+        LOpInf(r=500).fit([ep])

@@ -36,6 +36,7 @@ from numpy.typing import NDArray
 import scipy.linalg as sla
 
 from soft_rom.errors import SolverError
+from soft_rom.resources import check_memory
 
 __all__ = ['SymIndex', 'SPDFactor', 'lift', 'solve_two_cone_qp']
 
@@ -47,6 +48,10 @@ class SymIndex:
 
     def __init__(self, r: int) -> None:
         self.r = r
+        n = r * (r + 1) // 2
+        # five n x n index arrays here and the (2n)^2 Hessian of the solve, at the least
+        check_memory(8.0 * 9 * n * n, f'the LOpInf operator solve at r={r} ({2 * n} unknowns)',
+                     'Choose a smaller r (model files hold r <= 128 for LOpInf).')
         iu, ju = np.triu_indices(r)
         self.iu, self.ju = iu, ju
         self.n = int(iu.size)  # per matrix
