@@ -25,7 +25,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.errors import DimensionError
 
-__all__ = ['Episode', 'all_finite', 'as_signal', 'check_finite', 'nonuniform_message',
+__all__ = ['Episode', 'MAX_STEP_RATIO', 'all_finite', 'as_signal', 'check_finite',
+           'nonuniform_message', 'step_ratio_problem',
            'step_length']
 
 
@@ -126,6 +127,23 @@ def nonuniform_message(name: str, t: ArrayLike, rtol: float = 1e-6) -> str:
         return (f'{head}; float32 times, or float seconds since the epoch (1.7e9), are this '
                 "coarse: give float64 times from the episode's start (e.g. np.arange(k) * dt).")
     return f'{head}; resample it first (soft-rom convert --dt).'
+
+
+#: Most by which an episode's step and a model's step may differ (either way) before the
+#: times are taken for other units (ms given as s: a factor of 1000), not resampling.
+MAX_STEP_RATIO = 100.0
+
+
+def step_ratio_problem(name: str, h: float, dt: float, method: str) -> str:
+    """Why episode ``name``'s step ``h`` looks like other units than the model's ``dt``.
+
+    Empty where the two are within a factor of :data:`MAX_STEP_RATIO`.
+    """
+    ratio = h / dt
+    if 1.0 / MAX_STEP_RATIO <= ratio <= MAX_STEP_RATIO:
+        return ''
+    return (f'episode {name!r} is sampled every {h:g} s and the {method} model steps by '
+            f'{dt:g} s (a factor of {ratio:.3g}): are the episode times in seconds?')
 
 
 @dataclass(frozen=True)

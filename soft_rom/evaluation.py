@@ -30,7 +30,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from soft_rom.data import check_finite, Episode, nonuniform_message
+from soft_rom.data import (
+    check_finite,
+    Episode,
+    MAX_STEP_RATIO,
+    nonuniform_message,
+    step_ratio_problem,
+)
 from soft_rom.errors import ConfigError, DimensionError
 from soft_rom.metrics import relative_error_from_squares
 from soft_rom.models import DiscreteModel, LinearROM, run_states, SecondOrderModel
@@ -41,9 +47,6 @@ __all__ = ['Evaluation', 'MAX_STEP_RATIO', 'evaluate', 'held_out_errors', 'predi
 Array = NDArray[np.float64]
 
 _INITIAL = ('reference', 'output')
-#: Most by which the data step and the model step may differ (either way) in :func:`predict`:
-#: beyond it the times are in other units (ms taken for s: a factor of 1000), not resampled.
-MAX_STEP_RATIO = 100.0
 
 
 def _check_sizes(model: LinearROM, ep: Episode) -> None:
@@ -55,12 +58,10 @@ def _check_sizes(model: LinearROM, ep: Episode) -> None:
 
 
 def _check_step_ratio(model: LinearROM, name: str, h: float) -> None:
-    ratio = h / model.dt
-    if not 1.0 / MAX_STEP_RATIO <= ratio <= MAX_STEP_RATIO:
-        raise DimensionError(
-            f'episode {name!r} is sampled every {h:g} s and the {model.method} model steps by '
-            f'{model.dt:g} s (a factor of {ratio:.3g}): are the episode times in seconds? '
-            f'Steps that differ by more than a factor of {MAX_STEP_RATIO:g} are refused.')
+    problem = step_ratio_problem(name, h, model.dt, model.method)
+    if problem:
+        raise DimensionError(f'{problem} Steps that differ by more than a factor of '
+                             f'{MAX_STEP_RATIO:g} are refused.')
 
 
 def predict(model: LinearROM, episode: Episode, *, initial: str = 'reference') -> Array:

@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from soft_rom.data import as_signal, Episode
-from soft_rom.errors import DimensionError
+from soft_rom.data import as_signal, Episode, MAX_STEP_RATIO, step_ratio_problem
+from soft_rom.errors import DimensionError, SoftRomWarning, warn
 from soft_rom.metrics import relative_deviation_error, relative_error
 from soft_rom.predictor.config import PredictorConfig
 from soft_rom.predictor.core import Predictor
@@ -36,7 +36,9 @@ class ReplayResult:
         Health level after each sample (only with ``track_health``).
     summary : dict
         ``relative_error`` and ``relative_deviation_error`` over the whole episode
-        (``nan`` without measurements), counters, config.
+        (``nan`` without measurements, for an empty episode, and where the measured
+        outputs, or their deviations, are all zero but the predictions are not), counters,
+        config.
     """
 
     t: Array
@@ -75,6 +77,11 @@ def replay_episode(predictor: Predictor, episode: Episode, *, measured: bool = T
         Feed through this loop (around ``predictor``) instead of the bare predictor;
         ``publish(pub, t_ns)`` then receives what is due after each sample, the
         measurement of the sample included (its marker and the error go with it).
+
+    A median step more than :data:`~soft_rom.data.MAX_STEP_RATIO` times the model's (or
+    less than its inverse) is a :class:`~soft_rom.errors.SoftRomWarning` asking whether
+    the times are in seconds (ms for s is a factor of 1000); the episode is still replayed,
+    since a slowly sampled recording (a camera at a few Hz) is legitimate.
     """
     if loop is not None and loop.predictor is not predictor:
         raise ValueError('the loop must run the predictor given.')
@@ -86,6 +93,7 @@ def replay_episode(predictor: Predictor, episode: Episode, *, measured: bool = T
         raise DimensionError(f'episode {episode.name!r} has {Y.shape[0]} outputs; the model '
                              f'predicts {p}. Check the output mapping/components.')
     k = t.size
+    _warn_step_ratio(episode.name, t, predictor.model)
     Yhat = np.empty((p, k))
     errors = np.full(k, np.nan)
     levels = np.zeros(k, dtype=np.int64) if track_health else None
@@ -121,10 +129,29 @@ def replay_episode(predictor: Predictor, episode: Episode, *, measured: bool = T
         'model': predictor.info,
     }
     if measured:
-        summary['relative_error'] = relative_error(Y, Yhat, if_zero=0.0)
+        summary['relative_error'] = relative_error(Y, Yhat, if_zero=_if_zero(Y, Yhat))
         summary['relative_deviation_error'] = relative_deviation_error(
-            Y, Yhat, predictor.model.y_ref, if_zero=0.0)
+            Y, Yhat, predictor.model.y_ref, if_zero=_if_zero(Y, Yhat))
     return ReplayResult(t, Yhat, errors, levels, summary)
+
+
+def _if_zero(Y: Array, Yhat: Array) -> float:
+    """A relative error over all-zero outputs: 0 where matched exactly, else undefined.
+
+    An empty episode is undefined too (it must not read as a perfect prediction).
+    """
+    return 0.0 if Y.size and np.array_equal(Y, Yhat) else math.nan
+
+
+def _warn_step_ratio(name: str, t: Array, model: Any) -> None:
+    """Warn where the median step is :data:`MAX_STEP_RATIO` off the model's (units?)."""
+    d = np.diff(t)
+    h = float(np.median(d)) if d.size else 0.0
+    problem = step_ratio_problem(name, h, model.dt, getattr(model, 'method', 'the')) \
+        if math.isfinite(h) and h > 0 else ''
+    if problem:
+        warn(f'{problem} Replayed as given: right for data sampled that slowly, wrong for '
+             f'times in other units (steps over {MAX_STEP_RATIO:g} x apart).', SoftRomWarning)
 
 
 def _loop_sample(loop: Any, u: Array, y: Array | None, t_ns: int, clocked: bool,
@@ -172,8 +199,9 @@ def kalman_vs_open_loop(model: Any, episode: Episode, *,
     for key, kal in (('open_loop', False), ('kalman', True)):
         cfg = base.replace(kalman=kal, rate_hz=0.0)
         res = replay_episode(Predictor(model, cfg), episode, measured=True)
-        out[key] = relative_deviation_error(Yt, res.Y, model.y_ref, if_zero=0.0)
-        out[f'{key}_abs'] = relative_error(Yt, res.Y, if_zero=0.0)
+        out[key] = relative_deviation_error(Yt, res.Y, model.y_ref,
+                                            if_zero=_if_zero(Yt, res.Y))
+        out[f'{key}_abs'] = relative_error(Yt, res.Y, if_zero=_if_zero(Yt, res.Y))
     out['ratio'] = out['kalman'] / out['open_loop'] if out['open_loop'] > 0 else math.nan
     return out
 

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import pytest
 
 from soft_rom.data import Episode
-from soft_rom.errors import ConfigError, ModelFileError
+from soft_rom.errors import ConfigError, ModelFileError, SoftRomWarning
 from soft_rom.models import DiscreteModel, SecondOrderModel
 from soft_rom.predictor import (
     kalman_gain,
@@ -60,6 +61,36 @@ def test_replay_equals_simulate(make, stepping: str) -> None:
     assert np.abs(res.Y - ep.Y).max() <= 1e-12 * scale
     assert res.summary['relative_error'] <= 1e-12
     assert Predictor(model).counters['steps'] == 0
+
+
+def test_replay_of_times_in_ms_warns_and_slow_sampling_does_not() -> None:
+    """Times in ms replayed on a 1 ms model were a deviation error of ~1.4 without a word."""
+    model = _second_order()
+    ep = _episode(model, t0=0.0)
+    ms = Episode(t=ep.t * 1e3, U=ep.U, Y=ep.Y, name='ms')
+    with pytest.warns(SoftRomWarning, match=r"'ms' is sampled every 1 s .* factor of 1e\+03\): "
+                      r'are the episode times in seconds\?'):
+        res = replay_episode(Predictor(model), ms)
+    assert res.summary['relative_deviation_error'] > 0.1       # replayed as given
+    slow = Episode(t=ep.t[::100], U=ep.U[:, ::100], Y=ep.Y[:, ::100], name='10 Hz')
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')       # a 10 Hz recording on a 1 ms model is legitimate
+        replay_episode(Predictor(model), slow)
+
+
+def test_replay_of_an_empty_or_all_zero_episode_is_not_perfect() -> None:
+    """An empty episode was relative errors of 0.0, as if predicted perfectly."""
+    model = _second_order()
+    empty = Episode(t=np.zeros(0), U=np.zeros((3, 0)), Y=np.zeros((8, 0)), name='empty')
+    res = replay_episode(Predictor(model), empty)
+    assert math.isnan(res.summary['relative_error'])
+    assert math.isnan(res.summary['relative_deviation_error'])
+    ep = _episode(model)        # outputs at the reference throughout, predictions moving
+    still = Episode(t=ep.t, U=ep.U, Y=np.repeat(model.y_ref[:, None], ep.t.size, 1), name='z')
+    assert math.isnan(replay_episode(Predictor(model), still).summary[
+        'relative_deviation_error'])
+    rest = Episode(t=ep.t, U=np.zeros_like(ep.U), Y=still.Y, name='rest')
+    assert replay_episode(Predictor(model), rest).summary['relative_deviation_error'] == 0.0
 
 
 def test_input_stepping_is_exact_for_irregular_stamps() -> None:
