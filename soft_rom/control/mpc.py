@@ -178,7 +178,8 @@ def _check_bound_units(model: Any, lo: Array, hi: Array, t_lo: Array, t_hi: Arra
     trained = float(np.max(t_hi - t_lo))
     given = float(np.max(hi - lo))
     if trained > 0 and not 1e-3 <= given / trained <= 1e3:
-        units = sorted(set(getattr(model, 'input_units', None) or ())) or ['its input units']
+        units = sorted({u for u in getattr(model, 'input_units', None) or () if u}) or [
+            'unnamed in the model file']
         raise ConfigError(f'input bounds [{float(np.min(lo)):g}, {float(np.max(hi)):g}] span '
                           f'{given / trained:.2g} x the training range [{float(np.min(t_lo)):g},'
                           f" {float(np.max(t_hi)):g}]: give them in the model's input units "

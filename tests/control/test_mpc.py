@@ -129,6 +129,18 @@ def test_bounds_in_other_units_than_the_model_are_refused(kw, words) -> None:
         MPC(modal_rom(2), MPCConfig(**kw))
 
 
+def test_bounds_message_names_the_units_or_says_they_are_unnamed() -> None:
+    """A model without units printed 'give them in the model's input units ()'."""
+    named = modal_rom(2)
+    with pytest.raises(ConfigError, match=r"model's input units \(Pa\)\.$"):
+        MPC(named, MPCConfig(u_min=(-20,), u_max=(20,)))
+    bare = SecondOrderModel(named.K, named.C, named.B, named.E, dt=named.dt,
+                            y_ref=named.y_ref, metadata=named.metadata)
+    assert bare.input_units == [''] * 6
+    with pytest.raises(ConfigError, match=r'input units \(unnamed in the model file\)\.$'):
+        MPC(bare, MPCConfig(u_min=(-20,), u_max=(20,)))
+
+
 def test_plants_and_simulate_inputs_check_their_inputs() -> None:
     model = modal_rom(2)
     U = np.zeros((6, 30))
