@@ -149,6 +149,21 @@ def test_physical_fields(tmp_path, change, match) -> None:
     _refused(h.with_header(h.second_order(), tmp_path / 'm.npz', **change), match)
 
 
+def test_a_file_whose_method_contradicts_its_class_is_refused(tmp_path) -> None:
+    """A SecondOrderModel file saying method 'era' loaded as an LOpInf model, silently."""
+    model = h.second_order()
+    _refused(h.with_header(model, tmp_path / 'era.npz', method='era'),
+             r"SecondOrderModel cannot have method 'era' \(its method is 'lopinf'\)")
+    assert load_model(h.with_header(model, tmp_path / 'ok.npz', method='lopinf')).method == \
+        'lopinf'
+    members = h.members_of(model)           # no method declared: the class's own
+    members['__metadata__.npy'] = h.npy_bytes(h.meta_array(
+        {k: v for k, v in model.header().items() if k != 'method'}))
+    assert isinstance(load_model(h.write_zip(tmp_path / 'none.npz', members)), SecondOrderModel)
+    era = h.discrete()                      # a DiscreteModel keeps any declared method
+    assert load_model(era.save(tmp_path / 'd.npz')).method == 'era'
+
+
 def test_magnitudes_and_empty_shapes(tmp_path) -> None:
     model = h.second_order()
     _refused(h.with_arrays(model, tmp_path / 'k.npz', K=model.K * 1e300), 'magnitude')

@@ -224,9 +224,13 @@ def _class_and_fields(path: Path, header: dict[str, Any], raw: dict[str, NDArray
         raise ModelFileError(
             f'{path}: {cls.__name__} needs arrays {sorted(needed)}; found {sorted(raw)}.')
     common = check_header(path, header)
+    if cls._file_methods and 'method' not in header:      # none declared: the class's own
+        common['method'] = cls._file_methods[0]
     if cls._file_methods and common['method'] not in cls._file_methods:
         raise ModelFileError(f'{path}: a {cls.__name__} cannot have method '
-                             f'{common["method"]!r}.')
+                             f'{common["method"]!r} (its method is '
+                             f'{" or ".join(map(repr, cls._file_methods))}): the file\'s '
+                             'class and method disagree.')
     for name, arr in raw.items():
         if arr.ndim > (1 if name == 'y_ref' else 3):
             raise ModelFileError(f'{path}: array {name!r} has {arr.ndim} dimensions.')

@@ -86,6 +86,7 @@ class SecondOrderModel(LinearROM):
 
     method = 'lopinf'
     _matrix_names = ('K', 'C', 'B', 'E')
+    _file_methods = ('lopinf',)     # a file saying 'era' is refused, not loaded as LOpInf
 
     def __init__(self, K: ArrayLike, C: ArrayLike, B: ArrayLike, E: ArrayLike, *, dt: float,
                  y_ref: ArrayLike | None = None, **kwargs: Any) -> None:
