@@ -140,7 +140,7 @@ class Predictor(Measuring):
         self._emitted: list[tuple[int, Array]] = []
         self.restarts = 0
         self._init_buffers()
-        self.reset()
+        self._restart()
 
     # -- construction / reload -----------------------------------------------------------
     def _init_buffers(self) -> None:
@@ -235,7 +235,7 @@ class Predictor(Measuring):
         if old_u.shape == self.u.shape:
             self.u[:] = old_u
             self.channels.take_over(old_ch)
-        self.reset()
+        self._restart()
         if t is not None:
             self._anchor(t)
             self._done = self._released = True
@@ -261,11 +261,17 @@ class Predictor(Measuring):
             self._monitor = ErrorMonitor(config.error_window, int(config.error_window_s * 1e9))
 
     def reset(self) -> None:
-        """Back to the initial state; clears the monitor, the queue and the stamp history.
+        """Back to the initial state; clears the monitor, queue, stamp history and alarms.
 
-        Held inputs are kept; the model time restarts at the next input (so a restarted
-        clock, e.g. a bag played again, is accepted after a reset).
+        :meth:`health` starts afresh (the alarms before a reset no longer show). Held inputs
+        are kept; the model time restarts at the next input (so a restarted clock, e.g. a
+        bag played again, is accepted after a reset).
         """
+        self._restart()
+        self._alarms.clear()
+
+    def _restart(self) -> None:
+        """:meth:`reset` keeping the alarms (a reload, a restarted clock: they still hold)."""
         self.x = self._dyn.initial_state()
         self._k: int | None = None
         self._origin = 0
@@ -435,7 +441,7 @@ class Predictor(Measuring):
         """The clock restarted at ``t_ns``: counted, reset; the alarms keep their age."""
         self.counters['clock_reset'] += 1
         before = self.stamp_now()
-        self.reset()
+        self._restart()
         if before is not None:      # else a WARN from the old clock would last the jump's length
             shift = t_ns - before
             self._alarms = {key: (t if t == _NONE else t + shift, why)

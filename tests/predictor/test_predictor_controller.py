@@ -137,6 +137,28 @@ def test_a_caller_whose_every_input_is_dropped_is_told_why() -> None:
         assert 'no value yet' in health.message
 
 
+def test_reset_clears_the_alarms_before_it() -> None:
+    """After a manual reset, the drops before it still showed in health.
+
+    Until the next input (no time known), and within alarm_hold_s after it too.
+    """
+    model = _model()
+    m = model.n_inputs
+    for accepted_first in (True, False):
+        pred = Predictor(model)
+        if accepted_first:
+            assert pred.set_input_ns(np.zeros(m), 1_000_000_000)
+        assert not pred.set_input_ns(np.zeros(m + 1), 1_001_000_000)
+        assert not pred.set_input_ns(np.full(m, np.nan), 1_002_000_000)
+        assert 'dropped' in pred.health().message
+        pred.reset()
+        health = pred.health()
+        assert 'dropped' not in health.message and 'NaN' not in health.message, health.message
+        assert health.level == Level.STALE and 'no value yet' in health.message
+        assert pred.set_input_ns(np.zeros(m), 1_003_000_000)
+        assert pred.health().level == Level.OK, pred.health().message
+
+
 def test_something_that_is_not_a_model_is_one_type_error() -> None:
     """``Predictor(42)`` was "AttributeError: 'int' object has no attribute 'dt'"."""
     for bad in (42, np.eye(3), None):
