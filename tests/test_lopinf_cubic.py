@@ -206,6 +206,20 @@ def test_exact_for_the_linear_part() -> None:
                                rtol=0, atol=1e-13)
 
 
+def test_output_takes_k_states_at_once_as_the_linear_models_do() -> None:
+    """LinearROM.output took x (n, k); the cubic model's refused it ('x must have shape')."""
+    model = duffing_chain(3)
+    X = np.random.default_rng(3).normal(size=(6, 4))
+    Y = model.output(X)
+    assert Y.shape == (3, 4)
+    for j in range(4):
+        np.testing.assert_allclose(Y[:, j], model.output(X[:, j]), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(Y, model.linear_part().output(X), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(model.output(X, np.zeros((2, 4))), Y, rtol=0, atol=0)
+    with pytest.raises(DimensionError, match='give both as vectors'):
+        model.output(X, np.zeros(2))          # mixed shapes, refused as LinearROM does
+
+
 def test_step_and_output_name_a_wrong_state_or_input() -> None:
     model = duffing_chain(3)                 # x = [q; q'] has 6 entries, u has 2
     x, u = np.zeros(6), np.zeros(2)

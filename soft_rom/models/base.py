@@ -285,7 +285,7 @@ class LinearROM(ABC):
         return sys_.A @ xs + sys_.B @ us
 
     def output(self, x: ArrayLike, u: ArrayLike | None = None) -> Array:
-        """Absolute output ``y = C x + D u + y_ref``, shape (p,)."""
+        """Absolute output ``y = C x + D u + y_ref``: (p,) for x (n,), (p, k) for x (n, k)."""
         sys_ = self.system
         if u is None:
             xs = _leading('x', x, self.n_states)

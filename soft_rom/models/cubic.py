@@ -46,7 +46,7 @@ from numpy.typing import ArrayLike, NDArray
 from soft_rom.data import as_signal, check_finite, step_length
 from soft_rom.errors import DimensionError, SolverError
 from soft_rom.gain import gain_issue
-from soft_rom.models.base import _arr, _leading, DiscreteSystem, LinearROM
+from soft_rom.models.base import _arr, _leading, _state_and_input, DiscreteSystem, LinearROM
 from soft_rom.models.files import register_model_class
 from soft_rom.models.linear import SecondOrderModel
 from soft_rom.models.tensors import is_symmetric, quartic_lower_bound, symmetric_index
@@ -397,9 +397,10 @@ class CubicSecondOrderModel(LinearROM):
         return x1, A, Bu
 
     def output(self, x: ArrayLike, u: ArrayLike | None = None) -> Array:
-        """Absolute output ``y = E q + y_ref``, shape (p,)."""
-        x = _vector('x', x, self.n_states)
-        return self.E @ x[:self.r] + self.y_ref
+        """Absolute output ``y = E q + y_ref``: (p,) for x (2r,), (p, k) for x (2r, k)."""
+        xs = _leading('x', x, self.n_states) if u is None else _state_and_input(
+            x, u, self.n_states, self.n_inputs)[0]
+        return self.E @ xs[:self.r] + (self.y_ref if xs.ndim == 1 else self.y_ref[:, None])
 
     def simulate(self, U: ArrayLike, x0: ArrayLike | None = None, *,
                  return_states: bool = False, dt: float | None = None
