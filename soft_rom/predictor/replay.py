@@ -55,9 +55,9 @@ def replay_episode(predictor: Predictor, episode: Episode, *, measured: bool = T
     """Run ``predictor`` over an episode's inputs (and measured outputs), sample by sample.
 
     For each sample ``j``: (clocked stepping: advance to ``t_j``), take ``U[:, j]`` at
-    ``t_j``, predict ``ŷ_j``, then
-    (``measured``) hand ``Y[:, j]`` to :meth:`Predictor.measure`. With uniform samples at
-    the model's ``dt`` and no Kalman filter this equals ``model.simulate(U)``.
+    ``t_j``, predict ``ŷ_j``, then (``measured``) hand ``Y[:, j]`` to
+    :meth:`Predictor.measure`. With uniform samples at the model's ``dt`` and no Kalman
+    filter this equals ``model.simulate(U)``.
 
     Parameters
     ----------
@@ -78,10 +78,8 @@ def replay_episode(predictor: Predictor, episode: Episode, *, measured: bool = T
         ``publish(pub, t_ns)`` then receives what is due after each sample, the
         measurement of the sample included (its marker and the error go with it).
 
-    A median step more than :data:`~soft_rom.data.MAX_STEP_RATIO` times the model's (or
-    less than its inverse) is a :class:`~soft_rom.errors.SoftRomWarning` asking whether
-    the times are in seconds (ms for s is a factor of 1000); the episode is still replayed,
-    since a slowly sampled recording (a camera at a few Hz) is legitimate.
+    A median step over :data:`~soft_rom.data.MAX_STEP_RATIO` x the model's (or under its
+    inverse) warns (:class:`~soft_rom.errors.SoftRomWarning`): times in ms? It is replayed.
     """
     if loop is not None and loop.predictor is not predictor:
         raise ValueError('the loop must run the predictor given.')
@@ -119,28 +117,28 @@ def replay_episode(predictor: Predictor, episode: Episode, *, measured: bool = T
             levels[j] = int(predictor.health(sj).level)
         if callback is not None:
             callback(j, tj, Yhat[:, j], predictor)
+    rel, dev = _errors(Y, Yhat, predictor.model.y_ref) if measured else (math.nan, math.nan)
     summary: dict[str, Any] = {
         'episode': episode.name,
         'samples': k,
-        'relative_error': math.nan,
-        'relative_deviation_error': math.nan,
+        'relative_error': rel,
+        'relative_deviation_error': dev,
         'counters': dict(predictor.counters),
         'config': asdict(predictor.config),
         'model': predictor.info,
     }
-    if measured:
-        summary['relative_error'] = relative_error(Y, Yhat, if_zero=_if_zero(Y, Yhat))
-        summary['relative_deviation_error'] = relative_deviation_error(
-            Y, Yhat, predictor.model.y_ref, if_zero=_if_zero(Y, Yhat))
     return ReplayResult(t, Yhat, errors, levels, summary)
 
 
-def _if_zero(Y: Array, Yhat: Array) -> float:
-    """A relative error over all-zero outputs: 0 where matched exactly, else undefined.
+def _errors(Y: Array, Yhat: Array, y_ref: Array) -> tuple[float, float]:
+    """Relative errors, absolute and on deviations.
 
-    An empty episode is undefined too (it must not read as a perfect prediction).
+    Over all-zero outputs (deviations): 0 where matched exactly, else undefined (NaN); an
+    empty episode is undefined too (it must not read as a perfect prediction).
     """
-    return 0.0 if Y.size and np.array_equal(Y, Yhat) else math.nan
+    if_zero = 0.0 if Y.size and np.array_equal(Y, Yhat) else math.nan
+    return (relative_error(Y, Yhat, if_zero=if_zero),
+            relative_deviation_error(Y, Yhat, y_ref, if_zero=if_zero))
 
 
 def _warn_step_ratio(name: str, t: Array, model: Any) -> None:
@@ -199,9 +197,7 @@ def kalman_vs_open_loop(model: Any, episode: Episode, *,
     for key, kal in (('open_loop', False), ('kalman', True)):
         cfg = base.replace(kalman=kal, rate_hz=0.0)
         res = replay_episode(Predictor(model, cfg), episode, measured=True)
-        out[key] = relative_deviation_error(Yt, res.Y, model.y_ref,
-                                            if_zero=_if_zero(Yt, res.Y))
-        out[f'{key}_abs'] = relative_error(Yt, res.Y, if_zero=_if_zero(Yt, res.Y))
+        out[key], out[f'{key}_abs'] = _errors(Yt, res.Y, model.y_ref)[::-1]
     out['ratio'] = out['kalman'] / out['open_loop'] if out['open_loop'] > 0 else math.nan
     return out
 
