@@ -233,10 +233,11 @@ def _stream_summary(predictor: Predictor, loop: RuntimeLoop, totals_before: list
     """The summary :func:`replay_stream_to_bag` returns (errors since ``totals_before``)."""
     e2, y2, d2 = (a - b for a, b in zip(predictor.totals, totals_before))
     n_meas = predictor.counters['measurements']
+    zero = 0.0 if e2 == 0.0 else math.nan   # as replay_episode: not perfect unless exact
     return {
-        'relative_error': relative_error_from_squares(e2, y2, if_zero=0.0) if n_meas
+        'relative_error': relative_error_from_squares(e2, y2, if_zero=zero) if n_meas
         else math.nan,
-        'relative_deviation_error': relative_error_from_squares(e2, d2, if_zero=0.0) if n_meas
+        'relative_deviation_error': relative_error_from_squares(e2, d2, if_zero=zero) if n_meas
         else math.nan,
         'messages': counts,
         'counters': dict(predictor.counters),

@@ -64,8 +64,11 @@ def assess(pred: Any, now_ns: int | None, Level: Any, severity: dict[Any, int]) 
     err = e_dev if cfg.error_metric == 'deviation' else e_abs
     thr = pred.thresholds
     what = f'{cfg.error_metric} error over the last {cfg.error_window_s:g} s'
-    if math.isfinite(err):
-        if err > thr.error:
+    if not math.isnan(err):
+        if math.isinf(err):
+            reasons.append((Level.ERROR, f'{what} inf: the measured deviation from y_ref is '
+                                         'exactly 0 and the prediction is not'))
+        elif err > thr.error:
             reasons.append((Level.ERROR, f'{what} {err:.3g} > {thr.error:.3g}{thr.error_why}'))
         elif err > thr.warn:
             reasons.append((Level.WARN, f'{what} {err:.3g} > {thr.warn:.3g}{thr.warn_why}'))

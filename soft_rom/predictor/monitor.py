@@ -95,9 +95,15 @@ class ErrorMonitor:
             self._resum()
 
     def errors(self) -> tuple[float, float]:
-        """``(absolute, deviation)`` relative errors (``nan`` with an empty window)."""
+        """``(absolute, deviation)`` relative errors (``nan`` with an empty window).
+
+        Against a reference of norm 0 (a measured centerline exactly at ``y_ref``): 0 when
+        the prediction is exact too, else ``inf`` (a prediction that moves while the body is
+        at rest is not an error of 0).
+        """
         if not self._q:
             return math.nan, math.nan
         se = max(self._se, 0.0)
-        return (relative_error_from_squares(se, self._sy, if_zero=0.0),
-                relative_error_from_squares(se, self._sd, if_zero=0.0))
+        zero = 0.0 if se == 0.0 else math.inf
+        return (relative_error_from_squares(se, self._sy, if_zero=zero),
+                relative_error_from_squares(se, self._sd, if_zero=zero))

@@ -232,6 +232,26 @@ def test_monitor_thresholds_and_window() -> None:
     assert math.isnan(pred.windowed_error())
 
 
+def test_a_body_at_rest_against_a_moving_prediction_is_not_an_error_of_zero() -> None:
+    # measured centerline exactly at y_ref (a noise-free simulated body at rest) while the
+    # model moves: the deviation error's reference norm is 0; it read 0.0 and health OK
+    model = _second_order()
+    pred = Predictor(model, PredictorConfig(stepping='fixed', error_window=10))
+    pred.set_input(np.full(3, 5.0), 0.0)
+    for j in range(20):
+        pred.measure(model.y_ref, j * DT)
+    assert np.linalg.norm(pred.output() - model.y_ref) > 0
+    assert math.isinf(pred.windowed_errors()[1])
+    health = pred.health(20 * DT)
+    assert health.level == Level.ERROR and 'exactly 0' in health.message
+    # and exact at rest is still an error of 0
+    rest = Predictor(model, PredictorConfig(stepping='fixed', error_window=10))
+    rest.set_input(np.zeros(3), 0.0)
+    for j in range(20):
+        rest.measure(model.y_ref, j * DT)
+    assert rest.windowed_errors()[1] == 0.0 and rest.health(20 * DT).level == Level.OK
+
+
 def test_initial_state_from_measurement() -> None:
     model = _second_order(p=8, r=6)
     q = np.linspace(-1, 1, 6)
