@@ -220,8 +220,13 @@ def _probe_topic(bag: BagReader, topic: str, role: str, msgtype: str,
     sizes: Counter[int] = Counter()
     times: list[int] = []
     offsets: list[int] = []
+    last: BagMessage | None = None
     for msg in messages:
         t = message_time(msg, mapping.stamps)
+        if last is not None and t == message_time(last, mapping.stamps) and np.array_equal(
+                msg.value, last.value):
+            continue    # the same message recorded twice: dropped when streaming, no clock
+        last = msg
         if plan.first_log_ns is None:
             plan.first_log_ns = msg.log_ns
         times.append(t)

@@ -143,6 +143,7 @@ class BagConverter:
         self.outs: deque[tuple[int, Array]] = deque()
         self.states: deque[tuple[int, Array]] = deque()
         self.last_ns: dict[str, int] = {}
+        self.last_log: dict[str, int] = {}
         self.offset_ref: dict[str, int] = {}
         self.rejected: dict[str, list[int]] = {}
         self.out_used: list[int] = []
@@ -218,6 +219,7 @@ class BagConverter:
             run = self.rejected.setdefault(topic, [])
             run.append(off)
             if len(run) >= REANCHOR and max(run) - min(run) <= STAMP_OFFSET_LIMIT_NS:
+                self._check_clock_jump(topic, t, log_ns)
                 self.offset_ref[topic] = run[-1]
                 self.last_ns.pop(topic, None)
                 run.clear()
@@ -229,7 +231,30 @@ class BagConverter:
             rep.drop('duplicated stamp' if t == last else 'stamp going backwards', t)
             return False
         self.last_ns[topic] = t
+        self.last_log[topic] = log_ns
         return True
+
+    def _check_clock_jump(self, topic: str, t: int, log_ns: int) -> None:
+        """Refuse a lasting jump of the topic's own stamps (a sensor clock restarted or set).
+
+        A jump of the log clock alone (the recorder's machine) leaves the stamps continuous
+        and is followed; stamps that go back, or forward by more than the log time advanced,
+        would put this topic's later values at wrong times on the other topics' clock (a
+        restarted chamber's values were held out of order over the whole episode).
+        """
+        last, last_log = self.last_ns.get(topic), self.last_log.get(topic)
+        if last is None or last_log is None:
+            return
+        step, logged = t - last, log_ns - last_log
+        if 0 < step <= logged + STAMP_OFFSET_LIMIT_NS:
+            return
+        raise BagError(
+            f'{topic} in bag {self.plan.path}: its header stamps jumped '
+            f'{"back" if step <= 0 else "ahead"} by {abs(step - max(logged, 0)) * 1e-9:.6g} s '
+            f'(from {last} ns to {t} ns while the log time advanced {logged * 1e-9:.6g} s; '
+            'a sensor clock restarted or set?), so its later messages cannot be aligned with '
+            "the other topics: time the bag by log time with 'time: {stamps: log}' in the "
+            'mapping (--mapping), or cut the bag at the jump.')
 
     def _on_input(self, msg: BagMessage) -> None:
         tr = self.tracks[msg.topic]
