@@ -26,7 +26,6 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 import sqlite3
-import struct
 from typing import Any
 
 import numpy as np
@@ -34,6 +33,7 @@ from numpy.typing import NDArray
 from rosbags.rosbag2 import Reader
 from rosbags.rosbag2.errors import ReaderError
 
+from soft_rom.bags._cdr import FAST, raw_frame_id
 from soft_rom.bags.writer import typestore
 from soft_rom.errors import BagError
 
@@ -74,6 +74,8 @@ class BagMessage:
         See the table in the module docstring.
     layout : tuple of (label, size), optional
         Multi-array layout dimensions.
+    frame_id : str or None
+        ``header.frame_id``, or ``None`` for header-less types.
     """
 
     topic: str
@@ -82,6 +84,7 @@ class BagMessage:
     stamp_ns: int | None
     value: NDArray[Any]
     layout: tuple[tuple[str, int], ...] = ()
+    frame_id: str | None = None
 
 
 def _stamp(msg: Any) -> int:
@@ -143,56 +146,6 @@ def decode(msgtype: str, msg: Any) -> tuple[int | None, NDArray[Any], tuple[tupl
     if msgtype == 'sensor_msgs/msg/PointCloud2':
         return _stamp(msg), _pointcloud_xyz(msg), ()
     raise BagError(f'message type {msgtype} is not supported; use one of {SUPPORTED_TYPES}.')
-
-
-# -- fast paths: small stamped messages parsed straight from little-endian CDR -----------
-# rosbags' generic deserialiser builds Python objects field by field (tens of microseconds per
-# message); the converter reads 6 pressures and a 20-point PoseArray per sample, so these two
-# types are parsed with struct/numpy. Anything unexpected returns None and the generic path
-# (which also reports corrupt messages) is used. Offsets follow the CDR rules: alignment is
-# relative to the byte after the 4-byte encapsulation header.
-_HDR = struct.Struct('<iII')          # stamp.sec, stamp.nanosec, len(frame_id) incl. NUL
-
-
-def _fast_header(raw: bytes | memoryview) -> tuple[int, int] | None:
-    if len(raw) < 16 or raw[0] != 0 or raw[1] != 1:      # CDR_LE only
-        return None
-    sec, nsec, n = _HDR.unpack_from(raw, 4)
-    pos = 12 + n                                         # after the frame_id string
-    if n == 0 or pos > len(raw) - 4 or nsec >= 1_000_000_000:
-        return None
-    return sec * 1_000_000_000 + nsec, pos
-
-
-def _fast_fluid_pressure(raw: bytes | memoryview) -> tuple[int, NDArray[Any]] | None:
-    head = _fast_header(raw)
-    if head is None:
-        return None
-    stamp, pos = head
-    pos = (pos + 7) & ~7                                 # float64 alignment
-    if 4 + pos + 16 != len(raw):
-        return None
-    return stamp, np.frombuffer(raw, dtype='<f8', count=1, offset=4 + pos).astype(np.float64)
-
-
-def _fast_pose_array(raw: bytes | memoryview) -> tuple[int, NDArray[Any]] | None:
-    head = _fast_header(raw)
-    if head is None:
-        return None
-    stamp, pos = head
-    pos = (pos + 3) & ~3
-    (count,) = struct.unpack_from('<I', raw, 4 + pos)
-    if count == 0:                                       # no padding after an empty sequence
-        return (stamp, np.empty((0, 3))) if 4 + pos + 4 == len(raw) else None
-    pos = (pos + 4 + 7) & ~7
-    if 4 + pos + 56 * count != len(raw):
-        return None
-    poses = np.frombuffer(raw, dtype='<f8', count=7 * count, offset=4 + pos).reshape(count, 7)
-    return stamp, poses[:, :3].astype(np.float64)
-
-
-_FAST = {'sensor_msgs/msg/FluidPressure': _fast_fluid_pressure,
-         'geometry_msgs/msg/PoseArray': _fast_pose_array}
 
 
 #: Storage of a bag file by the end of its name (``ros2 bag record --compression-mode file``
@@ -455,12 +408,11 @@ class BagReader:
     def messages(self, topics: Sequence[str]) -> Iterator[BagMessage]:
         """Yield decoded :class:`BagMessage` of ``topics`` in log-time order."""
         for topic, msgtype, log_ns, data in self.raw(topics):
-            fast = _FAST.get(msgtype)
-            if fast is not None:
-                got = fast(data)
-                if got is not None:
-                    yield BagMessage(topic, msgtype, log_ns, got[0], got[1], ())
-                    continue
+            fast = FAST.get(msgtype)
+            got = None if fast is None else fast(data)
+            if got is not None:
+                yield BagMessage(topic, msgtype, log_ns, got[0], got[1], (), raw_frame_id(data))
+                continue
             try:
                 msg = self._ts.deserialize_cdr(data, msgtype)
             except Exception as err:  # noqa: BLE001 - corrupt CDR raises many kinds
@@ -475,7 +427,9 @@ class BagReader:
                                'corrupt or was recorded with another definition of its '
                                'type.') from err
             stamp, value, layout = decode(msgtype, msg)
-            yield BagMessage(topic, msgtype, log_ns, stamp, value, layout)
+            frame = getattr(getattr(msg, 'header', None), 'frame_id', None)
+            yield BagMessage(topic, msgtype, log_ns, stamp, value, layout,
+                             None if frame is None else str(frame))
 
 
 def describe_bag(path: str | Path) -> dict[str, Any]:

@@ -65,6 +65,7 @@ no message on the mapped topics / on the output       **stop**
 configured topic missing                              **stop** (topic named, topics listed)
 wrong message type on a configured topic              **stop** (topic, found and expected type)
 header stamps of a topic mostly going backwards       **stop** (use ``time.stamps: log``)
+a topic's own stamps jumping for good (clock reset)   **stop** (topic and jump named)
 ``--dt`` too fine, grid too large for disk or memory  **stop** before writing (ConfigError /
                                                       ResourceError)
 output exists and is not a soft_rom training set      **stop** before reading (even with
@@ -73,6 +74,7 @@ no usable sample left after dropping                  **stop**
 NaN/Inf in a message                                  continue: message dropped (inputs keep
                                                       their held value), reported with stamp
 size differs from the mapping / the majority          continue: message dropped, reported
+centerline frame_id other than the majority's        continue: message dropped, reported
 stamp more than 1 s from its log time (after the      continue: message dropped, reported
 topic's median offset)
 stamp duplicated or going backwards on a topic        continue: message dropped, reported

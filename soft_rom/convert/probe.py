@@ -55,6 +55,7 @@ class TopicPlan:
     period_ns: int | None = None
     first_ns: int | None = None
     first_log_ns: int | None = None
+    frame_id: str | None = None
 
 
 @dataclass
@@ -218,6 +219,7 @@ def _probe_topic(bag: BagReader, topic: str, role: str, msgtype: str,
                  messages: list[BagMessage]) -> TopicPlan:
     plan = TopicPlan(topic, role, msgtype, count)
     sizes: Counter[int] = Counter()
+    frames: Counter[str | None] = Counter()
     times: list[int] = []
     offsets: list[int] = []
     last: BagMessage | None = None
@@ -231,6 +233,7 @@ def _probe_topic(bag: BagReader, topic: str, role: str, msgtype: str,
             plan.first_log_ns = msg.log_ns
         times.append(t)
         offsets.append(t - msg.log_ns)
+        frames[msg.frame_id] += 1
         if layout_ok(msg):
             sizes[_size(role, msg, source)] += 1
     if not times:
@@ -244,6 +247,7 @@ def _probe_topic(bag: BagReader, topic: str, role: str, msgtype: str,
                        "cannot time the samples; time this bag by its log time with 'time: "
                        "{stamps: log}' in the mapping (--mapping).")
     plan.offset_ns = int(np.median(offsets))
+    plan.frame_id = frames.most_common(1)[0][0]
     if role == 'output' and mapping.output.n_points is not None:
         plan.size = int(mapping.output.n_points)
     elif role == 'input' and source is not None and source.indices is not None:

@@ -237,10 +237,7 @@ class BagConverter:
     def _check_clock_jump(self, topic: str, t: int, log_ns: int) -> None:
         """Refuse a lasting jump of the topic's own stamps (a sensor clock restarted or set).
 
-        A jump of the log clock alone (the recorder's machine) leaves the stamps continuous
-        and is followed; stamps that go back, or forward by more than the log time advanced,
-        would put this topic's later values at wrong times on the other topics' clock (a
-        restarted chamber's values were held out of order over the whole episode).
+        A jump of the log clock alone (the recorder's) leaves the stamps continuous.
         """
         last, last_log = self.last_ns.get(topic), self.last_log.get(topic)
         if last is None or last_log is None:
@@ -302,6 +299,9 @@ class BagConverter:
                                  dtype=np.float64).reshape(-1)
         if not all_finite(y):
             rep.drop('NaN/Inf', t)
+            return None
+        if msg.frame_id != self.out_plan.frame_id:      # positions in another frame
+            rep.drop(f'frame_id {msg.frame_id!r} instead of {self.out_plan.frame_id!r}', t)
             return None
         if not self._stamp_ok(m.topic, rep, t, msg.log_ns, self.out_plan.offset_ns):
             return None

@@ -110,7 +110,8 @@ def test_custom_topics(tmp_path):
 @pytest.mark.parametrize('frame_id', ['', 'w', 'world', 'abcdefg', 'abcdefgh'])
 @pytest.mark.parametrize('n_points', [0, 1, 20])
 def test_fast_cdr_parsers_match_rosbags(frame_id, n_points):
-    from soft_rom.bags.reader import _fast_fluid_pressure, _fast_pose_array, decode
+    from soft_rom.bags._cdr import _fast_fluid_pressure, _fast_pose_array, raw_frame_id
+    from soft_rom.bags.reader import decode
     from soft_rom.bags.writer import typestore
     ts = typestore()
     T = ts.types
@@ -122,6 +123,7 @@ def test_fast_cdr_parsers_match_rosbags(frame_id, n_points):
     ref = decode('sensor_msgs/msg/FluidPressure',
                  ts.deserialize_cdr(raw, 'sensor_msgs/msg/FluidPressure'))
     got = _fast_fluid_pressure(raw)
+    assert raw_frame_id(raw) == frame_id
     assert got[0] == ref[0] == 1_700_000_000_999_999_999
     np.testing.assert_array_equal(got[1], ref[1])
     pts = np.random.default_rng(n_points).normal(size=(n_points, 3))
@@ -132,6 +134,7 @@ def test_fast_cdr_parsers_match_rosbags(frame_id, n_points):
         for a, b, c in pts])
     raw = bytes(ts.serialize_cdr(pa, 'geometry_msgs/msg/PoseArray'))
     got = _fast_pose_array(raw)
+    assert raw_frame_id(raw) == frame_id
     assert got[0] == ref[0]
     np.testing.assert_array_equal(got[1], pts.reshape(-1, 3))
     assert _fast_pose_array(raw[:-8]) is None          # truncated: generic path decides

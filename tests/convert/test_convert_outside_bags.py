@@ -1,4 +1,4 @@
-"""Sensor clocks that jump mid-bag, and topics recorded twice, in bags written by rosbags.
+"""Bags as the outside world writes them (rosbags): clocks that jump, doubled topics, frames.
 
 The bags are made the way the outside world makes them (``rosbags.rosbag2.Writer``), with
 known values: chamber ``i`` reads ``1000 i + 100 t`` Pa at its stamp ``t`` (s from the start),
@@ -34,12 +34,14 @@ def _fp(ns: int, v: float) -> object:
     return T['sensor_msgs/msg/FluidPressure'](header=_header(ns), fluid_pressure=v, variance=0.0)
 
 
-def _centerline(ns: int) -> object:
+def _centerline(ns: int, frame: str = 'world', dx: float = 0.0) -> object:
     t = (ns - T0) * 1e-9
     P, Pt = T['geometry_msgs/msg/Pose'], T['geometry_msgs/msg/Point']
     Q = T['geometry_msgs/msg/Quaternion']
-    return T['geometry_msgs/msg/PoseArray'](header=_header(ns), poses=[
-        P(position=Pt(x=0.01 * k + 0.001 * t, y=0.0, z=0.002 * k * t),
+    header = _header(ns)
+    header.frame_id = frame
+    return T['geometry_msgs/msg/PoseArray'](header=header, poses=[
+        P(position=Pt(x=0.01 * k + 0.001 * t + dx, y=0.0, z=0.002 * k * t),
           orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0)) for k in range(NP)])
 
 
@@ -152,3 +154,29 @@ def test_a_topic_recorded_twice_converts_to_the_same_values(tmp_path, twice):
     assert _check_exact(out) == [100]
     report = TrainingSet.open(out).metadata('twice')['conversion_report']
     assert 'duplicated stamp' in str(report['topics'][CH2]['dropped'])
+
+
+@pytest.mark.parametrize('fast', [True, False], ids=['cdr', 'generic'])
+def test_centerline_in_another_frame_mid_bag_is_dropped_not_mixed(tmp_path, monkeypatch, fast):
+    # the tracker's centerline switches from 'world' to 'camera' (1 m apart in x) at 0.5 s:
+    # the frame was never read, so the second half went into Y 1 m off, exit 0
+    if not fast:
+        monkeypatch.setattr('soft_rom.bags.reader.FAST', {})
+    msgs = [(log, tp, ty, _centerline(_stamp(m), 'camera', 1.0)
+             if tp == '/soft_robot/centerline' and _stamp(m) - T0 >= 500_000_000 else m)
+            for log, tp, ty, m in _messages(1.0)]
+    bag = _write(tmp_path / 'frames', msgs)
+    out = tmp_path / 'out.zarr'
+    assert main(['convert', str(bag), '-o', str(out), '--quiet']) == 0
+    assert _check_exact(out) == [50]
+    dropped = TrainingSet.open(out).metadata('frames')['conversion_report']['topics'][
+        '/soft_robot/centerline']['dropped']
+    assert "frame_id 'camera' instead of 'world'" in str(dropped), dropped
+
+
+def test_centerline_in_one_other_frame_throughout_converts(tmp_path):
+    msgs = [(log, tp, ty, _centerline(_stamp(m), 'mocap') if tp == '/soft_robot/centerline'
+             else m) for log, tp, ty, m in _messages(1.0)]
+    out = tmp_path / 'out.zarr'
+    assert main(['convert', str(_write(tmp_path / 'b', msgs)), '-o', str(out), '--quiet']) == 0
+    assert _check_exact(out) == [100]
