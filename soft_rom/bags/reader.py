@@ -23,7 +23,9 @@ Multi-array data are returned as zero-copy views of the message buffer.
 from __future__ import annotations
 
 from collections.abc import Iterator, Sequence
+import copy
 from dataclasses import dataclass
+import heapq
 from pathlib import Path
 import sqlite3
 from typing import Any
@@ -373,7 +375,7 @@ class BagReader:
             return
         for conn in conns:
             self._check_definition(conn.topic, conn.msgtype, conn.digest)
-        it = self.reader.messages(connections=conns)
+        it = self._merged(conns)
         while True:
             try:
                 conn, log_ns, data = next(it)
@@ -388,6 +390,26 @@ class BagReader:
                                f'the int64 nanoseconds of ROS 2 time (at most {INT64_MAX}); '
                                'the bag is damaged: repair its log times or record it again.')
             yield conn.topic, conn.msgtype, log_ns, data
+
+    def _merged(self, conns: list[Any]) -> Iterator[tuple[Any, int, bytes]]:
+        """The messages of ``conns`` in log-time order across the files of a split bag.
+
+        rosbags reads a folder's files one after the other in ``metadata.yaml``'s order; files
+        listed out of time order (a hand-made or re-indexed ``metadata.yaml``) or overlapping
+        came out with the stamps going back, and the converter kept only the last file's
+        messages. Each file's reader (its own connection mapping and decompression) is merged
+        by log time; one file, or a single storage file, is read as it is.
+        """
+        storage: Any = getattr(self.reader, 'storage', None)
+        parts = getattr(storage, 'storages', None)
+        if not isinstance(parts, list) or len(parts) < 2:
+            return iter(self.reader.messages(connections=conns))
+        views = []
+        for part in parts:
+            view = copy.copy(storage)
+            view.storages = [part]
+            views.append(view.messages(conns, None, None))
+        return heapq.merge(*views, key=lambda m: m[1])
 
     def _check_definition(self, topic: str, msgtype: str, digest: str | None) -> None:
         """Refuse a topic recorded with another definition of its type than the standard one.

@@ -126,6 +126,21 @@ def test_split_recording_converts_like_one_file(rig, tmp_path, storage):
     _same(sets[storage], _convert(bag, tmp_path / 'run.zarr'))
 
 
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_split_files_listed_out_of_time_order_are_read_in_time_order(rig, tmp_path, storage):
+    # metadata.yaml listing a split recording's files out of time order (hand-made, or
+    # re-indexed by name: run_10 before run_2) was read file after file: the stamps went back
+    # at each file boundary and only the last-listed file's third of the bag was kept, exit 0
+    bags, sets = rig
+    bag = _split(bags[storage], tmp_path / 'run', storage)
+    meta = _meta(bag)
+    info = meta['rosbag2_bagfile_information']
+    info['relative_file_paths'] = [info['relative_file_paths'][i] for i in (2, 0, 1)]
+    info['files'] = [info['files'][i] for i in (2, 0, 1)]
+    _save_meta(bag, meta)
+    _same(sets[storage], _convert(bag, tmp_path / 'run.zarr'))
+
+
 def test_split_recording_with_a_file_missing_is_refused_naming_it(rig, tmp_path, capsys):
     bags, _ = rig
     bag = _split(bags['mcap'], tmp_path / 'run', 'mcap')
