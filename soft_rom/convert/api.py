@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Sequence
+import logging
 from pathlib import Path
 import re
 from typing import Any
@@ -12,6 +13,7 @@ import numpy as np
 from soft_rom import outputs
 from soft_rom.bags.reader import is_bag
 from soft_rom.convert.mapping import BagMapping
+from soft_rom.convert.probe import clocks_apart
 from soft_rom.convert.report import ConversionReport
 from soft_rom.convert.stream import (
     Array,
@@ -26,6 +28,8 @@ from soft_rom.dataset import adopt_legacy, EpisodeWriter, KIND, TrainingSet, Tra
 from soft_rom.errors import BagError, ConfigError, ResourceError
 
 __all__ = ['choose_dt_ns', 'convert', 'read_episode']
+
+LOG = logging.getLogger(__name__)
 
 #: ``--dt`` may be at most this many times finer than the fastest topic's median period.
 MAX_UPSAMPLING = 10
@@ -68,6 +72,14 @@ def _paths(bags: Iterable[str | Path]) -> list[Path]:
                            'identical episodes (one in training, one held out, say): give '
                            'each recording once.')
     return out
+
+
+def _note_clocks(plan: BagPlan, report: ConversionReport) -> None:
+    """Warn (and note in the report) when the topics' clocks are seconds apart."""
+    note = clocks_apart(plan)
+    if note is not None:
+        LOG.warning('bag %s: %s', plan.path, note)
+        report.notes.append(note)
 
 
 def choose_dt_ns(plans: Sequence[BagPlan], mapping: BagMapping) -> int:
@@ -250,6 +262,7 @@ def convert(bags: Sequence[str | Path], out: str | Path, mapping: BagMapping | N
         sink = _TrainingSetSink(writer)
         for plan in plans:
             report = BagConverter(plan, m, dt_ns, sink, names_taken, progress).run()
+            _note_clocks(plan, report)
             for ep in report.episodes:
                 writer.update_metadata(ep['name'], {'conversion_report': report.to_dict()})
             reports.append(report)
@@ -290,6 +303,7 @@ def read_episode(bag_path: str | Path, mapping: BagMapping | None = None, *,
     sink = _MemorySink()
     conv = BagConverter(plan, m, dt_ns, sink, set(), progress)
     report = conv.run()
+    _note_clocks(plan, report)
     ep = max(sink.episodes, key=lambda e: e.n_samples)
     if len(sink.episodes) > 1:
         report.notes.append(f'{len(sink.episodes)} pieces between long gaps; returned the '

@@ -32,7 +32,8 @@ from soft_rom.convert.mapping import (
 )
 from soft_rom.errors import BagError
 
-__all__ = ['BagPlan', 'PROBE_MESSAGES', 'PROBE_STATE_MESSAGES', 'STAMP_OFFSET_LIMIT_NS',
+__all__ = ['BagPlan', 'clocks_apart', 'PROBE_MESSAGES', 'PROBE_STATE_MESSAGES',
+           'STAMP_OFFSET_LIMIT_NS',
            'TopicPlan', 'layout_ok', 'message_time', 'probe_bag']
 
 #: Messages per topic read by the probe (state topics: fewer, they are large).
@@ -260,6 +261,26 @@ def _probe_topic(bag: BagReader, topic: str, role: str, msgtype: str,
     ok = np.abs(np.asarray(offsets) - plan.offset_ns) <= STAMP_OFFSET_LIMIT_NS
     plan.period_ns = _period(np.asarray(times, dtype=np.int64)[ok])
     return plan
+
+
+def clocks_apart(plan: BagPlan) -> str | None:
+    """A note when a topic's stamps are over 1 s from the output's, both against log time.
+
+    Samples are aligned by their stamps; a camera or sensor machine whose clock is off by
+    seconds (not synchronised) gives inputs that many seconds off the outputs, which nothing
+    else in the conversion shows (only inputs held at one end).
+    """
+    out = next((t for t in plan.topics.values() if t.role == 'output'), None)
+    if out is None:
+        return None
+    far = max((t for t in plan.topics.values() if t.role != 'output'), default=None,
+              key=lambda t: abs(t.offset_ns - out.offset_ns))
+    if far is None or abs(far.offset_ns - out.offset_ns) <= STAMP_OFFSET_LIMIT_NS:
+        return None
+    return (f'the stamps of {out.topic} are {(out.offset_ns - far.offset_ns) * 1e-9:+.6g} s from '
+            f"those of {far.topic} (each against its log time); samples are aligned by stamp, "
+            'so if these clocks were not synchronised the inputs are that far off the outputs: '
+            "synchronise them, or time the bag by log time ('time: {stamps: log}')")
 
 
 def _period(tt: NDArray[np.int64]) -> int | None:

@@ -34,8 +34,10 @@ def _fp(ns: int, v: float) -> object:
     return T['sensor_msgs/msg/FluidPressure'](header=_header(ns), fluid_pressure=v, variance=0.0)
 
 
-def _centerline(ns: int, frame: str = 'world', dx: float = 0.0) -> object:
-    t = (ns - T0) * 1e-9
+def _centerline(ns: int, frame: str = 'world', dx: float = 0.0,
+                true_ns: int | None = None) -> object:
+    """Stamped ``ns``; the positions of the time ``true_ns`` (default ``ns``)."""
+    t = ((ns if true_ns is None else true_ns) - T0) * 1e-9
     P, Pt = T['geometry_msgs/msg/Pose'], T['geometry_msgs/msg/Point']
     Q = T['geometry_msgs/msg/Quaternion']
     header = _header(ns)
@@ -180,3 +182,31 @@ def test_centerline_in_one_other_frame_throughout_converts(tmp_path):
     out = tmp_path / 'out.zarr'
     assert main(['convert', str(_write(tmp_path / 'b', msgs)), '-o', str(out), '--quiet']) == 0
     assert _check_exact(out) == [100]
+
+
+
+def test_a_camera_clock_seconds_off_is_said_and_log_time_realigns_it(tmp_path, capsys):
+    # the tracker's machine is 2 s ahead (stamps = true time + 2 s, logged on time): samples
+    # paired inputs with outputs 2 s apart, exit 0, said only as 'inputs held over a gap'
+    msgs = [(log, tp, ty, _centerline(_stamp(m) + 2 * 10**9, true_ns=_stamp(m)))
+            if tp == '/soft_robot/centerline' else (log, tp, ty, m)
+            for log, tp, ty, m in _messages(3.0, in_hz=100)]
+    bag = _write(tmp_path / 'apart', msgs)
+    out = tmp_path / 'out.zarr'
+    assert main(['convert', str(bag), '-o', str(out), '--quiet']) == 0
+    err = capsys.readouterr().err
+    assert '/soft_robot/centerline are +2 s from' in err and 'stamps: log' in err, err
+    assert len(err.strip().splitlines()) == 1, err
+    notes = TrainingSet.open(out).metadata('apart')['conversion_report']['notes']
+    assert any('+2 s' in n for n in notes), notes
+    mapping = tmp_path / 'log.yaml'
+    mapping.write_text('time:\n  stamps: log\n')
+    out2 = tmp_path / 'log.zarr'
+    assert main(['convert', str(bag), '-o', str(out2), '--quiet', '--mapping', str(mapping)]) == 0
+    assert capsys.readouterr().err == ''
+    ts = TrainingSet.open(out2)
+    ep = ts[ts.episode_names[0]]
+    true = np.asarray(ep.t) + (ts.t0_ns(ts.episode_names[0]) - T0) * 1e-9 - 2e-4  # log latency
+    assert ep.U.shape[1] == 300
+    np.testing.assert_allclose(np.asarray(ep.U)[1], 2000.0 + 100.0 * true, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(ep.Y)[1], 0.01 + 0.001 * true, atol=1e-9)
