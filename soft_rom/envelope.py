@@ -13,7 +13,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ['training_envelope']
+from soft_rom.errors import ConfigError
+
+__all__ = ['check_bound_units', 'training_envelope']
 
 Array = NDArray[np.float64]
 
@@ -63,3 +65,22 @@ def training_envelope(episodes: Iterable[Any], y_ref: ArrayLike | None = None
         'y_dev_max': dev if have_y else None,
         'samples': int(samples),
     }
+
+
+def check_bound_units(model: Any, lo: Array, hi: Array, t_lo: Any, t_hi: Any,
+                      what: str) -> None:
+    """Refuse bounds ``[lo, hi]`` 1000 x narrower or wider than the training range (units?).
+
+    The predictor's input envelope and the MPC's input bounds (``what`` names them in the
+    message): kPa given to a model in Pa would clip every input to a thousandth of its range.
+    """
+    t_lo, t_hi = np.asarray(t_lo, dtype=np.float64), np.asarray(t_hi, dtype=np.float64)
+    trained = float(np.max(t_hi - t_lo))
+    given = float(np.max(hi - lo))
+    if trained > 0 and not 1e-3 <= given / trained <= 1e3:
+        units = sorted({u for u in getattr(model, 'input_units', None) or () if u}) or [
+            'unnamed in the model file']
+        raise ConfigError(f'{what} [{float(np.min(lo)):g}, {float(np.max(hi)):g}] span '
+                          f'{given / trained:.2g} x the training range [{float(np.min(t_lo)):g},'
+                          f" {float(np.max(t_hi)):g}]: give them in the model's input units "
+                          f'({", ".join(units)}).')

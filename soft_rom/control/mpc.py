@@ -43,6 +43,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.control.qp import make_solver, QPResult
+from soft_rom.envelope import check_bound_units
 from soft_rom.errors import ConfigError, DimensionError, UntrustedModelWarning, warn
 
 __all__ = ['MPC', 'MPCConfig', 'MPCStep', 'TERMINAL_COSTS', 'input_bounds', 'require_linear',
@@ -168,22 +169,8 @@ def input_bounds(model: Any, u_min: ArrayLike | None = None,
         raise ConfigError(f'input bounds: u_min >= u_max for input {i} ({lo[i]:g} >= '
                           f'{hi[i]:g}); give u_min below u_max.')
     if (u_min is not None or u_max is not None) and env.get('u_min') and env.get('u_max'):
-        _check_bound_units(model, lo, hi, np.asarray(env['u_min'], dtype=np.float64),
-                           np.asarray(env['u_max'], dtype=np.float64))
+        check_bound_units(model, lo, hi, env['u_min'], env['u_max'], 'input bounds')
     return lo, hi
-
-
-def _check_bound_units(model: Any, lo: Array, hi: Array, t_lo: Array, t_hi: Array) -> None:
-    """Refuse given bounds 1000 x narrower or wider than the training range (units?)."""
-    trained = float(np.max(t_hi - t_lo))
-    given = float(np.max(hi - lo))
-    if trained > 0 and not 1e-3 <= given / trained <= 1e3:
-        units = sorted({u for u in getattr(model, 'input_units', None) or () if u}) or [
-            'unnamed in the model file']
-        raise ConfigError(f'input bounds [{float(np.min(lo)):g}, {float(np.max(hi)):g}] span '
-                          f'{given / trained:.2g} x the training range [{float(np.min(t_lo)):g},'
-                          f" {float(np.max(t_hi)):g}]: give them in the model's input units "
-                          f'({", ".join(units)}).')
 
 
 def require_linear(model: Any, what: str) -> None:

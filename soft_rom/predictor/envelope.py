@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from soft_rom.data import all_finite
-from soft_rom.envelope import training_envelope
+from soft_rom.envelope import check_bound_units, training_envelope
 from soft_rom.errors import ConfigError
 
 __all__ = ['Envelopes', 'training_envelope']
@@ -97,7 +97,7 @@ class Envelopes:
                     f'{self.u_lo[i]:g} > {self.u_hi[i]:g} (input envelope: '
                     f'{self.input_source}).')
             if lo_cfg is not None and hi_cfg is not None and train_lo is not None:
-                _check_units(model, lo_cfg, hi_cfg, lo, hi)
+                check_bound_units(model, lo_cfg, hi_cfg, lo, hi, 'input_min/input_max')
         y_ref = np.asarray(model.y_ref, dtype=np.float64)
         dev = meta.get('y_dev_max')
         if isinstance(dev, (int, float)) and math.isfinite(dev) and dev > 0:
@@ -136,23 +136,6 @@ class Envelopes:
             'output_bound': self.y_bound,
             'output_source': self.output_source,
         }
-
-
-def _check_units(model: Any, lo: Array, hi: Array, t_lo: Any, t_hi: Any) -> None:
-    """Refuse an envelope 1000 x narrower or wider than the training range (units?).
-
-    The controller's input bounds follow the same rule (:mod:`soft_rom.control.mpc`): kPa
-    given to a model in Pa would clip every input to a thousandth of its range.
-    """
-    trained = float(np.max(t_hi - t_lo))
-    given = float(np.max(hi - lo))
-    if trained > 0 and not 1e-3 <= given / trained <= 1e3:
-        units = sorted({u for u in getattr(model, 'input_units', None) or () if u}) or [
-            'unnamed in the model file']
-        raise ConfigError(f'input_min/input_max [{float(np.min(lo)):g}, {float(np.max(hi)):g}] '
-                          f'span {given / trained:.2g} x the training range '
-                          f'[{float(np.min(t_lo)):g}, {float(np.max(t_hi)):g}]: give them in the '
-                          f"model's input units ({', '.join(units)}).")
 
 
 def _side(bound: Array | None) -> list[float] | None:
