@@ -196,12 +196,17 @@ def step_reference(model: Any, u: ArrayLike, duration: float, *, at: float = 0.1
     if np.max(np.abs(u)) > 1e7:
         raise ConfigError(f'--reference step: pressures of at most 1e7 Pa (as simulate '
                           f'--amplitude); got {u.tolist()}.')
+    label = f'static bend u=[{", ".join(f"{v / 1e3:g}" for v in u)}] kPa from {at:g} s'
+    t = np.asarray(np.arange(int(round(duration / dt)) + 1) * dt, dtype=np.float64)
+    if not t[-1] >= at:              # said before the FOM's settling run (seconds), not after
+        raise ConfigError(f"the reference {label!r} does not leave the model's rest output "
+                          f"within the run's {duration:g} s: the tracking error, relative to "
+                          'that deviation, would be undefined. Give an earlier at=, or a '
+                          'longer --duration.')
     n = max(1, int(round(settle / dt)))
     res = eel.simulate(np.repeat(u[:, None], n, axis=1), n, dt)
     y_end = _model_outputs(model, res.centerline[:, :, -1])
-    t = np.asarray(np.arange(int(round(duration / dt)) + 1) * dt, dtype=np.float64)
     Y = np.where(t[None, :] < at, np.asarray(model.y_ref)[:, None], y_end[:, None])
-    label = f'static bend u=[{", ".join(f"{v / 1e3:g}" for v in u)}] kPa from {at:g} s'
     return Reference(t=t, Y=Y, label=label, U=np.where(t[None, :] < at, 0.0, u[:, None]))
 
 

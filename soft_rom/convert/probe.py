@@ -243,10 +243,16 @@ def _probe_topic(bag: BagReader, topic: str, role: str, msgtype: str,
     d = np.diff(np.asarray(times, dtype=np.int64))
     if d.size >= 2 and np.mean(d <= 0) > 0.5:
         how = 'go backwards' if np.mean(d < 0) > 0.5 else 'do not advance'
-        raise BagError(f'{topic} in bag {bag.path}: the header stamps {how} in '
+        by_log = mapping.stamps == 'log' or last is None or last.stamp_ns is None
+        fix = ("the recording's clock is broken; re-record it, or time it by header stamps "
+               "with 'time: {stamps: header}' in the mapping (--mapping) if its messages "
+               'carry them.') if by_log else (
+            "time this bag by its log time with 'time: {stamps: log}' in the mapping "
+            '(--mapping).')
+        raise BagError(f'{topic} in bag {bag.path}: the '
+                       f'{"log times" if by_log else "header stamps"} {how} in '
                        f'{np.mean(d <= 0):.0%} of its first {len(times)} messages, so they '
-                       "cannot time the samples; time this bag by its log time with 'time: "
-                       "{stamps: log}' in the mapping (--mapping).")
+                       f'cannot time the samples; {fix}')
     plan.offset_ns = int(np.median(offsets))
     plan.frame_id = frames.most_common(1)[0][0]
     if role == 'output' and mapping.output.n_points is not None:

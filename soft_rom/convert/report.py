@@ -129,9 +129,18 @@ class ConversionReport:
         gaps = sum(r.grid_gap_interpolated for r in self.topics.values())
         if gaps:
             notes.append(f'{gaps} grid points interpolated across lost samples')
-        held = sum(r.held_over_gap for r in self.topics.values() if r.role == 'input')
-        if held:
-            notes.append(f'inputs held over a gap at {held} grid points')
+        holds = sorted((r for r in self.topics.values()
+                        if r.role == 'input' and r.held_over_gap),
+                       key=lambda r: (-r.held_over_gap, r.topic))
+        if holds:
+            held = sum(r.held_over_gap for r in holds)
+            most = holds[0]
+            pts = f'{held} grid point{"s" if held != 1 else ""}'
+            notes.append(f'inputs held over a gap at {pts} (most: {most.topic}, '
+                         f'{most.held_over_gap}, longest hold {_ms(most.max_hold_s)})'
+                         if len(holds) > 1 else
+                         f'input {most.topic} held over a gap at {pts} (longest '
+                         f'hold {_ms(most.max_hold_s)})')
         splits = sum(r.splits for r in self.topics.values() if r.role == 'output')
         if splits:
             notes.append(f'split {splits} time{"s" if splits != 1 else ""} at long gaps')

@@ -179,6 +179,8 @@ def test_nan_inf_dropped_and_reported(tmp_path):
     r = rep.topics
     assert r['/soft_robot/pressure/chamber_1'].dropped == {'NaN/Inf': 1}
     assert r['/soft_robot/pressure/chamber_1'].held_over_gap == 1
+    assert 'input /soft_robot/pressure/chamber_1 held over a gap at 1 grid point (longest ' \
+        'hold 1 ms)' in rep.summary_line(), rep.summary_line()
     miss = 'no state message within 0.45 output periods'
     assert r['/soft_robot/centerline'].dropped == {'NaN/Inf': 1, miss: 1}
     assert r['/soft_robot/state'].dropped == {

@@ -192,6 +192,20 @@ def test_descending_header_stamps_are_refused_with_the_fix(tmp_path):
     assert ep.n_samples == 50
 
 
+def test_log_times_that_do_not_advance_are_named_as_log_times(tmp_path):
+    # a recorder whose clock stood still: every centerline logged at the same time, timed by
+    # log time as the mapping asks; the message must not blame header stamps nor offer 'log'
+    hooks = {('y', j): (lambda ns, j=j: (ns, _pose_array(ns, np.full((N_PTS, 3), 1e-3 * j)),
+                                         T0_NS)) for j in range(50)}
+    bag = tmp_path / 'rec'
+    _bag(bag, k=50, hooks=hooks)
+    with pytest.raises(BagError, match=r'log times do not advance in 100% .*broken') as err:
+        convert([bag], tmp_path / 'o.zarr', BagMapping.from_dict({'time': {'stamps': 'log'}}),
+                progress=False)
+    assert 'header stamps' not in str(err.value).split(';')[0]
+    assert not (tmp_path / 'o.zarr').exists() and not _hidden(tmp_path)
+
+
 @pytest.mark.parametrize('stamps', ['log', 'header'])
 def test_log_times_beyond_int64_are_refused_in_one_line(tmp_path, capsys, stamps):
     # an MCAP stores log times as uint64; ROS 2 time is int64 ns: from the 21st message on
