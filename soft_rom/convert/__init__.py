@@ -66,6 +66,8 @@ configured topic missing                              **stop** (topic named, top
 wrong message type on a configured topic              **stop** (topic, found and expected type)
 header stamps of a topic mostly going backwards       **stop** (use ``time.stamps: log``)
 a topic's own stamps jumping for good (clock reset)   **stop** (topic and jump named)
+a topic's clock set back under 1 s (8 stamps in a     **stop** (topic and step named)
+row before its last two)
 ``--dt`` too fine, grid too large for disk or memory  **stop** before writing (ConfigError /
                                                       ResourceError)
 output exists and is not a soft_rom training set      **stop** before reading (even with
@@ -77,7 +79,8 @@ size differs from the mapping / the majority          continue: message dropped,
 centerline frame_id other than the majority's        continue: message dropped, reported
 stamp more than 1 s from its log time (after the      continue: message dropped, reported
 topic's median offset)
-stamp duplicated or going backwards on a topic        continue: message dropped, reported
+stamp duplicated or going backwards on a topic (a     continue: message dropped, reported
+few out of order, or after one stamp glitched ahead)
 output sample without a state (or state w/o output)   continue: dropped, reported
 output sample before the first message of an input    continue: dropped, reported
 one lost output frame (up to ``max_gap`` periods)     continue: interpolated, counted

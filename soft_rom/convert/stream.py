@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from soft_rom.bags.reader import BagMessage, BagReader
+from soft_rom.convert.clocks import TopicClocks
 from soft_rom.convert.hold import InputTrack, LOST_FACTOR
 from soft_rom.convert.mapping import BagMapping, per_input
 from soft_rom.convert.probe import (
@@ -37,7 +38,6 @@ from soft_rom.convert.probe import (
     layout_ok,
     message_time,
     probe_bag,
-    STAMP_OFFSET_LIMIT_NS,
 )
 from soft_rom.convert.report import ConversionReport, TopicReport
 from soft_rom.data import all_finite
@@ -51,8 +51,6 @@ Array = NDArray[np.float64]
 
 LOG = logging.getLogger(__name__)
 
-#: Rejected stamps in a row, agreeing among themselves, after which a clock jump is followed.
-REANCHOR = 8
 
 
 class SegmentSink(Protocol):
@@ -142,10 +140,7 @@ class BagConverter:
         self.need_points = None if m.points is None else max(m.points) + 1
         self.outs: deque[tuple[int, Array]] = deque()
         self.states: deque[tuple[int, Array]] = deque()
-        self.last_ns: dict[str, int] = {}
-        self.last_log: dict[str, int] = {}
-        self.offset_ref: dict[str, int] = {}
-        self.rejected: dict[str, list[int]] = {}
+        self.clocks = TopicClocks(str(plan.path))
         self.out_used: list[int] = []
         self.state_used: list[int] = []
         self.seg: _Segment | None = None
@@ -202,57 +197,6 @@ class BagConverter:
                            f'unmatched messages: {cause}{hint} (-vv prints the whole report)')
         return self.report
 
-    def _stamp_ok(self, topic: str, rep: TopicReport, t: int, log_ns: int,
-                  offset_ns: int) -> bool:
-        """Stamp consistent with its log time and after the previous one of the topic.
-
-        The offset ``stamp - log`` is compared with that of the last accepted message (at
-        first the probe's median), so a slow drift between the two clocks (a simulation
-        slower than real time) passes and a single glitch does not; when
-        :data:`REANCHOR` rejected messages in a row agree among themselves, the clock
-        jumped for good and the topic follows it from the next message on.
-        """
-        off = t - log_ns
-        ref = self.offset_ref.setdefault(topic, offset_ns)
-        if abs(off - ref) > STAMP_OFFSET_LIMIT_NS:
-            rep.drop('stamp more than 1 s away from its log time', t)
-            run = self.rejected.setdefault(topic, [])
-            run.append(off)
-            if len(run) >= REANCHOR and max(run) - min(run) <= STAMP_OFFSET_LIMIT_NS:
-                self._check_clock_jump(topic, t, log_ns)
-                self.offset_ref[topic] = run[-1]
-                self.last_ns.pop(topic, None)
-                run.clear()
-            return False
-        self.rejected.pop(topic, None)
-        self.offset_ref[topic] = off
-        last = self.last_ns.get(topic)
-        if last is not None and t <= last:
-            rep.drop('duplicated stamp' if t == last else 'stamp going backwards', t)
-            return False
-        self.last_ns[topic] = t
-        self.last_log[topic] = log_ns
-        return True
-
-    def _check_clock_jump(self, topic: str, t: int, log_ns: int) -> None:
-        """Refuse a lasting jump of the topic's own stamps (a sensor clock restarted or set).
-
-        A jump of the log clock alone (the recorder's) leaves the stamps continuous.
-        """
-        last, last_log = self.last_ns.get(topic), self.last_log.get(topic)
-        if last is None or last_log is None:
-            return
-        step, logged = t - last, log_ns - last_log
-        if 0 < step <= logged + STAMP_OFFSET_LIMIT_NS:
-            return
-        raise BagError(
-            f'{topic} in bag {self.plan.path}: its header stamps jumped '
-            f'{"back" if step <= 0 else "ahead"} by {abs(step - max(logged, 0)) * 1e-9:.6g} s '
-            f'(from {last} ns to {t} ns while the log time advanced {logged * 1e-9:.6g} s; '
-            'a sensor clock restarted or set?), so its later messages cannot be aligned with '
-            "the other topics: time the bag by log time with 'time: {stamps: log}' in the "
-            'mapping (--mapping), or cut the bag at the jump.')
-
     def _on_input(self, msg: BagMessage) -> None:
         tr = self.tracks[msg.topic]
         rep = tr.report
@@ -274,7 +218,7 @@ class BagConverter:
         if not all_finite(v):
             rep.drop('NaN/Inf', t)
             return
-        if not self._stamp_ok(msg.topic, rep, t, msg.log_ns, tr.offset_ns):
+        if not self.clocks.ok(msg.topic, rep, t, msg.log_ns, tr.offset_ns):
             return
         tr.times.append(t)
         tr.values.append(v.copy())
@@ -303,7 +247,7 @@ class BagConverter:
         if msg.frame_id != self.out_plan.frame_id:      # positions in another frame
             rep.drop(f'frame_id {msg.frame_id!r} instead of {self.out_plan.frame_id!r}', t)
             return None
-        if not self._stamp_ok(m.topic, rep, t, msg.log_ns, self.out_plan.offset_ns):
+        if not self.clocks.ok(m.topic, rep, t, msg.log_ns, self.out_plan.offset_ns):
             return None
         return t, y
 
@@ -323,7 +267,7 @@ class BagConverter:
         if not all_finite(q):
             rep.drop('NaN/Inf', t)
             return None
-        if not self._stamp_ok(plan.topic, rep, t, msg.log_ns, plan.offset_ns):
+        if not self.clocks.ok(plan.topic, rep, t, msg.log_ns, plan.offset_ns):
             return None
         return t, q
 

@@ -133,6 +133,45 @@ def test_a_chamber_whose_clock_restarts_mid_bag_is_refused(tmp_path, capsys, new
     assert not out.exists()
 
 
+@pytest.mark.parametrize('back_ms', [300, 20])
+def test_a_chamber_clock_set_back_under_a_second_is_refused(tmp_path, capsys, back_ms):
+    # an NTP-style step: chamber 2's clock goes back 0.3 s (or 20 ms) at 0.5 s, within the
+    # 1 s stamp-to-log limit; its stamps before the newest were dropped, and once they passed
+    # it again the chamber was followed shifted by the step to the end (30 Pa off, exit 0)
+    bag = _write(tmp_path / 'back', _restamp(_messages(1.0), CH2, 500_000_000,
+                                              lambda s: s - back_ms * 10**6))
+    out = tmp_path / 'out.zarr'
+    assert main(['convert', str(bag), '-o', str(out), '--quiet']) == 2
+    _one_line(capsys, CH2, 'stepped back by', 'stamps: log')
+    assert not out.exists()
+
+
+def test_messages_out_of_order_are_not_a_clock_step(tmp_path):
+    # a few pressures delivered late (each after the next 5 of its topic) are dropped alone
+    msgs = _messages(1.0)
+    late = {(CH2, j) for j in range(100, 900, 100)}
+    moved = [(log + (6 * 10**6 if (tp, (_stamp(m) - T0) // 10**6) in late else 0), tp, ty, m)
+             for log, tp, ty, m in msgs]
+    bag = _write(tmp_path / 'late', moved)
+    out = tmp_path / 'out.zarr'
+    assert main(['convert', str(bag), '-o', str(out), '--quiet']) == 0
+    ts = TrainingSet.open(out)
+    ep = ts[ts.episode_names[0]]
+    t = np.asarray(ep.t) + (ts.t0_ns(ts.episode_names[0]) - T0) * 1e-9
+    err = np.abs(np.asarray(ep.U)[1] - (2000.0 + 100.0 * t))
+    assert np.sum(err > 1e-6) == len(late) and np.max(err) < 0.1 + 1e-6   # one 1 ms hold each
+
+
+def test_one_stamp_glitched_ahead_is_not_a_clock_step(tmp_path):
+    # one chamber-2 message stamped 50 ms ahead (its value of then): the 49 after it come
+    # before it and are dropped and held, as before; the bag still converts
+    bag = _write(tmp_path / 'glitch', _restamp(_messages(1.0), CH2, 500_000_000,
+                                                lambda s: s + 50 * 10**6 if s - T0 < 500_500_000
+                                                else s))
+    out = tmp_path / 'out.zarr'
+    assert main(['convert', str(bag), '-o', str(out), '--quiet']) == 0
+
+
 def test_a_jump_of_the_recorders_clock_alone_is_still_followed(tmp_path):
     # the recorder's clock steps 5 s ahead at 3 s; the stamps stay continuous, so the
     # values after it are still right (8 outputs dropped before following: two pieces)
