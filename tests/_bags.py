@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 import os
 from pathlib import Path
 
@@ -27,7 +28,8 @@ def write_input_bag(path: str | os.PathLike[str], episode: Episode, *, storage: 
                     array_topic: str = '/soft_robot/pressures',
                     centerline_topic: str | None = '/soft_robot/centerline',
                     components: str = 'xz', frame_id: str = 'world',
-                    overwrite: bool = False, t0_ns: int = 0, output_every: int = 1) -> Path:
+                    overwrite: bool = False, t0_ns: int = 0, output_every: int = 1,
+                    restamp: Callable[[int, int], int] | None = None) -> Path:
     """Write an episode as the inputs of the bag contract (pressures, measured centerline).
 
     ``output_every``: the centerline on every that-many samples only (a slower camera).
@@ -35,7 +37,8 @@ def write_input_bag(path: str | os.PathLike[str], episode: Episode, *, storage: 
     Pressures go one ``sensor_msgs/FluidPressure`` per chamber (stamped) or one
     ``std_msgs/Float64MultiArray`` per sample (bag time only); the outputs as a stamped
     ``geometry_msgs/PoseArray`` (component-major layout ``components``). Stamps are
-    ``t0_ns + round(t * 1e9)`` (int ns; epoch stamps are exact).
+    ``t0_ns + round(t * 1e9)`` (int ns; epoch stamps are exact), also the log times;
+    ``restamp(j, ns)`` gives sample ``j`` another header stamp (a sensor clock of its own).
     """
     m = episode.U.shape[0]
     topics = chamber_topics or [f'/soft_robot/pressure/chamber_{i + 1}' for i in range(m)]
@@ -56,9 +59,10 @@ def write_input_bag(path: str | os.PathLike[str], episode: Episode, *, storage: 
                                            typestore=_TS)
         for j, t in enumerate(episode.t.tolist()):
             ns = int(t0_ns) + int(round(t * 1e9))
+            stamp = ns if restamp is None else int(restamp(j, ns))
             if per_chamber:
                 for i, conn in enumerate(conns):
-                    msg = FP(header=_header(ns, ''), fluid_pressure=float(episode.U[i, j]),
+                    msg = FP(header=_header(stamp, ''), fluid_pressure=float(episode.U[i, j]),
                              variance=0.0)
                     writer.write(conn, ns, _TS.serialize_cdr(msg, FP.__msgtype__))
             else:
@@ -66,7 +70,7 @@ def write_input_bag(path: str | os.PathLike[str], episode: Episode, *, storage: 
                 writer.write(arr_conn, ns, _TS.serialize_cdr(msg, msg.__msgtype__))
             if c_conn is not None and j % output_every == 0:
                 pts = outputs_to_points(episode.Y[:, j], components)
-                writer.write(c_conn, ns, _TS.serialize_cdr(_pose_array(ns, frame_id, pts),
+                writer.write(c_conn, ns, _TS.serialize_cdr(_pose_array(stamp, frame_id, pts),
                                                            'geometry_msgs/msg/PoseArray'))
     finally:
         writer.close()
