@@ -20,8 +20,12 @@ __all__ = ['check_bound_units', 'training_envelope']
 Array = NDArray[np.float64]
 
 
-def training_envelope(episodes: Iterable[Any], y_ref: ArrayLike | None = None
-                      ) -> dict[str, Any]:
+#: Share of the training outputs' motion (deviation power) below ``y_band_hz``.
+BAND_SHARE = 0.99
+
+
+def training_envelope(episodes: Iterable[Any], y_ref: ArrayLike | None = None,
+                      dt: float | None = None) -> dict[str, Any]:
     """Range of the training data, for the model file's ``metadata['envelope']``.
 
     Parameters
@@ -31,18 +35,25 @@ def training_envelope(episodes: Iterable[Any], y_ref: ArrayLike | None = None
         or ``(U, Y)`` pairs.
     y_ref : ndarray, shape (p,), optional
         Output reference; default the first output sample of the first episode.
+    dt : float, optional
+        Sample time (s) of the episodes; with it, ``y_band_hz`` is recorded.
 
     Returns
     -------
     dict
         ``u_min``, ``u_max`` (lists of m floats), ``y_dev_max`` (float, ``max |Y - y_ref|``
-        over all outputs and samples; ``None`` without outputs) and ``samples``.
+        over all outputs and samples; ``None`` without outputs) and ``samples``; with ``dt``
+        also ``y_band_hz``: the frequency below which :data:`BAND_SHARE` of the outputs'
+        motion lies (the power of ``Y`` less its mean, summed over outputs; the largest over
+        episodes of 16 samples or more; ``None`` where none moves). A reference faster
+        than that asks the model where its training data did not go.
     """
     lo: Array | None = None
     hi: Array | None = None
     dev = 0.0
     have_y = False
     samples = 0
+    band: float | None = None
     ref = None if y_ref is None else np.asarray(y_ref, dtype=np.float64).reshape(-1)
     for ep in episodes:
         U, Y = (ep.U, ep.Y) if hasattr(ep, 'U') else ep
@@ -59,12 +70,28 @@ def training_envelope(episodes: Iterable[Any], y_ref: ArrayLike | None = None
             if ref.shape[0] == Y.shape[0]:
                 dev = max(dev, float(np.nanmax(np.abs(Y - ref[:, None]))))
                 have_y = True
+            f = _band(Y, dt) if dt is not None else None
+            band = f if band is None or (f is not None and f > band) else band
     return {
         'u_min': [] if lo is None else [float(v) for v in lo],
         'u_max': [] if hi is None else [float(v) for v in hi],
         'y_dev_max': dev if have_y else None,
         'samples': int(samples),
+        **({} if dt is None else {'y_band_hz': band}),
     }
+
+
+def _band(Y: Array, dt: float) -> float | None:
+    """The frequency (Hz) below which :data:`BAND_SHARE` of ``Y``'s motion lies, or None."""
+    if Y.shape[1] < 16 or not (dt > 0) or not np.all(np.isfinite(Y)):
+        return None
+    power = np.sum(np.abs(np.fft.rfft(Y - Y.mean(axis=1, keepdims=True), axis=1)) ** 2,
+                   axis=0)
+    total = float(np.sum(power))
+    if not total > 0:
+        return None
+    at = int(np.searchsorted(np.cumsum(power), BAND_SHARE * total))
+    return float(np.fft.rfftfreq(Y.shape[1], dt)[min(at, power.size - 1)])
 
 
 def check_bound_units(model: Any, lo: Array, hi: Array, t_lo: Any, t_hi: Any,

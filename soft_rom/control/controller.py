@@ -9,7 +9,8 @@ never returns a command outside the bounds or not finite:
 * a reference of the wrong size, with NaN/Inf, ending before the current time, or moving
   at or above the control step's Nyquist rate is refused; the one in force stays; a static
   target out of the model's reach within the bounds is taken, with a
-  :class:`~soft_rom.errors.ReferenceReachWarning` (once per target);
+  :class:`~soft_rom.errors.ReferenceReachWarning` (once per target), and so does a
+  reference faster than the training data's outputs moved (``envelope.y_band_hz``);
 * without a measurement yet (``missing``), or with none for ``stale_after`` seconds
   (``stale``), the last command is held (clipped into the bounds); with an external state
   estimate (``external_state``, the predictor node's ``~/state``) the same holds for it;
@@ -39,7 +40,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from soft_rom.control.estimator import EstimatorConfig, OffsetFreeEstimator
 from soft_rom.control.mpc import MPC, MPCConfig
-from soft_rom.control.reference import reach_miss, REACH_TOLERANCE, Reference, sampling_problem
+from soft_rom.control.reference import (
+    reach_miss,
+    REACH_TOLERANCE,
+    Reference,
+    sampling_problem,
+    training_band,
+)
+from soft_rom.envelope import BAND_SHARE
 from soft_rom.errors import DimensionError, ReferenceReachWarning, warn
 
 __all__ = ['Command', 'Controller']
@@ -149,6 +157,7 @@ class Controller:
         self.counters = _Counters()
         self._y_bound = MEASUREMENT_FACTOR * self.mpc.y_scale
         self._reach_checked: Array | None = None      # the static target last checked
+        self._band_checked: float | None = None        # the reference frequency last checked
         self._stable: bool | None = None               # the model at the step (reach checks)
 
     @property
@@ -197,7 +206,19 @@ class Controller:
             why = sampling_problem(ref, self.h)
         if not why:
             self._check_reach(ref)
+            self._check_band(ref)
         return why
+
+    def _check_band(self, ref: Reference) -> None:
+        """Warn (once per frequency) when ``ref`` moves faster than the training data did."""
+        f, band = ref.frequency, training_band(self.model)
+        if f is None or band is None or not f > band or f == self._band_checked:
+            return
+        self._band_checked = f
+        warn(f'the reference {ref.label or "given"!r} moves at {f:g} Hz, faster than the '
+             f"model's training data: {100 * BAND_SHARE:g} % of their output motion lies "
+             f'below {band:.3g} Hz. The model was not fitted there; expect its error at '
+             f'{f:g} Hz to be larger than on the training data.', ReferenceReachWarning)
 
     def _check_reach(self, ref: Reference) -> None:
         """Warn (once per static target) when the model cannot reach it within the bounds.

@@ -40,8 +40,8 @@ from soft_rom.data import all_finite
 from soft_rom.errors import ConfigError, DimensionError
 
 __all__ = ['REACH_TOLERANCE', 'Reference', 'check_moves', 'load_reference', 'parse_reference',
-           'reach_miss', 'sampling_problem', 'step_reference', 'training_deviation',
-           'wave_reference']
+           'reach_miss', 'sampling_problem', 'step_reference', 'training_band',
+           'training_deviation', 'wave_reference']
 
 Array = NDArray[np.float64]
 
@@ -271,6 +271,19 @@ def training_deviation(model: Any) -> float | None:
     dev = env.get('y_dev_max') if isinstance(env, dict) else None
     if isinstance(dev, (int, float)) and math.isfinite(dev) and dev > 0:
         return float(dev)
+    return None
+
+
+def training_band(model: Any) -> float | None:
+    """The training outputs' bandwidth (Hz) recorded in the model file, if any.
+
+    ``metadata['envelope']['y_band_hz']`` (:func:`soft_rom.envelope.training_envelope`);
+    model files fitted before it was recorded have none.
+    """
+    env = model.metadata.get('envelope') if isinstance(model.metadata, dict) else None
+    band = env.get('y_band_hz') if isinstance(env, dict) else None
+    if isinstance(band, (int, float)) and math.isfinite(band) and band > 0:
+        return float(band)
     return None
 
 

@@ -257,7 +257,7 @@ class DMDc:
         self._model_kwargs = data.model_names()
         self._metadata = {**data.metadata, **dict(metadata or {})}
         self._metadata.setdefault('envelope', training_envelope(zip(data.U, data.Y),
-                                                                data.y_ref))
+                                                                data.y_ref, data.dt))
         self._episodes = list(data.names)
         self.fit_time_ = time.perf_counter() - t0
         self.model_ = self.model_for(self.r, self.p)

@@ -56,6 +56,9 @@ def test_fit_all_methods_then_evaluate(training_set, tmp_path, capsys):
     assert model.input_units == ['Pa', 'Pa']
     assert model.metadata['training']['episodes'] == ['ep1']
     assert model.metadata['training']['t_max'] == 0.6
+    for name in names:         # each method records how fast its training outputs moved
+        band = load_model(out / name).metadata['envelope']['y_band_hz']
+        assert 0 < band < 0.5 / model.dt, (name, band)
 
     models = [str(p) for p in sorted(out.glob('*_r6.npz'))]
     rc = main(['evaluate', *models, '--data', str(training_set), '--t-split', '0.6',

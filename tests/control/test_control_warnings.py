@@ -27,7 +27,8 @@ from soft_rom.control import (
     ROMPlant,
     run_closed_loop,
 )
-from soft_rom.control.reference import reach_miss, step_reference
+from soft_rom.control.reference import reach_miss, step_reference, training_band
+from soft_rom.envelope import training_envelope
 from soft_rom.errors import ConfigError, ReferenceReachWarning, UntrustedModelWarning
 from soft_rom.models import SecondOrderModel
 
@@ -149,3 +150,30 @@ def test_an_unstable_model_has_no_steady_state_to_reach() -> None:
     assert _said(record, UntrustedModelWarning) and not _said(record, ReferenceReachWarning)
     # the figure itself would have been large: the skip is what kept it silent
     assert reach_miss(far, G, ctl.mpc.lo, ctl.mpc.hi, bad.y_ref)[2] > 0.1
+
+
+def test_a_reference_faster_than_the_training_outputs_warns_once() -> None:
+    m = modal_rom(4)
+    # training outputs that moved at 1.5 Hz (and 0.5 Hz): their band is 1.5 Hz
+    t = np.arange(4000) * m.dt
+    Y = m.y_ref[:, None] + 1e-3 * np.outer(np.linspace(0, 1, 40), np.sin(2 * np.pi * 1.5 * t)
+                                           + np.sin(2 * np.pi * 0.5 * t))
+    env = training_envelope([(np.zeros((6, t.size)), Y)], m.y_ref, m.dt)
+    assert env['y_band_hz'] == pytest.approx(1.5, abs=0.25)
+    band = SecondOrderModel(m.K, m.C, m.B, m.E, dt=m.dt, y_ref=m.y_ref,
+                            output_names=m.output_names,
+                            metadata={**m.metadata, 'envelope': {**m.metadata['envelope'],
+                                                                 'y_band_hz': 1.5}})
+    assert training_band(band) == 1.5 and training_band(m) is None
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter('always')
+        ctl = Controller(band)
+        assert ctl.set_reference(parse_reference('wave:f=1', band, duration=0.5)) == ''
+        assert ctl.set_reference(parse_reference('wave:f=4', band, duration=0.5)) == ''
+        assert ctl.set_reference(parse_reference('wave:f=4', band, duration=0.6)) == ''
+        Controller(m).set_reference(parse_reference('wave:f=4', m, duration=0.5))   # no band
+    said = _said(record, ReferenceReachWarning)
+    assert len(said) == 1 and "moves at 4 Hz, faster than the model's training data: 99 % " \
+        'of their output motion lies below 1.5 Hz' in said[0], said
+    assert training_envelope([(np.zeros((6, 40)), np.ones((40, 40)))], dt=m.dt)[
+        'y_band_hz'] is None                           # outputs that never move: no band

@@ -349,7 +349,7 @@ class ERAOKID(ERASteps):
         self.dt_data_ = ep.dt
         self.fit_time_ = time.perf_counter() - t0
         meta = dict(metadata or {})
-        meta.setdefault('envelope', training_envelope([ep], y_ref))
+        meta.setdefault('envelope', training_envelope([ep], y_ref, ep.dt))
         meta.update(self._fit_metadata(ep, fit, sel, A, dt, m))
         if self.decimation == 'auto':
             meta['decimation_search'] = search['tried']

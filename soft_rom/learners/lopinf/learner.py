@@ -296,7 +296,7 @@ class LOpInf:
                             'time_ranges': data.time_ranges,
                             'n_samples': [int(q.shape[1]) for q in Qhat]}
         self._extra_meta = {**data.metadata, **self._metadata}
-        self._extra_meta.setdefault('envelope', training_envelope(zip(U, Y), y_ref))
+        self._extra_meta.setdefault('envelope', training_envelope(zip(U, Y), y_ref, dt))
         self._extra_meta.setdefault('mass', self.mass)
         self._extra_meta.setdefault('refine', self.refine)
         self._names = data.model_names()
