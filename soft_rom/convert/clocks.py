@@ -46,6 +46,7 @@ class TopicClocks:
                 self._check_clock_jump(topic, t, log_ns)
                 self.offset_ref[topic] = run[-1]
                 self.last_ns.pop(topic, None)
+                self.before_last_ns.pop(topic, None)
                 run.clear()
             return False
         self.rejected.pop(topic, None)
