@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -97,3 +98,12 @@ def small_episode(model: SecondOrderModel, k: int = 120) -> Episode:
     U = np.repeat(rng.standard_normal((model.n_inputs, k // 10)), 10, axis=1)
     t = 2.0 + np.arange(k) * model.dt
     return Episode(t=t, U=U, Y=model.simulate(U), name='ep')
+
+
+def one_line_error(capsys: Any, *words: str) -> str:
+    """The CLI's stderr (from pytest's ``capsys``): one line, no traceback, with ``words``."""
+    err = capsys.readouterr().err
+    assert 'Traceback' not in err and len(err.strip().splitlines()) == 1, err
+    for w in words:
+        assert w in err, err
+    return err

@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 from pathlib import Path
 
+from _bags import one_line_error
 import numpy as np
 import pytest
 from rosbags.rosbag2 import StoragePlugin, Writer
@@ -109,14 +110,6 @@ def _check_exact(out: Path) -> list[int]:
     return lengths
 
 
-def _one_line(capsys, *words: str) -> str:
-    err = capsys.readouterr().err
-    assert 'Traceback' not in err and len(err.strip().splitlines()) == 1, err
-    for w in words:
-        assert w in err, err
-    return err
-
-
 @pytest.mark.parametrize('new', [
     lambda s: s - T0 - 500_000_000,                   # restarted from zero
     lambda s: s - T0 - 500_000_000 + 1000 * 10**9,    # restarted on a boot clock
@@ -129,7 +122,7 @@ def test_a_chamber_whose_clock_restarts_mid_bag_is_refused(tmp_path, capsys, new
     bag = _write(tmp_path / 'restart', _restamp(_messages(1.0), CH2, 500_000_000, new))
     out = tmp_path / 'out.zarr'
     assert main(['convert', str(bag), '-o', str(out), '--quiet']) == 2
-    _one_line(capsys, CH2, 'jumped', 'stamps: log')
+    one_line_error(capsys, CH2, 'jumped', 'stamps: log')
     assert not out.exists()
 
 
@@ -142,7 +135,7 @@ def test_a_chamber_clock_set_back_under_a_second_is_refused(tmp_path, capsys, ba
                                               lambda s: s - back_ms * 10**6))
     out = tmp_path / 'out.zarr'
     assert main(['convert', str(bag), '-o', str(out), '--quiet']) == 2
-    _one_line(capsys, CH2, 'stepped back by', 'stamps: log')
+    one_line_error(capsys, CH2, 'stepped back by', 'stamps: log')
     assert not out.exists()
 
 

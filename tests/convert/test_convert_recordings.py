@@ -15,6 +15,7 @@ from pathlib import Path
 import shutil
 import sqlite3
 
+from _bags import one_line_error
 from _rig import record, Robot, TS
 import numpy as np
 import pytest
@@ -97,14 +98,6 @@ def _same(a: TrainingSet, b: TrainingSet) -> None:
     assert a.t0_ns(a.episode_names[0]) == b.t0_ns(b.episode_names[0])
 
 
-def _one_line_error(capsys, *words: str) -> str:
-    err = capsys.readouterr().err
-    assert 'Traceback' not in err and len(err.strip().splitlines()) == 1, err
-    for w in words:
-        assert w in err, err
-    return err
-
-
 @pytest.fixture(scope='module')
 def rig(tmp_path_factory):
     root = tmp_path_factory.mktemp('recordings')
@@ -147,7 +140,7 @@ def test_split_recording_with_a_file_missing_is_refused_naming_it(rig, tmp_path,
     (bag / 'run_1.mcap').unlink()                       # an interrupted copy
     out = tmp_path / 'run.zarr'
     assert main(['convert', str(bag), '-o', str(out)]) == 2
-    _one_line_error(capsys, 'run_1.mcap', 'missing')
+    one_line_error(capsys, 'run_1.mcap', 'missing')
     assert not out.exists()
 
 
@@ -156,7 +149,7 @@ def test_split_file_missing_is_not_called_corrupt(rig, tmp_path, capsys):
     bag = _split(bags['sqlite3'], tmp_path / 'run', 'sqlite3')
     (bag / 'run_2.db3').unlink()
     assert main(['convert', str(bag), '-o', str(tmp_path / 'run.zarr')]) == 2
-    err = _one_line_error(capsys, 'run_2.db3', 'copy the whole bag folder')
+    err = one_line_error(capsys, 'run_2.db3', 'copy the whole bag folder')
     assert 'corrupt' not in err
 
 
@@ -167,7 +160,7 @@ def test_metadata_version_rosbags_does_not_know_says_so(rig, tmp_path, capsys):
     meta['rosbag2_bagfile_information']['version'] = 99
     _save_meta(bag, meta)
     assert main(['convert', str(bag), '-o', str(tmp_path / 'run.zarr')]) == 2
-    err = _one_line_error(capsys, 'update rosbags')
+    err = one_line_error(capsys, 'update rosbags')
     assert 'corrupt' not in err
 
 
@@ -189,7 +182,7 @@ def test_folder_without_metadata_and_several_files_asks_for_reindex(rig, tmp_pat
     with pytest.raises(BagError, match=r'no metadata.yaml and 3 storage files'):
         describe_bag(bag)
     assert main(['convert', str(bag), '-o', str(tmp_path / 'r.zarr')]) == 2
-    _one_line_error(capsys, 'ros2 bag reindex', 'run_0.mcap')
+    one_line_error(capsys, 'ros2 bag reindex', 'run_0.mcap')
 
 
 @pytest.mark.parametrize('count', [0, 3, 100_000])
@@ -217,7 +210,7 @@ def test_chamber_listed_without_messages_stops_naming_it(rig, tmp_path, capsys, 
     bag = _write(tmp_path / 'silent', msgs, 'mcap', topics)
     out = tmp_path / 's.zarr'
     assert main(['convert', str(bag), '-o', str(out)]) == 2
-    _one_line_error(capsys, f'input topic {CHAMBER.format(silent)} has no messages')
+    one_line_error(capsys, f'input topic {CHAMBER.format(silent)} has no messages')
     assert not out.exists()
 
 
@@ -228,7 +221,7 @@ def test_only_pressure_topics_without_messages_stop_naming_the_bag(rig, tmp_path
     bag = _write(tmp_path / 'nopress', [m for m in msgs if 'pressure' not in m[0]], 'sqlite3',
                  topics)
     assert main(['convert', str(bag), '-o', str(tmp_path / 'n.zarr')]) == 2
-    _one_line_error(capsys, 'has no messages in bag', str(bag))
+    one_line_error(capsys, 'has no messages in bag', str(bag))
 
 
 def test_another_definition_of_a_type_is_refused_not_misread(rig, tmp_path, capsys):
@@ -264,7 +257,7 @@ def test_another_definition_of_a_type_is_refused_not_misread(rig, tmp_path, caps
     w.close()
     out = tmp_path / 'o.zarr'
     assert main(['convert', str(bag), '-o', str(out)]) == 2
-    _one_line_error(capsys, 'another definition of sensor_msgs/msg/FluidPressure')
+    one_line_error(capsys, 'another definition of sensor_msgs/msg/FluidPressure')
     assert not out.exists()
 
 
