@@ -110,6 +110,68 @@ class NodeProcess:
         self._log.close()
 
 
+_PAUSER = r"""
+import os, signal, sys, time
+pid = int(sys.argv[1])
+print('ready', flush=True)
+start, *plan = sys.stdin.readline().split()
+for item in plan:
+    at, length = map(float, item.split(':'))
+    time.sleep(max(0.0, float(start) + at - time.monotonic()))
+    os.kill(pid, signal.SIGSTOP)
+    stopped = time.monotonic()
+    time.sleep(length)
+    os.kill(pid, signal.SIGCONT)
+    print(f'{stopped - float(start):.4f} {time.monotonic() - stopped:.4f}', flush=True)
+"""
+
+
+class Pauser:
+    """Stops a process (``SIGSTOP``) and resumes it on a schedule, from a process of its own.
+
+    The pauses are timed on the system's monotonic clock by a small process that sleeps in
+    between, not by the test process: a test process busy sending at 1 kHz is the one the
+    scheduler holds back on a loaded machine, and a ``SIGCONT`` sent from its loop once came
+    0.57 s late for a planned 150 ms pause (the node then met a longer pause than planned).
+
+    Parameters
+    ----------
+    pid : int
+        The process to pause.
+    plan : dict
+        Seconds after :meth:`start` -> seconds stopped.
+    """
+
+    def __init__(self, pid: int, plan: dict[float, float]) -> None:
+        self.plan = dict(sorted(plan.items()))
+        self.proc = subprocess.Popen([sys.executable, '-c', _PAUSER, str(pid)],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+
+    def start(self, t0: float) -> None:
+        """Time the plan from ``t0`` (``time.monotonic()``, the same clock in every process).
+
+        Waits for the pauser's interpreter first; give ``t0`` after this returns.
+        """
+        assert self.proc.stdin is not None and self.proc.stdout is not None
+        assert self.proc.stdout.readline().strip() == 'ready', 'the pauser did not start'
+        self.proc.stdin.write(' '.join([f'{t0:.6f}'] + [f'{at}:{length}' for at, length
+                                                        in self.plan.items()]) + '\n')
+        self.proc.stdin.close()
+
+    def done(self, timeout: float = 10.0) -> list[tuple[float, float]]:
+        """Wait for the plan to end: each pause as it happened, (start after t0, length)."""
+        assert self.proc.stdout is not None
+        self.proc.wait(timeout)
+        out = self.proc.stdout.read()
+        return [(float(a), float(b)) for a, b in (line.split() for line in out.splitlines())]
+
+    def kill(self) -> None:
+        """Make sure the pauser is gone (test clean-up)."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(10)
+
+
 class Client:
     """A plain rclpy node in the test process, with its own context and executor."""
 

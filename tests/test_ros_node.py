@@ -13,7 +13,7 @@ import signal
 import threading
 import time
 
-from _ros import Client, client_fixture, no_noise, NodeProcess, require_rclpy
+from _ros import Client, client_fixture, no_noise, NodeProcess, Pauser, require_rclpy
 import numpy as np
 import pytest
 
@@ -434,28 +434,28 @@ def test_signal_under_load_exits_0_quietly(client, tmp_path, sig, stepping, exec
 PAUSES = {300: 0.060, 800: 0.150}          # at the array / sample index: seconds stopped
 
 
-def _stream(node: NodeProcess, k: int, send) -> None:
+def _stream(node: NodeProcess, k: int, send) -> str:
     """Send ``send(j)`` for j < k at 1 kHz of wall time; stop the node as :data:`PAUSES` says.
 
-    A sender that falls behind (a loaded machine) catches up at once, as a real one's queue
-    would.
+    The pauses are timed by a :class:`Pauser` of their own on the stream's schedule (array
+    ``j`` is due ``j`` ms after the start), not by this loop. A sender that falls behind (a
+    loaded machine) catches up at once, as a real one's queue would. Returns how it went,
+    for the assertions' messages: the pauses as they happened, the sender's worst lag.
     """
-    start = time.monotonic()
-    resume = None
-    for j in range(k):
-        due = start + j * 1e-3
-        while (now := time.monotonic()) < due:
-            time.sleep(min(due - now, 2e-4))
-        if resume is not None and now >= resume:
-            node.proc.send_signal(signal.SIGCONT)
-            resume = None
-        if j in PAUSES:
-            node.proc.send_signal(signal.SIGSTOP)
-            resume = now + PAUSES[j]
-        send(j)
-    if resume is not None:
-        time.sleep(max(0.0, resume - time.monotonic()))
-        node.proc.send_signal(signal.SIGCONT)
+    pauser = Pauser(node.proc.pid, {j * 1e-3: length for j, length in PAUSES.items()})
+    lag = 0.0
+    try:
+        pauser.start(start := time.monotonic() + 0.01)
+        for j in range(k):
+            due = start + j * 1e-3
+            while (now := time.monotonic()) < due:
+                time.sleep(min(due - now, 2e-4))
+            lag = max(lag, now - due)
+            send(j)
+        return (f'node stopped (at, for; s) {pauser.done()}, sender at most '
+                f'{lag * 1e3:.0f} ms late')
+    finally:
+        pauser.kill()
 
 
 def _counters(client: Client, out: Outputs, k: int) -> dict:
@@ -478,10 +478,12 @@ def test_pauses_keep_one_step_per_array_equal_to_simulate(client, tmp_path) -> N
         out = Outputs(client, node.fqn)
         pub = client.node.create_publisher(Float64MultiArray, '/t/pressures', RELIABLE)
         _connected(client, [pub], out)
-        _stream(node, k, lambda j: pub.publish(Float64MultiArray(data=ep.U[:, j].tolist())))
+        how = _stream(node, k,
+                      lambda j: pub.publish(Float64MultiArray(data=ep.U[:, j].tolist())))
         pred = _counters(client, out, k)
-        assert pred['inputs'] == str(k) and pred['steps'] == str(k - 1), pred   # one each
-        assert pred['stamp_resync'] == '0' and pred['late'] == '0', pred
+        why = (pred, how)                                       # one step each
+        assert pred['inputs'] == str(k) and pred['steps'] == str(k - 1), why
+        assert pred['stamp_resync'] == '0' and pred['late'] == '0', why
         t0 = min(out.stamped)
         assert client.spin_until(lambda: t0 + (k - 1) * MS in out.stamped or max(
             out.stamped) >= t0 + (k - 21) * MS, timeout=10.0)
