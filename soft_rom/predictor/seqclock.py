@@ -32,6 +32,9 @@ _REFINE = 0.02
 _EARLY = (17, 25, 33, 65, 129)
 #: Counts at which the start-up period is fitted again, to all the arrivals so far.
 _REFIT = (17, 25)
+#: Time after the node finished the previous message within which the next one was taken
+#: from its queue, not sent meanwhile (at most a quarter of a step).
+_QUEUED_NS = 250_000
 #: Arrivals of a third of the window that its quartile is taken over (evenly spaced).
 _SAMPLE = 64
 
@@ -95,10 +98,12 @@ class SequenceClock:
     each counted in :attr:`resyncs`:
 
     * 16 messages in a row trail it by 2 steps or more and do not catch up (by 2 steps; the
-      backlog of a stalled node catches up by nearly a period a message): the sender paused
-      or slowed, no burst is coming, and the sequence moves by the least of their lags, to
-      the sender's phase after the pause. After a jump that stayed (not a slow drift) the
-      arrivals before it are no evidence of the rate, and are dropped. Before, a pause
+      backlog of a stalled node catches up by nearly a period a message, and its messages
+      taken at once after the previous one, which waited in the queue, are not counted):
+      the sender paused or slowed, no burst is coming, and the sequence moves by the least
+      of their lags, to the sender's phase after the pause. After a jump that stayed (not
+      a slow drift) the arrivals before it are no evidence of the rate, and are dropped.
+      Before, a pause
       shorter than ``resync_ns`` left a 1 kHz sender's sequence that far behind for ever and
       a 100 Hz sender's for up to 2.5 s (its period voted wrong from the pause in the
       window), and a longer one took 32 messages and a jump to one reception time;
@@ -142,7 +147,7 @@ class SequenceClock:
         self._votes = 0
         self._since = 0                                      # messages since an estimate
         self._late = False                 # beyond resync_ns behind: no estimates
-        self._behind: tuple[int, int, int, int] | None = None  # (count, lag, least, most)
+        self._behind: tuple[int, int, int, int] | None = None  # (arrivals, lag, least, most)
         self._shift = 0                                      # phase step of the next stamp
         self._burst = False                # start-up: a stamp was after its reception
         self._free: int | None = None      # when the node finished the previous message
@@ -310,6 +315,11 @@ class SequenceClock:
             self._shift -= moved - candidate
             candidate = moved
         lag = now_ns - candidate
+        # taken at once after the previous one: it waited behind the node, so its reception
+        # says nothing of when it was sent (tighter than at start-up, where a step is the
+        # bound: a 1 kHz sender's live arrays come a step less the node's work apart)
+        queued = self._free is not None and now_ns - self._free < min(self.h_ns // 4,
+                                                                       _QUEUED_NS)
         if lag < -self.resync_ns:       # far ahead of the reception clock: never backwards;
             # the next step while that stays within the bound, else join the current step
             # (a sender faster than the model)
@@ -319,33 +329,38 @@ class SequenceClock:
             self._joined = self._count
             self._late = False
         elif lag > self.resync_ns:
-            t = self._after_a_pause(candidate, lag)
+            t = self._after_a_pause(candidate, lag, queued)
             self._late = t == candidate
         else:
-            t = self._after_a_pause(candidate, lag)
+            t = self._after_a_pause(candidate, lag, queued)
             self._late = False
         return t
 
-    def _after_a_pause(self, candidate: int, lag: int) -> int:
+    def _after_a_pause(self, candidate: int, lag: int, queued: bool) -> int:
         """The stamp when ``_PAUSE_MESSAGES`` arrivals in a row trail it by 2 steps or more.
 
         A sender that paused for less than ``resync_ns`` (a controller's GC pause) comes
         back late by the pause, and stays so: the sequence is moved by the least of their
         lags, to the sender's phase after the pause. A burst after a stall of the node
         catches up by a step or more a message, and is not moved. The same rule, beyond
-        ``resync_ns``, ends a longer pause.
+        ``resync_ns``, ends a longer pause. A ``queued`` arrival (taken at once after the
+        previous one: it waited behind the node) is not counted: a backlog taken while
+        another process has the CPU now and then catches up unevenly, and its first 16
+        arrivals after a slice could trail without catching up by 2 steps.
         """
         if lag < 2 * self.h_ns:
             self._behind = None
             return candidate
+        if queued:                      # no evidence of the sender's pace (a backlog)
+            return candidate
         if self._behind is None or self._behind[1] - lag >= 2 * self.h_ns:
-            self._behind = (self._count, lag, lag, lag)       # first late one, or catching up
+            self._behind = (1, lag, lag, lag)                 # first late one, or catching up
             return candidate
-        start, first, least, most = self._behind
-        least, most = min(least, lag), max(most, lag)
-        if self._count - start + 1 < _PAUSE_MESSAGES:
-            self._behind = (start, first, least, most)
+        n, first, least, most = self._behind
+        self._behind = (n + 1, first, min(least, lag), max(most, lag))
+        if n + 1 < _PAUSE_MESSAGES:
             return candidate
+        _, _, least, most = self._behind
         self._behind = None
         self.resyncs += 1
         self._shift = 0
