@@ -270,8 +270,9 @@ class RuntimeLoop:
     def taken(self, now_ns: int) -> None:
         """The node finished taking (and publishing for) the last input at ``now_ns``.
 
-        Un-stamped input only: its sequence clock then knows that a message taken within a
-        step after this waited in the queue (:class:`SequenceClock`).
+        Un-stamped input only: its sequence clock then knows which messages waited in the
+        queue (taken within a step after this at start-up, within a quarter step and a step
+        after the previous arrival later: :class:`SequenceClock`).
         """
         if self._last_clock is not None:
             self._last_clock.taken(now_ns)

@@ -12,8 +12,8 @@ from collections import deque
 
 __all__ = ['SequenceClock']
 
-#: Arrivals in a row, each 2 steps or more behind the sequence and not catching up, that
-#: show a sender back from a pause.
+#: Arrivals (not queued behind the node), each 2 steps or more behind the sequence and not
+#: catching up, that show a sender back from a pause.
 _PAUSE_MESSAGES = 16
 #: Arrivals that an estimate of the window needs (the window is widened to hold them).
 _WINDOW_ARRIVALS = 64
@@ -97,11 +97,15 @@ class SequenceClock:
     Beyond those phase steps, the sequence leaves the reception clock only in two cases,
     each counted in :attr:`resyncs`:
 
-    * 16 messages in a row trail it by 2 steps or more and do not catch up (by 2 steps; the
-      backlog of a stalled node catches up by nearly a period a message, and its messages
-      taken at once after the previous one, which waited in the queue, are not counted):
-      the sender paused or slowed, no burst is coming, and the sequence moves by the least
-      of their lags, to the sender's phase after the pause. After a jump that stayed (not
+    * 16 messages trail it by 2 steps or more and do not catch up (by 2 steps; the backlog
+      of a stalled node catches up by nearly a period a message) nor fall 2 steps further
+      behind at once (the node held one up): the sender paused or slowed, no burst is
+      coming, and the sequence moves by the least of their lags, to the sender's phase
+      after the pause. A message taken at once after the node finished the previous one
+      (within a quarter step, at most 0.25 ms) and less than a step after the previous
+      arrival waited in the node's queue: it is not counted (and does not break the run)
+      unless it shows the catching up; on wall time only, where the node says when it is
+      free (:meth:`taken`). After a jump that stayed (not
       a slow drift) the arrivals before it are no evidence of the rate, and are dropped.
       Before, a pause
       shorter than ``resync_ns`` left a 1 kHz sender's sequence that far behind for ever and
@@ -147,7 +151,8 @@ class SequenceClock:
         self._votes = 0
         self._since = 0                                      # messages since an estimate
         self._late = False                 # beyond resync_ns behind: no estimates
-        self._behind: tuple[int, int, int, int] | None = None  # (arrivals, lag, least, most)
+        # arrivals, first lag, least, most, last (the run of arrivals behind the sequence)
+        self._behind: tuple[int, int, int, int, int] | None = None
         self._shift = 0                                      # phase step of the next stamp
         self._burst = False                # start-up: a stamp was after its reception
         self._free: int | None = None      # when the node finished the previous message
@@ -278,7 +283,7 @@ class SequenceClock:
             t = self.last + (1 if self._burst or queued
                              else max(1, (now_ns - self.last) // self.h_ns)) * self.h_ns
         else:
-            t = self._sequence(now_ns)
+            t = self._sequence(now_ns, previous)
         self._estimate(now_ns, t)
         if self._count == 9 and len(self._arrivals) > 1:
             t = self._end_start_up(t)
@@ -307,7 +312,7 @@ class SequenceClock:
         """The node finished taking the last message at ``now_ns`` (reception clock)."""
         self._free = int(now_ns)
 
-    def _sequence(self, now_ns: int) -> int:
+    def _sequence(self, now_ns: int, previous: int | None) -> int:
         assert self.last is not None
         candidate = self.last + self.period
         if self._shift:         # a phase step, spread so that stamps stay a step apart
@@ -315,11 +320,13 @@ class SequenceClock:
             self._shift -= moved - candidate
             candidate = moved
         lag = now_ns - candidate
-        # taken at once after the previous one: it waited behind the node, so its reception
-        # says nothing of when it was sent (tighter than at start-up, where a step is the
-        # bound: a 1 kHz sender's live arrays come a step less the node's work apart)
-        queued = self._free is not None and now_ns - self._free < min(self.h_ns // 4,
-                                                                       _QUEUED_NS)
+        # taken at once after the previous one, and less than a step after it was taken: it
+        # waited behind the node, so its reception says nothing of when it was sent (a live
+        # 1 kHz array comes a step after the previous one, also when the node's work a
+        # message takes nearly the step and it is taken at once)
+        queued = (self._free is not None and previous is not None
+                  and now_ns - self._free < min(self.h_ns // 4, _QUEUED_NS)
+                  and now_ns - previous < self.h_ns)
         if lag < -self.resync_ns:       # far ahead of the reception clock: never backwards;
             # the next step while that stays within the bound, else join the current step
             # (a sender faster than the model)
@@ -343,24 +350,31 @@ class SequenceClock:
         back late by the pause, and stays so: the sequence is moved by the least of their
         lags, to the sender's phase after the pause. A burst after a stall of the node
         catches up by a step or more a message, and is not moved. The same rule, beyond
-        ``resync_ns``, ends a longer pause. A ``queued`` arrival (taken at once after the
-        previous one: it waited behind the node) is not counted: a backlog taken while
-        another process has the CPU now and then catches up unevenly, and its first 16
-        arrivals after a slice could trail without catching up by 2 steps.
+        ``resync_ns``, ends a longer pause. A ``queued`` arrival (it waited behind the node)
+        is not counted, and an arrival 2 steps further behind than the previous late one
+        starts the run again: a backlog taken while another process has the CPU now and
+        then catches up unevenly, and its first 16 arrivals after a slice could trail
+        without catching up by 2 steps.
         """
         if lag < 2 * self.h_ns:
             self._behind = None
             return candidate
-        if queued:                      # no evidence of the sender's pace (a backlog)
+        if queued:                      # no evidence of the sender's pace (a backlog) ...
+            if self._behind is not None and self._behind[1] - lag >= 2 * self.h_ns:
+                self._behind = None     # ... but of catching up
             return candidate
-        if self._behind is None or self._behind[1] - lag >= 2 * self.h_ns:
-            self._behind = (1, lag, lag, lag)                 # first late one, or catching up
+        if self._behind is None or self._behind[1] - lag >= 2 * self.h_ns \
+                or lag - self._behind[4] >= 2 * self.h_ns:
+            # the first late one, or catching up, or 2 steps further behind than the
+            # previous one (the node's delay, as after another process's slice; a sender
+            # back from a pause goes on at its rate, one slower drifts a step a message)
+            self._behind = (1, lag, lag, lag, lag)
             return candidate
-        n, first, least, most = self._behind
-        self._behind = (n + 1, first, min(least, lag), max(most, lag))
+        n, first, least, most, _ = self._behind
+        self._behind = (n + 1, first, min(least, lag), max(most, lag), lag)
         if n + 1 < _PAUSE_MESSAGES:
             return candidate
-        _, _, least, most = self._behind
+        _, _, least, most, _ = self._behind
         self._behind = None
         self.resyncs += 1
         self._shift = 0

@@ -232,55 +232,62 @@ def test_a_sender_back_from_a_pause_is_stamped_at_its_times_again(hz, pause_ms) 
 
 
 def _taken_by_a_node_sharing_its_cpu(sent, work_ms: float, slices: float, seed: int,
-                                     stops: dict[int, float] | None = None):
+                                     stops: dict[int, float] | None = None,
+                                     between: bool = False):
     """Stamps of a node that works ``work_ms`` a message, and the clock.
 
     It loses the CPU for 4 ms (another process's scheduler slice) after a fraction
-    ``slices`` of them; ``stops``: index -> ms that it is stopped for (``SIGSTOP``) from
-    that array's send time.
+    ``slices`` of them from the 50th on (past the start-up, which has rules of its own):
+    within its work, or ``between`` messages (after it said it was free). ``stops``:
+    index -> ms that it is stopped for (``SIGSTOP``) from that array's send time.
     """
     rng = np.random.default_rng(seed)
     clock, free, out = SequenceClock(H, 100 * H), None, []
     stopped = [(int(sent[j]), int(sent[j] + ms * H)) for j, ms in (stops or {}).items()]
-    for s in sent + 100_000:                        # 0.1 ms of transport
+    for j, s in enumerate(sent + 100_000):          # 0.1 ms of transport
         now = int(s) if free is None else max(int(s), free)
         for a, b in stopped:
             now = b if a <= now < b else now
         out.append(clock.stamp(now))
-        free = now + int(work_ms * H) + (4 * H if rng.random() < slices else 0)
+        lost = 4 * H if rng.random() < slices and j >= 50 else 0
+        free = now + int(work_ms * H) + (0 if between else lost)
         clock.taken(free)
+        free += lost if between else 0
     return np.array(out), clock
 
 
 @pytest.mark.parametrize('seed', range(4))
 @pytest.mark.parametrize('slices', [0.05, 0.1])
+@pytest.mark.parametrize('between', [False, True])
 def test_a_backlog_taken_between_another_processs_slices_keeps_one_step_per_array(
-        seed, slices) -> None:
+        seed, slices, between) -> None:
     # The node stopped for 60 ms and 150 ms (as the node test's pauses) takes its backlog
     # while another process takes the CPU from it now and then: its arrivals catch up
     # unevenly, and the first 16 after a slice trailed without catching up by 2 steps.
-    # That read as a sender that paused: measured on the node under one CPU hog, 40-50
-    # resyncs and as many arrays late (4 runs of 10); here 2-56 resyncs in each case before.
-    # An array taken at once after the previous one waited in the queue and is no evidence
-    # of the sender's pace.
+    # That read as a sender that paused: on the node under one CPU hog, the node test
+    # failed 6 runs of 22 (those read: 36-50 resyncs and as many arrays late); here 2-56
+    # resyncs in each case before. An array taken at once after the previous one, and less
+    # than a step after its arrival, waited in the queue and is no evidence of the sender's
+    # pace; one 2 steps further behind than the previous late one was held up by the node.
     sent = T0 + np.arange(1200) * H
     stamps, clock = _taken_by_a_node_sharing_its_cpu(sent, 0.3, slices, seed,
-                                                     {300: 60.0, 800: 150.0})
+                                                     {300: 60.0, 800: 150.0}, between)
     assert clock.resyncs == 0
     assert np.all(np.diff(stamps) == H)
 
 
-@pytest.mark.parametrize('work_ms', [0.05, 0.3, 0.6])
+@pytest.mark.parametrize('work_ms', [0.05, 0.3, 0.6, 0.85, 0.95])
 @pytest.mark.parametrize('pause_ms', [5, 30, 150])
 def test_a_sender_back_from_a_pause_to_a_working_node_is_stamped_at_its_times(
         work_ms, pause_ms) -> None:
-    # the rule above must not hide a sender's own pause from a node that says when it is
-    # free (its live arrays come a step less its work apart): 16 arrays after the pause
-    # it is followed again, as without `taken`
+    # the rules above must not hide a sender's own pause from a node that says when it is
+    # free: its live arrays come a step less its work apart (at 0.85 and 0.95 ms of work,
+    # within 0.25 ms: taken at once, but a step after the previous one), and 16 arrays
+    # after the pause it is followed again, as without `taken`
     sent = T0 + np.arange(3000) * H
     k0 = 2000
     sent[k0:] += pause_ms * H
     stamps, clock = _taken_by_a_node_sharing_its_cpu(sent, work_ms, 0.0, 0)
     err = np.abs(stamps - sent - (stamps[0] - sent[0]))
     assert err[:k0].max() == 0 and err[k0 + 16:].max() == 0, np.flatnonzero(err) - k0
-    assert clock.resyncs == (pause_ms >= 2)
+    assert clock.resyncs == 1
