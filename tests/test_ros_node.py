@@ -481,7 +481,8 @@ def test_pauses_keep_one_step_per_array_equal_to_simulate(client, tmp_path) -> N
         how = _stream(node, k,
                       lambda j: pub.publish(Float64MultiArray(data=ep.U[:, j].tolist())))
         pred = _counters(client, out, k)
-        why = (pred, how)                                       # one step each
+        why = ({c: pred[c] for c in ('inputs', 'steps', 'stamp_resync', 'late')},
+               pred['message'], how)                           # one step each
         assert pred['inputs'] == str(k) and pred['steps'] == str(k - 1), why
         assert pred['stamp_resync'] == '0' and pred['late'] == '0', why
         t0 = min(out.stamped)

@@ -268,7 +268,8 @@ def test_a_backlog_taken_between_another_processs_slices_keeps_one_step_per_arra
     # failed 6 runs of 22 (those read: 36-50 resyncs and as many arrays late); here 2-56
     # resyncs in each case before. An array taken at once after the previous one, and less
     # than a step after its arrival, waited in the queue and is no evidence of the sender's
-    # pace; one 2 steps further behind than the previous late one was held up by the node.
+    # pace; one 2 steps further behind than the previous late one, and taken at once or
+    # followed at once by a queued one, was held up by the node.
     sent = T0 + np.arange(1200) * H
     stamps, clock = _taken_by_a_node_sharing_its_cpu(sent, 0.3, slices, seed,
                                                      {300: 60.0, 800: 150.0}, between)
@@ -291,3 +292,16 @@ def test_a_sender_back_from_a_pause_to_a_working_node_is_stamped_at_its_times(
     err = np.abs(stamps - sent - (stamps[0] - sent[0]))
     assert err[:k0].max() == 0 and err[k0 + 16:].max() == 0, np.flatnonzero(err) - k0
     assert clock.resyncs == 1
+
+
+@pytest.mark.parametrize('steps', [2, 3, 4, 10])
+def test_a_1_khz_sender_that_slows_down_is_followed(steps) -> None:
+    # a sender that goes from 1 kHz to 1 / `steps` of it falls behind the sequence by
+    # steps - 1 a message, steadily: not a node's hold-up (a rule of the backlog above
+    # restarted its run at every message from 3 steps on, and the sequence trailed for ever)
+    recv = [T0 + j * H for j in range(2000)] + [T0 + 2000 * H + j * steps * H
+                                                for j in range(1, 1500)]
+    clock = SequenceClock(H, 100 * H, 1_000_000_000)
+    stamps = np.array([clock.stamp(t) for t in recv])
+    assert clock.period == steps * H
+    assert abs(recv[-1] - stamps[-1]) <= H
