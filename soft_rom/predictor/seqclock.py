@@ -98,20 +98,17 @@ class SequenceClock:
     each counted in :attr:`resyncs`:
 
     * 16 messages trail it by 2 steps or more and do not catch up (by 2 steps; the backlog
-      of a stalled node catches up by nearly a period a message), none of them held up by
-      the node: the sender paused or slowed, no burst is coming, and the sequence moves by
-      the least of their lags, to the sender's phase after the pause. On wall time, where
-      the node says when it is free (:meth:`taken`), a message taken at once after that
-      (within a quarter step, at most 0.25 ms) and less than a step after the previous
-      arrival waited in the node's queue: it is not counted, and ends the count if it
-      shows the catching up or comes right after a message 2 steps further behind than
-      the one before (which the node then held up, as another process's slice does); a
-      message taken at once and 2 steps further behind starts the count again. After a
-      jump that stayed (not a slow drift) the arrivals before it are no evidence of the
-      rate, and are dropped. Before, a pause
-      shorter than ``resync_ns`` left a 1 kHz sender's sequence that far behind for ever and
-      a 100 Hz sender's for up to 2.5 s (its period voted wrong from the pause in the
-      window), and a longer one took 32 messages and a jump to one reception time;
+      of a stalled node catches up by nearly a period a message): the sender paused or
+      slowed, no burst is coming, and the sequence moves by the least of their lags, to
+      the sender's phase after the pause. On wall time, where the node says when it is
+      free (:meth:`taken`), a message taken at once after that (within a quarter step, at
+      most 0.25 ms) and less than a step after the previous arrival waited in the node's
+      queue: it is not counted, and ends the count only if it shows the catching up.
+      After a jump that stayed (not a slow drift) the arrivals before it are no evidence
+      of the rate, and are dropped. Before, a pause shorter than ``resync_ns`` left a
+      1 kHz sender's sequence that far behind for ever and a 100 Hz sender's for up to
+      2.5 s (its period voted wrong from the pause in the window), and a longer one took
+      32 messages and a jump to one reception time;
     * it leads the reception clock by more than ``resync_ns`` (a sender faster than its
       period): the next step, or the previous stamp for a sender faster than the model
       (stamps never go backwards).
@@ -152,10 +149,8 @@ class SequenceClock:
         self._votes = 0
         self._since = 0                                      # messages since an estimate
         self._late = False                 # beyond resync_ns behind: no estimates
-        # arrivals, first lag, least, most, last (the run of arrivals behind the sequence)
-        self._behind: tuple[int, int, int, int, int] | None = None
+        self._behind: tuple[int, int, int, int] | None = None  # (arrivals, lag, least, most)
         self._shift = 0                                      # phase step of the next stamp
-        self._jumped = 0                   # the last arrival 2 steps further behind
         self._burst = False                # start-up: a stamp was after its reception
         self._free: int | None = None      # when the node finished the previous message
         self._joined = 0                   # first message of the sequence that goes on
@@ -322,13 +317,13 @@ class SequenceClock:
             self._shift -= moved - candidate
             candidate = moved
         lag = now_ns - candidate
-        # taken at once after the node finished the previous one: it waited behind the node
-        # (or came just then); and less than a step after the previous arrival: queued, its
-        # reception says nothing of when it was sent (a live 1 kHz array comes a step after
-        # the previous one, also when the node's work takes nearly the step)
-        waited = self._free is not None and now_ns - self._free < min(self.h_ns // 4,
-                                                                       _QUEUED_NS)
-        queued = waited and previous is not None and now_ns - previous < self.h_ns
+        # taken at once after the node finished the previous one and less than a step after
+        # the previous arrival: it waited behind the node, so its reception says nothing of
+        # when it was sent (a live 1 kHz array comes a step after the previous one, also
+        # when the node's work takes nearly the step and it is taken at once)
+        queued = (self._free is not None and previous is not None
+                  and now_ns - self._free < min(self.h_ns // 4, _QUEUED_NS)
+                  and now_ns - previous < self.h_ns)
         if lag < -self.resync_ns:       # far ahead of the reception clock: never backwards;
             # the next step while that stays within the bound, else join the current step
             # (a sender faster than the model)
@@ -338,48 +333,40 @@ class SequenceClock:
             self._joined = self._count
             self._late = False
         elif lag > self.resync_ns:
-            t = self._after_a_pause(candidate, lag, waited, queued)
+            t = self._after_a_pause(candidate, lag, queued)
             self._late = t == candidate
         else:
-            t = self._after_a_pause(candidate, lag, waited, queued)
+            t = self._after_a_pause(candidate, lag, queued)
             self._late = False
         return t
 
-    def _after_a_pause(self, candidate: int, lag: int, waited: bool, queued: bool) -> int:
+    def _after_a_pause(self, candidate: int, lag: int, queued: bool) -> int:
         """The stamp when ``_PAUSE_MESSAGES`` arrivals in a row trail it by 2 steps or more.
 
         A sender that paused for less than ``resync_ns`` (a controller's GC pause) comes
         back late by the pause, and stays so: the sequence is moved by the least of their
         lags, to the sender's phase after the pause. A burst after a stall of the node
         catches up by a step or more a message, and is not moved. The same rule, beyond
-        ``resync_ns``, ends a longer pause. Arrivals the node held up are not evidence of
-        the sender's pace (a backlog taken while another process has the CPU now and then
+        ``resync_ns``, ends a longer pause. A ``queued`` arrival (it waited behind the node)
+        is not counted: a backlog taken while another process has the CPU now and then
         catches up unevenly, and its first 16 arrivals after a slice could trail without
-        catching up by 2 steps): a ``queued`` one is not counted, and one that ``waited``
-        and is 2 steps further behind than the previous late one, or that a queued one
-        follows at once, starts the run again. A sender slower than the sequence falls
-        behind steadily, is not taken at once and has no queue behind it.
+        catching up by 2 steps.
         """
         if lag < 2 * self.h_ns:
             self._behind = None
             return candidate
-        if queued:                      # no evidence of the sender's pace (a backlog), but
-            if self._behind is not None and (self._behind[1] - lag >= 2 * self.h_ns
-                                             or self._jumped == self._count - 1):
-                self._behind = None     # of catching up, or that the node held up the last
+        if queued:                      # no evidence of the sender's pace (a backlog) ...
+            if self._behind is not None and self._behind[1] - lag >= 2 * self.h_ns:
+                self._behind = None     # ... but of catching up
             return candidate
-        if self._behind is None or self._behind[1] - lag >= 2 * self.h_ns \
-                or waited and lag - self._behind[4] >= 2 * self.h_ns:
-            # the first late one, or catching up, or held up by the node
-            self._behind = (1, lag, lag, lag, lag)
+        if self._behind is None or self._behind[1] - lag >= 2 * self.h_ns:
+            self._behind = (1, lag, lag, lag)                 # first late one, or catching up
             return candidate
-        n, first, least, most, last = self._behind
-        if lag - last >= 2 * self.h_ns:
-            self._jumped = self._count              # held up, if a backlog follows it
-        self._behind = (n + 1, first, min(least, lag), max(most, lag), lag)
+        n, first, least, most = self._behind
+        self._behind = (n + 1, first, min(least, lag), max(most, lag))
         if n + 1 < _PAUSE_MESSAGES:
             return candidate
-        _, _, least, most, _ = self._behind
+        _, _, least, most = self._behind
         self._behind = None
         self.resyncs += 1
         self._shift = 0
