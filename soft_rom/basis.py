@@ -92,7 +92,7 @@ def select_rank(singular_values: ArrayLike, *, r: int | None = None,
     if not 0.0 < energy <= 1.0:
         raise ConfigError(f'energy must be in (0, 1]; got {energy!r}.')
     cum = np.cumsum(s ** 2) / np.sum(s ** 2)
-    return int(min(np.searchsorted(cum, energy - 1e-12) + 1, s.size))
+    return min(int(np.searchsorted(cum, energy - 1e-12)) + 1, int(s.size))
 
 
 def snapshot_range(arrays: Sequence[Array], tol: float, *, start: int = 512,

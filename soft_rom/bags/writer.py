@@ -213,7 +213,9 @@ class EpisodeBagWriter:
     def _discard(self, writer: Writer | None) -> None:
         if writer is not None:
             try:
-                writer.abort()
+                # rosbags 0.11.0 (the oldest we allow) has no abort: close releases the files
+                abort = getattr(writer, 'abort', None)
+                (abort or writer.close)()
             except Exception:  # noqa: BLE001 - best effort while unwinding
                 pass
         if self._tmp is not None:

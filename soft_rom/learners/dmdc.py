@@ -380,7 +380,8 @@ class DMDc:
         if variant == 'stable':
             A, B, clipped, lag = self._stable(r, E)
         Yhat = E @ self._Xr[:r]
-        train_err = float(np.linalg.norm(self._Yd - Yhat) / max(np.linalg.norm(self._Yd), 1e-300))
+        scale = max(float(np.linalg.norm(self._Yd)), 1e-300)
+        train_err = float(np.linalg.norm(self._Yd - Yhat)) / scale
         meta = self._model_metadata(A, r, p_req, p_used, variant, clipped, train_err, t0)
         meta.update(lag)
         Cout = E if variant == 'paper' else np.hstack([E, np.zeros((E.shape[0],

@@ -434,7 +434,9 @@ class LinearROM(ABC):
         path.parent.mkdir(parents=True, exist_ok=True)
         try:
             with open(tmp, 'wb') as fh:
-                np.savez(fh, **arrays)  # type: ignore[arg-type]
+                # typed as Any: numpy 2's stubs give savez a keyword (allow_pickle) that
+                # `**arrays` could fill, numpy 1's do not
+                cast(Any, np.savez)(fh, **arrays)
             os.replace(tmp, path)
         finally:
             if tmp.exists():

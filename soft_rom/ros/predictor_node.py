@@ -348,6 +348,11 @@ class PredictorNode(LifecycleNodeMixin, ParameterMixin, PredictionPublishers, No
             self._guard('pressure', err)
 
     def _on_array(self, msg: Float64MultiArray) -> None:
+        # The middleware's reception time (rclpy's MessageInfo, given to a two-argument
+        # callback) would time an array before its wait in the node's queue, but the
+        # EventsExecutor of Jazzy's rclpy 7.1.6 (the default here) raises "SystemError: null
+        # argument to internal routine" for such callbacks (tried 2026-12-07): the array is
+        # timed on taking it, and the sequence clock reads the node's queue from ``_taken``.
         if (loop := self.loop) is None:
             return
         try:

@@ -277,11 +277,9 @@ class EelModel:
         n_steps = int(n_steps)
         if n_steps < 1 or not dt > 0:
             raise ConfigError(f'need n_steps >= 1 and dt > 0; got {n_steps}, {dt}.')
-        if callable(pressures):
-            fn = pressures
-            pressures = np.stack([np.asarray(fn(j * dt), dtype=np.float64).reshape(
-                self.n_chambers) for j in range(n_steps)], axis=1)
-        U = self._pressures(pressures, n_steps)
+        U = self._pressures(np.stack([np.asarray(pressures(j * dt), dtype=np.float64).reshape(
+            self.n_chambers) for j in range(n_steps)], axis=1) if callable(pressures)
+            else pressures, n_steps)
         t0 = time.perf_counter()
         stepper = self.stepper(dt, jacobian=jacobian, linear=linear, cg_rtol=cg_rtol,
                                cg_maxiter=cg_maxiter, linear_solver=linear_solver)

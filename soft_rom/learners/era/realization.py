@@ -253,7 +253,7 @@ def modal_inputs(A: Array, B: Array, U: Array
         G = np.linalg.solve(V, B @ U)
     except np.linalg.LinAlgError:
         return None, None, rho
-    return ev, G, rho
+    return np.asarray(ev, dtype=np.complex128), G, rho
 
 
 def first_order_responses(ev: NDArray[np.complex128], G: NDArray[np.complex128]
