@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -72,14 +75,31 @@ def test_alternative_state_and_pressure_array(tmp_path, state_type):
         assert st[3].stamp_ns == round(t[3] * 1e9)
 
 
-def test_failure_mid_write_leaves_no_bag(tmp_path):
+def _open_under(folder: Path) -> list[str]:
+    """Files this process holds open under ``folder`` (``/proc/self/fd``: Linux)."""
+    held = []
+    for fd in Path('/proc/self/fd').iterdir():
+        try:
+            target = os.readlink(fd)
+        except OSError:                 # closed meanwhile (the listing's own descriptor)
+            continue
+        if target.startswith(str(folder)):
+            held.append(target)
+    return held
+
+
+@pytest.mark.parametrize('storage', ['mcap', 'sqlite3'])
+def test_failure_mid_write_leaves_no_bag(tmp_path, storage):
     path = tmp_path / 'ep'
     with pytest.raises(RuntimeError, match='boom'):
-        with EpisodeBagWriter(path, storage='mcap', n_chambers=6) as w:
+        with EpisodeBagWriter(path, storage=storage, n_chambers=6) as w:
             w.write(0.001, np.zeros(6), np.zeros((20, 3)))
             raise RuntimeError('boom')
     assert not path.exists()
     assert list(tmp_path.iterdir()) == []
+    # and nothing of it left open (rosbags 0.11.0, the oldest allowed, has no
+    # Writer.abort: its bag was deleted while still open)
+    assert _open_under(tmp_path) == []
 
 
 def test_bad_arguments_and_existing_path(tmp_path):
