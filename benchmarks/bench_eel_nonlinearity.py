@@ -1,6 +1,6 @@
 """Diagnostic: what kind of nonlinearity separates the eel FOM from every linear ROM.
 
-Three measurements, on the study's default eel (mesh resolution 1, 50 kPa antagonistic
+Measurements on the study's default eel (mesh resolution 1, 50 kPa antagonistic
 random pressures, 1 ms):
 
 1. **Amplitude scan.** Test episode Ep 3's pressures scaled by ``s``, simulated with the
@@ -40,6 +40,17 @@ random pressures, 1 ms):
    training equations to 1 % and misses the test ones by 40 % says that two episodes do not
    pin down even the linear operators at the equation level, before any nonlinear term.
 
+6. **How much of the linear ROM's test error is representation?** (``--projection TRAIN
+   TEST``, two training sets written by ``soft-rom study --learning-curve``, e.g. its
+   ``data/50kPa_train.zarr`` and ``data/50kPa_test.zarr``; only this check runs then.) The
+   POD of the first ``--projection-n`` training episodes (as the learning curve builds it),
+   and the output error of the test episodes' FEM states represented in it, relative to
+   their deviations: linearly (``C V Vᵀ x``), and on a quadratic manifold
+   (``C (V q + W (q ⊗ q))``, ``q = Vᵀ x``, ``C W`` fitted by ridge least squares to the
+   training states' residual outputs, the decoder of Geelen, Wright & Willcox 2023 that is
+   the usual remedy for geometric nonlinearity). No dynamics: what is left of a ROM's error
+   above these figures is in its reduced dynamics.
+
 The reduced episodes come from ``--data`` (default ``/tmp/cubic_cache/eel_reduced.npz``,
 made by ``bench_cubic_eel.py`` with the study's pipeline when missing; never inside the
 repository). The FEM runs take about 45 s.
@@ -48,6 +59,8 @@ Run::
 
     .venv/bin/python benchmarks/bench_eel_nonlinearity.py [--r 6] [--cutoff 5]
         [--gen-r 4 8 22] [--only-gen]
+    .venv/bin/python benchmarks/bench_eel_nonlinearity.py --projection TRAIN.zarr TEST.zarr
+        [--projection-n 16] [--projection-r 4 6 8 12 16]
 
 Figures of one run are quoted in docs/methods_variants.md (cubic LOpInf section).
 """
@@ -242,6 +255,45 @@ def mirror_check(amplitude: float = 50e3) -> None:
               f'{tip[0]:+.2f} mm (linearized {tip[1]:+.2f} mm)', flush=True)
 
 
+def _pairs(q: np.ndarray) -> np.ndarray:
+    """The ``r (r + 1) / 2`` distinct products ``q_i q_j`` (i <= j) of each column."""
+    i, j = np.triu_indices(q.shape[0])
+    return np.asarray(q[i] * q[j])
+
+
+def representation(train_path: Path, test_path: Path, n_train: int,
+                   rs: tuple[int, ...]) -> None:
+    """Output error of the test states in a linear POD and on a quadratic manifold (6)."""
+    from soft_rom.basis import POD
+    from soft_rom.dataset.reader import TrainingSet
+    train, test = TrainingSet.open(train_path), TrainingSet.open(test_path)
+    eps = train.episodes(train.episode_names[:n_train])
+    q_ref, y_ref = np.asarray(train.q_ref), np.asarray(train.y_ref)
+    C = EelModel().output_matrix('xz')
+    X = np.concatenate([np.asarray(ep.Q[:, :]) - q_ref[:, None] for ep in eps], axis=1)
+    V_all = POD(r=max(rs)).fit([ep.Q for ep in eps], q_ref).basis_
+    tests = [(np.asarray(ep.Q[:, :]) - q_ref[:, None], np.asarray(ep.Y) - y_ref[:, None])
+             for ep in test]
+    mismatch = max(float(np.abs(C @ x - y).max()) for x, y in tests)
+    print(f'6. Representation error of the {len(tests)} test episodes, POD of {len(eps)} '
+          f'training episodes (|C x - y| at most {mismatch:.1e} m), relative to the '
+          'deviations:')
+    for r in rs:
+        V = V_all[:, :r]
+        q = V.T @ X
+        K, R = _pairs(q), C @ (X - V @ q)                 # products, residual outputs
+        lam = 1e-6 * np.trace(K @ K.T) / len(K)
+        W = np.linalg.solve(K @ K.T + lam * np.eye(len(K)), K @ R.T).T
+        lin, quad = [], []
+        for x, y in tests:
+            qt = V.T @ x
+            y_lin = C @ (V @ qt)
+            lin.append(np.linalg.norm(y_lin - y) / np.linalg.norm(y))
+            quad.append(np.linalg.norm(y_lin + W @ _pairs(qt) - y) / np.linalg.norm(y))
+        print(f'   r = {r:2d} linear POD ' + ' / '.join(f'{v:.3f}' for v in lin)
+              + '; quadratic manifold ' + ' / '.join(f'{v:.3f}' for v in quad), flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--data', type=Path, default=Path('/tmp/cubic_cache/eel_reduced.npz'))
@@ -250,7 +302,18 @@ def main() -> None:
     ap.add_argument('--gen-r', type=int, nargs='+', default=[4, 8, 22],
                     help='r of the equation-generalization check (5.)')
     ap.add_argument('--only-gen', action='store_true', help='run the check 5. only')
+    ap.add_argument('--projection', type=Path, nargs=2, metavar=('TRAIN', 'TEST'),
+                    help='run the check 6. only, on these two training sets')
+    ap.add_argument('--projection-n', type=int, default=16,
+                    help='training episodes of the POD (6.)')
+    ap.add_argument('--projection-r', type=int, nargs='+', default=[4, 6, 8, 12, 16],
+                    help='r of the check 6.')
     args = ap.parse_args()
+    if args.projection:
+        t0 = time.perf_counter()
+        representation(*args.projection, args.projection_n, tuple(args.projection_r))
+        print(f'({time.perf_counter() - t0:.0f} s)')
+        return
     if not args.data.exists():
         args.data.parent.mkdir(parents=True, exist_ok=True)
         bce.build_data(args.data)
