@@ -51,6 +51,17 @@ random pressures, 1 ms):
    the usual remedy for geometric nonlinearity). No dynamics: what is left of a ROM's error
    above these figures is in its reduced dynamics.
 
+7. **Do cubic reduced dynamics pay off, given the right coefficients?** (``--dynamics``, with
+   ``--projection``: on the same POD, at ``--projection-r``.) The test episodes are run
+   through three reduced models in the FOM's own scheme (semi-implicit Euler, the rest
+   stiffness and the Rayleigh damping implicit, 1 ms): the intrusive Galerkin ROM (the
+   corotational forces of ``x = q_ref + V q``, follower pressure loads); the same with the
+   elastic force replaced by a cubic polynomial in ``q`` fitted by least squares to the exact
+   reduced forces at every 10th projected training state (an upper bound of what a cubic
+   LOpInf could learn; follower and dead loads); and, from trajectories only, an
+   unconstrained equation-error fit of ``q̈`` on ``[q, cubic(q), q̇, u]`` (finite differences
+   of the projected training states, ridge 1e-8).
+
 The reduced episodes come from ``--data`` (default ``/tmp/cubic_cache/eel_reduced.npz``,
 made by ``bench_cubic_eel.py`` with the study's pipeline when missing; never inside the
 repository). The FEM runs take about 45 s.
@@ -60,7 +71,7 @@ Run::
     .venv/bin/python benchmarks/bench_eel_nonlinearity.py [--r 6] [--cutoff 5]
         [--gen-r 4 8 22] [--only-gen]
     .venv/bin/python benchmarks/bench_eel_nonlinearity.py --projection TRAIN.zarr TEST.zarr
-        [--projection-n 16] [--projection-r 4 6 8 12 16]
+        [--projection-n 16] [--projection-r 4 6 8 12 16] [--dynamics]
 
 Figures of one run are quoted in docs/methods_variants.md (cubic LOpInf section).
 """
@@ -72,6 +83,7 @@ from itertools import combinations_with_replacement
 from pathlib import Path
 import sys
 import time
+from typing import Any
 
 import numpy as np
 import scipy.signal as ss
@@ -262,7 +274,7 @@ def _pairs(q: np.ndarray) -> np.ndarray:
 
 
 def representation(train_path: Path, test_path: Path, n_train: int,
-                   rs: tuple[int, ...]) -> None:
+                   rs: tuple[int, ...], dynamics: bool = False) -> None:
     """Output error of the test states in a linear POD and on a quadratic manifold (6)."""
     from soft_rom.basis import POD
     from soft_rom.dataset.reader import TrainingSet
@@ -292,6 +304,136 @@ def representation(train_path: Path, test_path: Path, n_train: int,
             quad.append(np.linalg.norm(y_lin + W @ _pairs(qt) - y) / np.linalg.norm(y))
         print(f'   r = {r:2d} linear POD ' + ' / '.join(f'{v:.3f}' for v in lin)
               + '; quadratic manifold ' + ' / '.join(f'{v:.3f}' for v in quad), flush=True)
+    if dynamics:
+        reduced_dynamics(eps, list(test), V_all, q_ref, rs)
+
+
+def _monomials_up_to_3(q: np.ndarray) -> np.ndarray:
+    """``q``, its distinct products of two and of three factors (rows), per column."""
+    r = q.shape[0]
+    parts = [q, _pairs(q)]
+    idx = np.array(list(combinations_with_replacement(range(r), 3))).T
+    parts.append(q[idx[0]] * q[idx[1]] * q[idx[2]])
+    return np.concatenate(parts, axis=0)
+
+
+class _Reduced:
+    """The FOM's time step on ``x = q_ref + V q`` (check 7)."""
+
+    def __init__(self, model: EelModel, V: np.ndarray, q_ref: np.ndarray, h: float = 1e-3):
+        cfg = model.config
+        _, K0, m = model._rest_factor(h)
+        self.model, self.V, self.q_ref, self.h = model, V, q_ref, h
+        self.Vf = V[model.free]
+        A = (self.Vf.T @ (m[:, None] * (1 + h * cfg.rayleigh_mass) * self.Vf)
+             + (h * cfg.rayleigh_stiffness + h * h) * (self.Vf.T @ (K0 @ self.Vf)))
+        self.Ai, self.M = np.linalg.inv(A), self.Vf.T @ (m[:, None] * self.Vf)
+        self.B = self.Vf.T @ np.asarray(model.B.todense())[model.free]
+
+    def x(self, q: np.ndarray) -> np.ndarray:
+        return (self.q_ref + self.V @ q).reshape(-1, 3)
+
+    def elastic(self, q: np.ndarray) -> np.ndarray:
+        return self.Vf.T @ self.model.fem.elastic_force(self.x(q)).ravel()[self.model.free]
+
+    def follower(self, q: np.ndarray, u: np.ndarray) -> np.ndarray:
+        return self.Vf.T @ self.model.pressure_force(self.x(q), u).ravel()[self.model.free]
+
+    def run(self, U: np.ndarray, C: Any, force: Any) -> np.ndarray:
+        r = self.V.shape[1]
+        q, qd = np.zeros(r), np.zeros(r)
+        Y = np.full((C.shape[0], U.shape[1]), np.nan)
+        with np.errstate(over='ignore', invalid='ignore'):        # a blow-up ends the run
+            for j in range(U.shape[1]):
+                Y[:, j] = C @ (self.q_ref + self.V @ q)
+                qd = self.Ai @ (self.M @ qd + self.h * force(q, U[:, j]))
+                q = q + self.h * qd
+                if not np.all(np.isfinite(q)):
+                    break
+        return Y
+
+
+class _EquationErrorCubic:
+    """Unconstrained least squares of ``q̈`` on ``[q, cubic(q), q̇, u]`` (check 7)."""
+
+    def __init__(self, Qs: list[np.ndarray], Us: list[np.ndarray], h: float) -> None:
+        s = np.concatenate(Qs, axis=1).std(axis=1)
+        rows, acc = [], []
+        for q, u in zip(Qs, Us):
+            v = np.diff(q, axis=1) / h                   # v[:, j]: velocity after step j
+            rows.append(np.concatenate([_monomials_up_to_3(q[:, 1:-1] / s[:, None]),
+                                        v[:, :-1] / s[:, None], u[:, 1:-1] / 1e4]))
+            acc.append(np.diff(v, axis=1) / h)
+        Phi, A = np.concatenate(rows, axis=1), np.concatenate(acc, axis=1)
+        G = Phi @ Phi.T
+        W = np.linalg.solve(G + 1e-8 * np.trace(G) / len(G) * np.eye(len(G)), Phi @ A.T).T
+        r, nm = len(s), len(G) - len(s) - Us[0].shape[0]
+        self.s, self.h = s, h
+        self.Aq, self.Dv = W[:, :r] / s, W[:, nm:nm + r] / s
+        self.Wn, self.Wu = W[:, r:nm], W[:, nm + r:] / 1e4
+        self.Li = np.linalg.inv(np.eye(r) - h * h * self.Aq - h * self.Dv)   # linear part implicit
+
+    def run(self, U: np.ndarray) -> np.ndarray:
+        r, h, s = len(self.s), self.h, self.s[:, None]
+        q, v = np.zeros(r), np.zeros(r)
+        out = np.full((r, U.shape[1]), np.nan)
+        with np.errstate(over='ignore', invalid='ignore'):        # a blow-up ends the run
+            for j in range(U.shape[1]):
+                out[:, j] = q
+                nl = self.Wn @ _monomials_up_to_3(q[:, None] / s)[r:, 0]
+                v = self.Li @ (v + h * (self.Aq @ q + nl + self.Wu @ U[:, j]))
+                q = q + h * v
+                if not np.all(np.isfinite(q)):
+                    break
+        return out
+
+
+def _reduced_rows(model: EelModel, V: np.ndarray, q_ref: np.ndarray, X: np.ndarray,
+                  eps: list, tests: list) -> tuple[float, dict[str, list[float]]]:
+    """The four reduced models of check 7 at one r: test errors, and the cubic force's fit."""
+    h, C = 1e-3, model.output_matrix('xz')
+    red = _Reduced(model, V, q_ref, h)
+    Q = V.T @ X
+    s = Q.std(axis=1)[:, None]
+    F = np.stack([red.elastic(Q[:, j]) for j in range(Q.shape[1])], axis=1)
+    P = _monomials_up_to_3(Q / s)
+    G = P @ P.T
+    W = np.linalg.solve(G + 1e-10 * np.trace(G) / len(G) * np.eye(len(G)), P @ F.T).T
+    fit = float(np.linalg.norm(F - W @ P) / np.linalg.norm(F))
+
+    def cubic(q: np.ndarray) -> np.ndarray:
+        return W @ _monomials_up_to_3(q[:, None] / s)[:, 0]
+
+    forces = {'Galerkin': lambda q, u: red.elastic(q) + red.follower(q, u),
+              'cubic force, follower loads': lambda q, u: cubic(q) + red.follower(q, u),
+              'cubic force, dead loads': lambda q, u: cubic(q) + red.B @ u}
+    y_ref = C @ q_ref
+
+    def error(te: Any, Y: np.ndarray) -> float:               # inf: the model blew up
+        return (relative_deviation_error(np.asarray(te.Y), Y, y_ref)
+                if np.all(np.isfinite(Y)) else np.inf)
+
+    rows = {label: [error(te, red.run(np.asarray(te.U), C, force)) for te in tests]
+            for label, force in forces.items()}
+    fitted = _EquationErrorCubic([V.T @ (np.asarray(ep.Q[:, :]) - q_ref[:, None]) for ep in eps],
+                                 [np.asarray(ep.U) for ep in eps], h)
+    rows['equation-error cubic fit'] = [
+        error(te, C @ (q_ref[:, None] + V @ fitted.run(np.asarray(te.U)))) for te in tests]
+    return fit, rows
+
+
+def reduced_dynamics(eps: list, tests: list, V_all: np.ndarray, q_ref: np.ndarray,
+                     rs: tuple[int, ...]) -> None:
+    """Galerkin, exact-force cubic and equation-error cubic reduced models on the tests (7)."""
+    model = EelModel()
+    X = np.concatenate([np.asarray(ep.Q[:, ::10]) - q_ref[:, None] for ep in eps], axis=1)
+    print('7. Reduced dynamics on the test episodes, deviation error (the cubic force: fitted '
+          'to the exact reduced forces of the projected training states):')
+    for r in rs:
+        fit, rows = _reduced_rows(model, V_all[:, :r], q_ref, X, eps, tests)
+        print(f'   r = {r:2d} (cubic fit of the reduced force: residual {fit:.1e})', flush=True)
+        for label, e in rows.items():
+            print(f'      {label:28s} ' + ' / '.join(f'{v:.3f}' for v in e), flush=True)
 
 
 def main() -> None:
@@ -308,10 +450,13 @@ def main() -> None:
                     help='training episodes of the POD (6.)')
     ap.add_argument('--projection-r', type=int, nargs='+', default=[4, 6, 8, 12, 16],
                     help='r of the check 6.')
+    ap.add_argument('--dynamics', action='store_true',
+                    help='with --projection: also the reduced dynamics (7.)')
     args = ap.parse_args()
     if args.projection:
         t0 = time.perf_counter()
-        representation(*args.projection, args.projection_n, tuple(args.projection_r))
+        representation(*args.projection, args.projection_n, tuple(args.projection_r),
+                       dynamics=args.dynamics)
         print(f'({time.perf_counter() - t0:.0f} s)')
         return
     if not args.data.exists():
