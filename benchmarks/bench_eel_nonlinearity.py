@@ -79,6 +79,7 @@ Figures of one run are quoted in docs/methods_variants.md (cubic LOpInf section)
 from __future__ import annotations
 
 import argparse
+import functools
 from itertools import combinations_with_replacement
 from pathlib import Path
 import sys
@@ -130,9 +131,14 @@ def amplitude_scan(U: np.ndarray, scales: tuple[float, ...]) -> None:
           f'(linearization: {relative_deviation_error(Y, Yl, ref):.4f})')
 
 
+@functools.lru_cache(maxsize=None)
+def _combinations(n: int, degree: int) -> np.ndarray:
+    return np.array(list(combinations_with_replacement(range(n), degree)), dtype=np.intp).T
+
+
 def _monomials(X: np.ndarray, degree: int) -> np.ndarray:
-    return np.array([np.prod(X[list(c)], axis=0)
-                     for c in combinations_with_replacement(range(X.shape[0]), degree)])
+    """The distinct products of ``degree`` rows of ``X`` (i <= j <= ...), per column."""
+    return np.prod(X[_combinations(X.shape[0], degree)], axis=0)
 
 
 def residual_families(data: bce.Data, cutoff: float) -> None:
@@ -267,12 +273,6 @@ def mirror_check(amplitude: float = 50e3) -> None:
               f'{tip[0]:+.2f} mm (linearized {tip[1]:+.2f} mm)', flush=True)
 
 
-def _pairs(q: np.ndarray) -> np.ndarray:
-    """The ``r (r + 1) / 2`` distinct products ``q_i q_j`` (i <= j) of each column."""
-    i, j = np.triu_indices(q.shape[0])
-    return np.asarray(q[i] * q[j])
-
-
 def representation(train_path: Path, test_path: Path, n_train: int,
                    rs: tuple[int, ...], dynamics: bool = False) -> None:
     """Output error of the test states in a linear POD and on a quadratic manifold (6)."""
@@ -293,7 +293,7 @@ def representation(train_path: Path, test_path: Path, n_train: int,
     for r in rs:
         V = V_all[:, :r]
         q = V.T @ X
-        K, R = _pairs(q), C @ (X - V @ q)                 # products, residual outputs
+        K, R = _monomials(q, 2), C @ (X - V @ q)                 # products, residual outputs
         lam = 1e-6 * np.trace(K @ K.T) / len(K)
         W = np.linalg.solve(K @ K.T + lam * np.eye(len(K)), K @ R.T).T
         lin, quad = [], []
@@ -301,7 +301,7 @@ def representation(train_path: Path, test_path: Path, n_train: int,
             qt = V.T @ x
             y_lin = C @ (V @ qt)
             lin.append(np.linalg.norm(y_lin - y) / np.linalg.norm(y))
-            quad.append(np.linalg.norm(y_lin + W @ _pairs(qt) - y) / np.linalg.norm(y))
+            quad.append(np.linalg.norm(y_lin + W @ _monomials(qt, 2) - y) / np.linalg.norm(y))
         print(f'   r = {r:2d} linear POD ' + ' / '.join(f'{v:.3f}' for v in lin)
               + '; quadratic manifold ' + ' / '.join(f'{v:.3f}' for v in quad), flush=True)
     if dynamics:
@@ -310,11 +310,7 @@ def representation(train_path: Path, test_path: Path, n_train: int,
 
 def _monomials_up_to_3(q: np.ndarray) -> np.ndarray:
     """``q``, its distinct products of two and of three factors (rows), per column."""
-    r = q.shape[0]
-    parts = [q, _pairs(q)]
-    idx = np.array(list(combinations_with_replacement(range(r), 3))).T
-    parts.append(q[idx[0]] * q[idx[1]] * q[idx[2]])
-    return np.concatenate(parts, axis=0)
+    return np.concatenate([q, _monomials(q, 2), _monomials(q, 3)], axis=0)
 
 
 class _Reduced:
