@@ -62,6 +62,13 @@ random pressures, 1 ms):
    unconstrained equation-error fit of ``q̈`` on ``[q, cubic(q), q̇, u]`` (finite differences
    of the projected training states, ridge 1e-8).
 
+8. **Are the projected trajectories Markovian?** (``--closure``, with ``--projection``.) A
+   fit from trajectories sees the reduced force of the *true* state, ``Vᵀ f(x)``; a reduced
+   model can only know ``Vᵀ f(q_ref + V q)``, ``q = Vᵀ (x - q_ref)``. Their relative
+   difference over every 40th training state, for the corotational elastic force and for
+   its linear part (the rest stiffness), is the closure error the learned operators must
+   absorb (re-projection, Peherstorfer 2020, is the known remedy).
+
 The reduced episodes come from ``--data`` (default ``/tmp/cubic_cache/eel_reduced.npz``,
 made by ``bench_cubic_eel.py`` with the study's pipeline when missing; never inside the
 repository). The FEM runs take about 45 s.
@@ -71,7 +78,7 @@ Run::
     .venv/bin/python benchmarks/bench_eel_nonlinearity.py [--r 6] [--cutoff 5]
         [--gen-r 4 8 22] [--only-gen]
     .venv/bin/python benchmarks/bench_eel_nonlinearity.py --projection TRAIN.zarr TEST.zarr
-        [--projection-n 16] [--projection-r 4 6 8 12 16] [--dynamics]
+        [--projection-n 16] [--projection-r 4 6 8 12 16] [--dynamics] [--closure]
 
 Figures of one run are quoted in docs/methods_variants.md (cubic LOpInf section).
 """
@@ -274,7 +281,8 @@ def mirror_check(amplitude: float = 50e3) -> None:
 
 
 def representation(train_path: Path, test_path: Path, n_train: int,
-                   rs: tuple[int, ...], dynamics: bool = False) -> None:
+                   rs: tuple[int, ...], dynamics: bool = False, closure: bool = False
+                   ) -> None:
     """Output error of the test states in a linear POD and on a quadratic manifold (6)."""
     from soft_rom.basis import POD
     from soft_rom.dataset.reader import TrainingSet
@@ -306,6 +314,31 @@ def representation(train_path: Path, test_path: Path, n_train: int,
               + '; quadratic manifold ' + ' / '.join(f'{v:.3f}' for v in quad), flush=True)
     if dynamics:
         reduced_dynamics(eps, list(test), V_all, q_ref, rs)
+    if closure:
+        closure_error(X[:, ::40], V_all, q_ref, rs)
+
+
+def closure_error(X: np.ndarray, V_all: np.ndarray, q_ref: np.ndarray, rs: tuple[int, ...]
+                  ) -> None:
+    """``|Vᵀ f(x) - Vᵀ f(q_ref + V Vᵀ x)| / |Vᵀ f(x)|`` over the states ``X`` (8)."""
+    model = EelModel()
+    free, K0 = model.free, model._rest_factor(1e-3)[1]
+
+    def forces(D: np.ndarray) -> np.ndarray:                   # elastic force, free DOFs
+        return np.stack([model.fem.elastic_force((q_ref + d).reshape(-1, 3)).ravel()[free]
+                         for d in D.T], axis=1)
+
+    F = forces(X)
+    print(f'8. Closure error over {X.shape[1]} training states (reduced force of the true '
+          'state against that of its projection):')
+    for r in rs:
+        V = V_all[:, :r]
+        P = V @ (V.T @ X)
+        Vf = V[free]
+        a, b = Vf.T @ F, Vf.T @ forces(P)
+        al, bl = Vf.T @ (K0 @ X[free]), Vf.T @ (K0 @ P[free])
+        print(f'   r = {r:2d} elastic force {np.linalg.norm(a - b) / np.linalg.norm(a):.3f}, '
+              f'its linear part {np.linalg.norm(al - bl) / np.linalg.norm(al):.3f}', flush=True)
 
 
 def _monomials_up_to_3(q: np.ndarray) -> np.ndarray:
@@ -448,11 +481,13 @@ def main() -> None:
                     help='r of the check 6.')
     ap.add_argument('--dynamics', action='store_true',
                     help='with --projection: also the reduced dynamics (7.)')
+    ap.add_argument('--closure', action='store_true',
+                    help='with --projection: also the closure error (8.)')
     args = ap.parse_args()
     if args.projection:
         t0 = time.perf_counter()
         representation(*args.projection, args.projection_n, tuple(args.projection_r),
-                       dynamics=args.dynamics)
+                       dynamics=args.dynamics, closure=args.closure)
         print(f'({time.perf_counter() - t0:.0f} s)')
         return
     if not args.data.exists():
