@@ -94,6 +94,10 @@ _CLARABEL_SETTINGS = (_CLARABEL_REFINE, {**_CLARABEL_REFINE, 'equilibrate_enable
 #: the smallest Gram matrix is chosen and those fits agree to 1e-12 on the scale benchmark;
 #: docs/methods_variants.md has the measurements. 0 turns it off.
 _GRAM_WEIGHT = 1e-8
+#: The least squares' scaled columns count as dependent below this relative pivot ...
+_RANK_TOL = 1e-10
+#: ... and then all get this ridge (relative to their unit norm).
+_JITTER = 1e-13
 
 
 class CubicSolution(NamedTuple):
@@ -261,9 +265,16 @@ def _least_squares(lay: _Layout, Q: Array, Qd: Array, Qdd: Array, U: Array, reg:
                    ) -> tuple[Array, Array, Array, float]:
     """The regularized least squares, compressed by a QR of the features.
 
-    Returns the normal matrix ``N``, its right-hand side ``g``, the solution ``θ`` (one step
-    of iterative refinement on the compressed rows) and the squared residual outside the
-    features' range.
+    Returns the normal matrix ``N``, its right-hand side ``g``, the solution ``θ`` and the
+    squared residual outside the features' range.
+
+    ``θ`` comes from a Householder QR of the compressed rows (and the ridge's rows) with
+    their columns scaled to unit norm, not from the normal equations: the monomials of
+    coordinates that span three decades (r = 16 on the eel) span nine, and the normal
+    equations (condition number squared, a jitter scaled by the largest columns) lost the
+    solution there: relative residual 4e-2 against 8e-4 with this QR, on re-projected eel
+    data at ``reg`` 0 (``benchmarks/bench_eel_nonlinearity.py --reproject``). ``N`` and
+    ``g``, which the conic problem needs, are formed from the triangular factor.
     """
     r, k = Q.shape
     Z = lay.features(Q, Qd, U)
@@ -276,17 +287,27 @@ def _least_squares(lay: _Layout, Q: Array, Qd: Array, Qdd: Array, U: Array, reg:
     w_all[np.arange(o['G'], o['C'])] = np.concatenate([lay.tensor_weights('G'),
                                                        lay.tensor_weights('H')])
     ridge = float(reg) * k * w_all
-    N = A.T @ A + np.diag(ridge)
+    cs = np.sqrt(np.einsum('ij,ij->j', A, A) + ridge)
+    cs[cs == 0.0] = 1.0
+    reg_rows = np.flatnonzero(ridge > 0)
+    penalty = np.zeros((len(reg_rows), lay.n_theta))
+    penalty[np.arange(len(reg_rows)), reg_rows] = np.sqrt(ridge[reg_rows]) / cs[reg_rows]
+    Qa, Ra = np.linalg.qr(np.vstack([A / cs, penalty]))
+    c = Qa[:len(b)].T @ b
+    diag = np.abs(np.diag(Ra))
+    if diag.min() <= _RANK_TOL * diag.max():
+        # dependent columns (antagonistic inputs make B's columns pairwise dependent): a
+        # relative ridge of _JITTER on every scaled column picks the least-norm solution there
+        Qj, Ra = np.linalg.qr(np.vstack([Ra, math.sqrt(_JITTER) * np.eye(lay.n_theta)]))
+        c = Qj[:len(c)].T @ c
+    Rd = Ra * cs[None, :]                                   # N = Rdᵀ Rd
+    N = Rd.T @ Rd
     N += 1e-13 * float(np.trace(N)) / lay.n_theta * np.eye(lay.n_theta)
-    g = A.T @ b
-    try:
-        cf = sla.cho_factor(N, check_finite=False)
-    except np.linalg.LinAlgError as err:
-        raise SolverError(f'the cubic LOpInf normal equations are singular ({err}); '
-                          'try a larger --cubic-reg.') from err
-    theta = sla.cho_solve(cf, g)
-    theta += sla.cho_solve(cf, A.T @ (b - A @ theta) - ridge * theta)
-    return N, g, theta, base
+    theta = sla.solve_triangular(Ra, c) / cs
+    if not np.all(np.isfinite(theta)):
+        raise SolverError('the cubic LOpInf least squares has no finite solution; '
+                          'try a larger --cubic-reg.')
+    return N, Rd.T @ c, theta, base
 
 
 def _sym_map(r: int) -> Array:
