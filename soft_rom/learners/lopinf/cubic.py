@@ -272,8 +272,10 @@ def _least_squares(lay: _Layout, Q: Array, Qd: Array, Qdd: Array, U: Array, reg:
     their columns scaled to unit norm, not from the normal equations: the monomials of
     coordinates that span three decades (r = 16 on the eel) span nine, and the normal
     equations (condition number squared, a jitter scaled by the largest columns) lost the
-    solution there: relative residual 4e-2 against 8e-4 with this QR, on re-projected eel
-    data at ``reg`` 0 (``benchmarks/bench_eel_nonlinearity.py --reproject``). ``N`` and
+    solution there: relative residual 4e-2 at ``reg`` 1e-10, against 8e-4 with this QR at
+    ``reg`` 0, on re-projected eel data (``benchmarks/bench_eel_nonlinearity.py
+    --reproject``). The ridge rows are dense here; a second QR of ``[R; diag]`` would be
+    cheaper at r = 16 (not done). ``N`` and
     ``g``, which the conic problem needs, are formed from the triangular factor.
     """
     r, k = Q.shape
