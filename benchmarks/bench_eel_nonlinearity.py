@@ -76,8 +76,13 @@ random pressures, 1 ms):
    (corotational forces, follower pressure loads, Rayleigh damping): Markovian triples
    ``(z, ż, z̈)``. The cubic LOpInf's least squares (``soft_rom.learners.lopinf.cubic``, the
    quartic potential, ``reg`` 0 and 1e-8, no constraints) and the linear LOpInf's SPD solve are
-   fitted to them, run on the test inputs (the linear stiffness and the damping implicit,
-   1 ms), and compared with the linear LOpInf fitted to the training trajectories.
+   fitted to them and compared with the linear LOpInf fitted to the training trajectories.
+   The linear model runs with its stiffness and damping implicit (1 ms); the cubic one is
+   the library's ``CubicSecondOrderModel`` (its energy-consistent implicit step), run on
+   the test inputs and on inputs 10 × longer than a training episode (the test inputs
+   chained, as the learning curve's bounded check builds them), with the fraction of random
+   directions in which its quartic is negative. ``--reproject-scale 1.5 2`` also
+   re-projects the states scaled by those factors (states beyond the training data).
 
 The reduced episodes come from ``--data`` (default ``/tmp/cubic_cache/eel_reduced.npz``,
 made by ``bench_cubic_eel.py`` with the study's pipeline when missing; never inside the
@@ -89,6 +94,7 @@ Run::
         [--gen-r 4 8 22] [--only-gen]
     .venv/bin/python benchmarks/bench_eel_nonlinearity.py --projection TRAIN.zarr TEST.zarr
         [--projection-n 16] [--projection-r 4 6 8 12 16] [--dynamics] [--closure] [--reproject]
+        [--reproject-scale 1.5 2]
 
 Figures of one run are quoted in docs/methods_variants.md (cubic LOpInf section).
 """
@@ -98,6 +104,7 @@ from __future__ import annotations
 import argparse
 import functools
 from itertools import combinations_with_replacement
+import math
 from pathlib import Path
 import sys
 import time
@@ -292,7 +299,7 @@ def mirror_check(amplitude: float = 50e3) -> None:
 
 def representation(train_path: Path, test_path: Path, n_train: int,
                    rs: tuple[int, ...], dynamics: bool = False, closure: bool = False,
-                   reproject: bool = False) -> None:
+                   reproject: bool = False, scales: tuple[float, ...] = ()) -> None:
     """Output error of the test states in a linear POD and on a quadratic manifold (6)."""
     from soft_rom.basis import POD
     from soft_rom.dataset.reader import TrainingSet
@@ -327,7 +334,7 @@ def representation(train_path: Path, test_path: Path, n_train: int,
     if closure:
         closure_error(X[:, ::40], V_all, q_ref, rs)
     if reproject:
-        reprojection(eps, list(test), V_all, train, rs)
+        reprojection(eps, list(test), V_all, train, rs, scales)
 
 
 def closure_error(X: np.ndarray, V_all: np.ndarray, q_ref: np.ndarray, rs: tuple[int, ...]
@@ -478,24 +485,31 @@ def reduced_dynamics(eps: list, tests: list, V_all: np.ndarray, q_ref: np.ndarra
 
 
 def _reprojected(model: EelModel, Wf: np.ndarray, q_ref: np.ndarray, eps: list,
-                 stride: int = 10, h: float = 1e-3) -> tuple[np.ndarray, ...]:
-    """``(z, ż, z̈, u)`` of the FOM's right-hand side at projected training states (9)."""
+                 stride: int = 10, h: float = 1e-3, scales: tuple[float, ...] = ()
+                 ) -> tuple[np.ndarray, ...]:
+    """``(z, ż, z̈, u)`` of the FOM's right-hand side at projected training states (9).
+
+    With ``scales``, also at each projected state scaled by each factor (same ``ż`` and
+    ``u``): states beyond the training data, where the FOM says what the force is.
+    """
     free, cfg = model.free, model.config
     _, K0, m = model._rest_factor(h)
     out: list[list[np.ndarray]] = [[], [], [], []]
     for ep in eps:
         X, U = np.asarray(ep.Q[:, :]), np.asarray(ep.U)
         for j in range(stride, X.shape[1], stride):
-            z = Wf.T @ (m * (X[:, j] - q_ref)[free])
+            z1 = Wf.T @ (m * (X[:, j] - q_ref)[free])
             zd = Wf.T @ (m * ((X[:, j] - X[:, j - 1]) / h)[free])
-            x = q_ref.copy()
-            x[free] += Wf @ z
-            x3 = x.reshape(-1, 3)
-            f = (model.fem.elastic_force(x3) + model.pressure_force(x3, U[:, j])).ravel()[free]
-            zdd = (Wf.T @ f - cfg.rayleigh_mass * zd
-                   - cfg.rayleigh_stiffness * (Wf.T @ (K0 @ (Wf @ zd))))
-            for lst, v in zip(out, (z, zd, zdd, U[:, j])):
-                lst.append(v)
+            for z in [z1] + [a * z1 for a in scales]:
+                x = q_ref.copy()
+                x[free] += Wf @ z
+                x3 = x.reshape(-1, 3)
+                f = (model.fem.elastic_force(x3)
+                     + model.pressure_force(x3, U[:, j])).ravel()[free]
+                zdd = (Wf.T @ f - cfg.rayleigh_mass * zd
+                       - cfg.rayleigh_stiffness * (Wf.T @ (K0 @ (Wf @ zd))))
+                for lst, v in zip(out, (z, zd, zdd, U[:, j])):
+                    lst.append(v)
     return tuple(np.array(lst).T for lst in out)
 
 
@@ -516,12 +530,32 @@ def _run_second_order(ops: tuple, U: np.ndarray, h: float = 1e-3) -> np.ndarray:
     return Z
 
 
+def _long_run(model: Any, U: np.ndarray) -> tuple[float, float]:
+    """Largest ``|y - y_ref|`` of ``model`` stepped on ``U`` from rest, and when it blew up.
+
+    The time (s) of a blow-up is ``inf`` when the run stays finite; the implicit step
+    failing counts as a blow-up.
+    """
+    from soft_rom.errors import SoftRomError
+    step, x, peak = model.stepper(model.dt), np.zeros(model.n_states), 0.0
+    for j in range(U.shape[1]):
+        try:
+            x = step(x, U[:, j])
+        except (SoftRomError, np.linalg.LinAlgError):
+            return peak, (j + 1) * model.dt
+        if not np.all(np.isfinite(x)):
+            return peak, (j + 1) * model.dt
+        peak = max(peak, float(np.abs(model.E @ x[:model.r]).max()))
+    return peak, math.inf
+
+
 def reprojection(eps: list, tests: list, V_all: np.ndarray, train: Any,
-                 rs: tuple[int, ...]) -> None:
+                 rs: tuple[int, ...], scales: tuple[float, ...] = ()) -> None:
     """Cubic and linear LOpInf operators fitted to re-projected data (9)."""
     from soft_rom.learners.lopinf import LOpInf
     import soft_rom.learners.lopinf.cubic as cub
     from soft_rom.learners.lopinf.solvers import DEFAULT_EPS, FastSPDSolver
+    from soft_rom.models.cubic import CubicSecondOrderModel
     from soft_rom.models.tensors import quartic_lower_bound
     from soft_rom.reduce.data import ReducedData
     model = EelModel()
@@ -535,12 +569,18 @@ def reprojection(eps: list, tests: list, V_all: np.ndarray, train: Any,
                        n_states=len(q_ref), q_ref=q_ref, modes=V_all,
                        channels={k: getattr(train, k) for k in (
                            'input_names', 'output_names', 'input_units', 'output_units')})
-    print('9. Re-projected training data: deviation error on the test episodes')
+    # 10 x longer inputs than a training episode: the test inputs chained (as the learning
+    # curve's bounded check builds them), and the training outputs' largest deviation
+    U_long = np.concatenate([np.asarray(tests[i % len(tests)].U) for i in range(10)], axis=1)
+    dev_train = max(float(np.abs(np.asarray(ep.Y) - y_ref[:, None]).max()) for ep in eps)
+    print('9. Re-projected training data' + (f' (and the states scaled by {scales})'
+                                              if scales else '')
+          + ': deviation error on the test episodes')
     for r in rs:
         t0 = time.perf_counter()
         Vf = V_all[free, :r]
         Wf = np.linalg.solve(np.linalg.cholesky(Vf.T @ (m[:, None] * Vf)), Vf.T).T
-        Z, Zd, Zdd, U = _reprojected(model, Wf, q_ref, eps)
+        Z, Zd, Zdd, U = _reprojected(model, Wf, q_ref, eps, scales=scales)
         s = float(np.sqrt(np.mean(Z ** 2)))
         lay = cub._Layout(r, U.shape[0])
         lin = FastSPDSolver().solve(Z / s, Zd / s, Zdd / s, U, eps=DEFAULT_EPS)
@@ -564,13 +604,26 @@ def reprojection(eps: list, tests: list, V_all: np.ndarray, train: Any,
                                                            reg)[2])
             t_ls = time.perf_counter() - t1
             res = Zdd / s + Cd @ (Zd / s) + K @ (Z / s) + cub._nl_force(Z / s, G, H) - B @ U
-            e = errors((K, Cd, B, G, H))
+            # the library's model: the energy-consistent implicit step
+            rom = CubicSecondOrderModel(K, Cd, G, H, B, E, dt=1e-3, y_ref=y_ref)
+            e = []
+            for te in tests:
+                peak, t_up = _long_run(rom, np.asarray(te.U))
+                e.append(math.inf if math.isfinite(t_up) else relative_deviation_error(
+                    np.asarray(te.Y), rom.simulate(np.asarray(te.U)), y_ref))
+            peak, t_up = _long_run(rom, U_long)
+            Qr = np.random.default_rng(0).standard_normal((r, 20000))
+            q4 = np.einsum('ijkl,it,jt,kt,lt->t', H, Qr, Qr, Qr, Qr)
             print(f'      cubic, reg {reg:g}: least squares {t_ls:.0f} s, relative residual '
                   f'{np.linalg.norm(res) / np.linalg.norm(Zdd / s):.1e}, smallest eigenvalue '
                   f'K {np.linalg.eigvalsh(K)[0]:.3g}, C {np.linalg.eigvalsh(Cd)[0]:.3g}, '
-                  f'quartic bound (canonical Gram) {quartic_lower_bound(H, sdp=False)[0]:.3g}; '
-                  'test ' + ' / '.join(f'{v:.3f}' for v in e) + '; × linear (trajectories) '
-                  + ' / '.join(f'{a / b:.2f}' for a, b in zip(e, base)), flush=True)
+                  f'quartic bound (canonical Gram) {quartic_lower_bound(H, sdp=False)[0]:.3g}, '
+                  f'quartic < 0 in {np.mean(q4 < 0):.0%} of random directions; test '
+                  + ' / '.join(f'{v:.3f}' for v in e) + '; × linear (trajectories) '
+                  + ' / '.join(f'{a / b:.2f}' for a, b in zip(e, base)) + '; 10 × longer '
+                  f'inputs ({U_long.shape[1]} samples): '
+                  + (f"bounded, peak deviation {peak / dev_train:.2f} × the training data's"
+                     if math.isinf(t_up) else f'blows up at {t_up:.2f} s'), flush=True)
         print(f'      ({time.perf_counter() - t0:.0f} s)', flush=True)
 
 
@@ -594,12 +647,14 @@ def main() -> None:
                     help='with --projection: also the closure error (8.)')
     ap.add_argument('--reproject', action='store_true',
                     help='with --projection: also fits to re-projected data (9.)')
+    ap.add_argument('--reproject-scale', type=float, nargs='*', default=[],
+                    help='with --reproject: also re-project the states scaled by these')
     args = ap.parse_args()
     if args.projection:
         t0 = time.perf_counter()
         representation(*args.projection, args.projection_n, tuple(args.projection_r),
                        dynamics=args.dynamics, closure=args.closure,
-                       reproject=args.reproject)
+                       reproject=args.reproject, scales=tuple(args.reproject_scale))
         print(f'({time.perf_counter() - t0:.0f} s)')
         return
     if not args.data.exists():
