@@ -83,6 +83,9 @@ random pressures, 1 ms):
    chained, as the learning curve's bounded check builds them), with the fraction of random
    directions in which its quartic is negative. ``--reproject-scale 1.5 2`` also
    re-projects the states scaled by those factors (states beyond the training data).
+   ``--reproject-sos`` adds the certified variant: ``K`` and ``C`` of the least squares kept,
+   the quartic moved to the nearest sum of squares in the data's metric (SCS), ``G`` and
+   ``B`` refitted (``_sos_projected``).
 
 The reduced episodes come from ``--data`` (default ``/tmp/cubic_cache/eel_reduced.npz``,
 made by ``bench_cubic_eel.py`` with the study's pipeline when missing; never inside the
@@ -94,7 +97,7 @@ Run::
         [--gen-r 4 8 22] [--only-gen]
     .venv/bin/python benchmarks/bench_eel_nonlinearity.py --projection TRAIN.zarr TEST.zarr
         [--projection-n 16] [--projection-r 4 6 8 12 16] [--dynamics] [--closure] [--reproject]
-        [--reproject-scale 1.5 2]
+        [--reproject-scale 1.5 2] [--reproject-sos]
 
 Figures of one run are quoted in docs/methods_variants.md (cubic LOpInf section).
 """
@@ -299,7 +302,8 @@ def mirror_check(amplitude: float = 50e3) -> None:
 
 def representation(train_path: Path, test_path: Path, n_train: int,
                    rs: tuple[int, ...], dynamics: bool = False, closure: bool = False,
-                   reproject: bool = False, scales: tuple[float, ...] = ()) -> None:
+                   reproject: bool = False, scales: tuple[float, ...] = (),
+                   sos: bool = False) -> None:
     """Output error of the test states in a linear POD and on a quadratic manifold (6)."""
     from soft_rom.basis import POD
     from soft_rom.dataset.reader import TrainingSet
@@ -334,7 +338,7 @@ def representation(train_path: Path, test_path: Path, n_train: int,
     if closure:
         closure_error(X[:, ::40], V_all, q_ref, rs)
     if reproject:
-        reprojection(eps, list(test), V_all, train, rs, scales)
+        reprojection(eps, list(test), V_all, train, rs, scales, sos)
 
 
 def closure_error(X: np.ndarray, V_all: np.ndarray, q_ref: np.ndarray, rs: tuple[int, ...]
@@ -549,8 +553,70 @@ def _long_run(model: Any, U: np.ndarray) -> tuple[float, float]:
     return peak, math.inf
 
 
+def _sos_projected(lay: Any, Z: np.ndarray, Zd: np.ndarray, Zdd: np.ndarray,
+                   U: np.ndarray, t4: float, keep: int = 1000) -> tuple[tuple, dict]:
+    """The least squares' quartic moved to the nearest sum of squares, in the data's metric.
+
+    ``K`` and ``C`` stay those of the least squares (they must be SPD); ``H`` is the quartic
+    with a Gram matrix ``X ⪰ t4 I`` nearest to the least-squares one in the metric of the
+    residual with ``G`` and ``B`` refitted (the ``H`` block of a QR with the columns ordered
+    ``G, B, H, K, C``; its leading ``keep`` singular directions, the rest weighted by the
+    next singular value); then ``G`` and ``B`` are refitted. The Gram matrix is that of the
+    coordinates divided by their largest training values (``q̃ = q / e``), so ``X ⪰ t4 I``
+    bounds ``H(q⁴) ≥ t4 |q̃|⁴`` and the solver's accuracy is relative to the data's scale.
+    Solved with SCS through cvxpy (Clarabel's interior point factors the cone's dense block:
+    the 136 × 136 Gram matrix at r = 16). An inaccurate solution's Gram matrix is shifted
+    by a multiple of ``I`` (the quartic ``|q̃|⁴``) to ``λmin ≥ t4``, so the returned quartic
+    is certified.
+    """
+    import cvxpy as cp
+    import scipy.linalg as sla
+
+    import soft_rom.learners.lopinf.cubic as cub
+    from soft_rom.models.tensors import gram_map
+    t0 = time.perf_counter()
+    o, n = lay.t_off, lay.n_theta
+    A, b, _ = cub._compressed(lay, Z, Zd, Zdd, U)
+    cs = np.sqrt(np.einsum('ij,ij->j', A, A))
+    cs[cs == 0.0] = 1.0
+    fi = np.concatenate([np.arange(o['G'], o['H']), np.arange(o['B'], n)])
+    hi = np.arange(o['H'], o['C'])
+    order = np.concatenate([fi, hi, np.arange(o['K'], o['G']), np.arange(o['C'], o['B'])])
+    nf, nh = len(fi), len(hi)
+    Qa, R = np.linalg.qr(A[:, order] / cs[order])
+    c = Qa.T @ b
+    del Qa
+    d = np.abs(np.diag(R))
+    if d.min() <= cub._RANK_TOL * d.max():          # B's dependent columns, as the library does
+        Qj, R = np.linalg.qr(np.vstack([R, math.sqrt(cub._JITTER) * np.eye(n)]))
+        c = Qj[:n].T @ c
+    th = sla.solve_triangular(R, c)                 # the least squares, unit-norm columns
+    _, S, Vt = np.linalg.svd(R[nf:nf + nh, nf:nf + nh])
+    keep = min(keep, nh - 1)
+    Tg, ns = gram_map(lay.r)
+    e = np.abs(Z).max(axis=1)
+    w = np.array([np.prod(e[list(a)]) for a in lay.idx[4]])   # H̃ = H · e⊗e⊗e⊗e
+    X = cp.Variable((ns, ns), symmetric=True)
+    dh = cp.multiply(cs[hi] / w, Tg @ cp.vec(X, order='C')) - th[nf:nf + nh]
+    objective = (cp.sum_squares((S[:keep, None] * Vt[:keep] / S[0]) @ dh)
+                 + (S[keep] / S[0]) ** 2 * cp.sum_squares(dh))
+    prob = cp.Problem(cp.Minimize(objective), [X - t4 * np.eye(ns) >> 0])
+    prob.solve(solver='SCS', max_iters=5000, eps_abs=1e-6, eps_rel=1e-6)
+    Xv = 0.5 * (np.asarray(X.value) + np.asarray(X.value).T)
+    shift = max(t4 - float(np.linalg.eigvalsh(Xv)[0]), 0.0)
+    Xv += shift * np.eye(ns)
+    th[nf:nf + nh] = cs[hi] * (Tg @ Xv.ravel()) / w
+    th[:nf] = sla.solve_triangular(R[:nf, :nf], c[:nf] - R[:nf, nf:] @ th[nf:])
+    full = np.empty(n)
+    full[order] = th / cs[order]
+    return lay.unpack(full), {'status': str(prob.status), 'shift': shift,
+                              'certificate': float(np.linalg.eigvalsh(Xv)[0]),
+                              'seconds': time.perf_counter() - t0}
+
+
 def reprojection(eps: list, tests: list, V_all: np.ndarray, train: Any,
-                 rs: tuple[int, ...], scales: tuple[float, ...] = ()) -> None:
+                 rs: tuple[int, ...], scales: tuple[float, ...] = (), sos: bool = False
+                 ) -> None:
     """Cubic and linear LOpInf operators fitted to re-projected data (9)."""
     from soft_rom.learners.lopinf import LOpInf
     import soft_rom.learners.lopinf.cubic as cub
@@ -624,7 +690,39 @@ def reprojection(eps: list, tests: list, V_all: np.ndarray, train: Any,
                   f'inputs ({U_long.shape[1]} samples): '
                   + (f"bounded, peak deviation {peak / dev_train:.2f} × the training data's"
                      if math.isinf(t_up) else f'blows up at {t_up:.2f} s'), flush=True)
+            if reg == 0.0 and sos:
+                _sos_line(lay, (Z / s, Zd / s, Zdd / s, U), (K, Cd), E, y_ref, tests, base,
+                          U_long, dev_train)
         print(f'      ({time.perf_counter() - t0:.0f} s)', flush=True)
+
+
+def _sos_line(lay: Any, data: tuple, KC: tuple, E: np.ndarray, y_ref: np.ndarray,
+              tests: list, base: list[float], U_long: np.ndarray, dev_train: float) -> None:
+    """Check 9's certified variant: the quartic moved to a sum of squares (one line)."""
+    from soft_rom.learners.lopinf.cubic import DEFAULT_EPS4
+    from soft_rom.learners.lopinf.solvers import DEFAULT_EPS
+    from soft_rom.models.cubic import CubicSecondOrderModel
+    K, Cd = KC
+    if min(np.linalg.eigvalsh(K)[0], np.linalg.eigvalsh(Cd)[0]) < DEFAULT_EPS:
+        print('      sum-of-squares quartic: skipped, K or C of the least squares is not SPD')
+        return
+    e = np.abs(data[0]).max(axis=1)
+    t4 = DEFAULT_EPS4 * float(np.linalg.eigvalsh(K * np.outer(e, e))[-1])
+    (K, Cd, G, H, B), info = _sos_projected(lay, *data, t4)
+    rom = CubicSecondOrderModel(K, Cd, G, H, B, E, dt=1e-3, y_ref=y_ref)
+    e = []
+    for te in tests:
+        t_up = _long_run(rom, np.asarray(te.U))[1]
+        e.append(math.inf if math.isfinite(t_up) else relative_deviation_error(
+            np.asarray(te.Y), rom.simulate(np.asarray(te.U)), y_ref))
+    peak, t_up = _long_run(rom, U_long)
+    print(f"      cubic, reg 0, quartic moved to a sum of squares (SCS {info['status']}, "
+          f"{info['seconds']:.0f} s; Gram matrix shifted by {info['shift']:.3g}, certified "
+          f"H(q⁴) ≥ {info['certificate']:.3g} |q / e|⁴, target {t4:.3g}): test "
+          + ' / '.join(f'{v:.3f}' for v in e) + '; × linear (trajectories) '
+          + ' / '.join(f'{a / b:.2f}' for a, b in zip(e, base)) + '; 10 × longer inputs: '
+          + (f"bounded, peak deviation {peak / dev_train:.2f} × the training data's"
+             if math.isinf(t_up) else f'blows up at {t_up:.2f} s'), flush=True)
 
 
 def main() -> None:
@@ -649,12 +747,15 @@ def main() -> None:
                     help='with --projection: also fits to re-projected data (9.)')
     ap.add_argument('--reproject-scale', type=float, nargs='*', default=[],
                     help='with --reproject: also re-project the states scaled by these')
+    ap.add_argument('--reproject-sos', action='store_true',
+                    help='with --reproject: also the quartic moved to a sum of squares')
     args = ap.parse_args()
     if args.projection:
         t0 = time.perf_counter()
         representation(*args.projection, args.projection_n, tuple(args.projection_r),
                        dynamics=args.dynamics, closure=args.closure,
-                       reproject=args.reproject, scales=tuple(args.reproject_scale))
+                       reproject=args.reproject, scales=tuple(args.reproject_scale),
+                       sos=args.reproject_sos)
         print(f'({time.perf_counter() - t0:.0f} s)')
         return
     if not args.data.exists():

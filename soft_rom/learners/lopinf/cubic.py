@@ -261,6 +261,21 @@ def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT
     return CubicSolution(K, C, G, H, B, info)
 
 
+def _compressed(lay: _Layout, Q: Array, Qd: Array, Qdd: Array, U: Array
+                ) -> tuple[Array, Array, float]:
+    """``(A, b, base)``: ``|A θ - b|² + base`` is the equation's squared residual.
+
+    The rows are compressed by a QR of the features (``r · n_z`` rows whatever the number of
+    samples); ``base`` is the part of ``|Q̈|²`` outside the features' range.
+    """
+    r = Q.shape[0]
+    Z = lay.features(Q, Qd, U)
+    Qz, Rz = np.linalg.qr(Z.T)
+    A = np.vstack([(lay.L[i].T @ Rz.T).T for i in range(r)])
+    b = -np.concatenate([Qz.T @ Qdd[i] for i in range(r)])
+    return A, b, float(np.linalg.norm(Qdd) ** 2 - np.linalg.norm(b) ** 2)
+
+
 def _least_squares(lay: _Layout, Q: Array, Qd: Array, Qdd: Array, U: Array, reg: float
                    ) -> tuple[Array, Array, Array, float]:
     """The regularized least squares, compressed by a QR of the features.
@@ -278,12 +293,8 @@ def _least_squares(lay: _Layout, Q: Array, Qd: Array, Qdd: Array, U: Array, reg:
     cheaper at r = 16 (not done). ``N`` and
     ``g``, which the conic problem needs, are formed from the triangular factor.
     """
-    r, k = Q.shape
-    Z = lay.features(Q, Qd, U)
-    Qz, Rz = np.linalg.qr(Z.T)
-    A = np.vstack([(lay.L[i].T @ Rz.T).T for i in range(r)])
-    b = -np.concatenate([Qz.T @ Qdd[i] for i in range(r)])
-    base = float(np.linalg.norm(Qdd) ** 2 - np.linalg.norm(b) ** 2)   # outside range(Z)
+    k = Q.shape[1]
+    A, b, base = _compressed(lay, Q, Qd, Qdd, U)
     o = lay.t_off
     w_all = np.zeros(lay.n_theta)
     w_all[np.arange(o['G'], o['C'])] = np.concatenate([lay.tensor_weights('G'),
