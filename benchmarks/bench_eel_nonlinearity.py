@@ -534,23 +534,41 @@ def _run_second_order(ops: tuple, U: np.ndarray, h: float = 1e-3) -> np.ndarray:
     return Z
 
 
-def _long_run(model: Any, U: np.ndarray) -> tuple[float, float]:
-    """Largest ``|y - y_ref|`` of ``model`` stepped on ``U`` from rest, and when it blew up.
+def _long_run(model: Any, U: np.ndarray) -> tuple[np.ndarray, float]:
+    """Outputs of ``model`` stepped on ``U`` from rest, and when it blew up.
 
     The time (s) of a blow-up is ``inf`` when the run stays finite; the implicit step
-    failing counts as a blow-up.
+    failing counts as a blow-up (the outputs are NaN from there).
     """
     from soft_rom.errors import SoftRomError
-    step, x, peak = model.stepper(model.dt), np.zeros(model.n_states), 0.0
+    step, x = model.stepper(model.dt), np.zeros(model.n_states)
+    Y = np.full((model.n_outputs, U.shape[1]), np.nan)
     for j in range(U.shape[1]):
+        Y[:, j] = model.y_ref + model.E @ x[:model.r]     # the output at sample j, as simulate
         try:
             x = step(x, U[:, j])
         except (SoftRomError, np.linalg.LinAlgError):
-            return peak, (j + 1) * model.dt
+            return Y, (j + 1) * model.dt
         if not np.all(np.isfinite(x)):
-            return peak, (j + 1) * model.dt
-        peak = max(peak, float(np.abs(model.E @ x[:model.r]).max()))
-    return peak, math.inf
+            return Y, (j + 1) * model.dt
+    return Y, math.inf
+
+
+def _cubic_report(rom: Any, tests: list, base: list[float], U_long: np.ndarray,
+                  dev_train: float) -> str:
+    """Check 9's test errors, their ratio to ``base``, and the 10 × longer inputs' run."""
+    e = []
+    for te in tests:
+        Y, t_up = _long_run(rom, np.asarray(te.U))
+        e.append(math.inf if math.isfinite(t_up)
+                 else relative_deviation_error(np.asarray(te.Y), Y, rom.y_ref))
+    Y, t_up = _long_run(rom, U_long)
+    peak = float(np.abs(Y - rom.y_ref[:, None]).max()) / dev_train
+    return ('test ' + ' / '.join(f'{v:.3f}' for v in e) + '; × linear (trajectories) '
+            + ' / '.join(f'{a / b:.2f}' for a, b in zip(e, base))
+            + f'; 10 × longer inputs ({U_long.shape[1]} samples): '
+            + (f"bounded, peak deviation {peak:.2f} × the training data's"
+               if math.isinf(t_up) else f'blows up at {t_up:.2f} s'))
 
 
 def _sos_projected(lay: Any, Z: np.ndarray, Zd: np.ndarray, Zdd: np.ndarray,
@@ -672,24 +690,14 @@ def reprojection(eps: list, tests: list, V_all: np.ndarray, train: Any,
             res = Zdd / s + Cd @ (Zd / s) + K @ (Z / s) + cub._nl_force(Z / s, G, H) - B @ U
             # the library's model: the energy-consistent implicit step
             rom = CubicSecondOrderModel(K, Cd, G, H, B, E, dt=1e-3, y_ref=y_ref)
-            e = []
-            for te in tests:
-                peak, t_up = _long_run(rom, np.asarray(te.U))
-                e.append(math.inf if math.isfinite(t_up) else relative_deviation_error(
-                    np.asarray(te.Y), rom.simulate(np.asarray(te.U)), y_ref))
-            peak, t_up = _long_run(rom, U_long)
             Qr = np.random.default_rng(0).standard_normal((r, 20000))
             q4 = np.einsum('ijkl,it,jt,kt,lt->t', H, Qr, Qr, Qr, Qr)
             print(f'      cubic, reg {reg:g}: least squares {t_ls:.0f} s, relative residual '
                   f'{np.linalg.norm(res) / np.linalg.norm(Zdd / s):.1e}, smallest eigenvalue '
                   f'K {np.linalg.eigvalsh(K)[0]:.3g}, C {np.linalg.eigvalsh(Cd)[0]:.3g}, '
                   f'quartic bound (canonical Gram) {quartic_lower_bound(H, sdp=False)[0]:.3g}, '
-                  f'quartic < 0 in {np.mean(q4 < 0):.0%} of random directions; test '
-                  + ' / '.join(f'{v:.3f}' for v in e) + '; × linear (trajectories) '
-                  + ' / '.join(f'{a / b:.2f}' for a, b in zip(e, base)) + '; 10 × longer '
-                  f'inputs ({U_long.shape[1]} samples): '
-                  + (f"bounded, peak deviation {peak / dev_train:.2f} × the training data's"
-                     if math.isinf(t_up) else f'blows up at {t_up:.2f} s'), flush=True)
+                  f'quartic < 0 in {np.mean(q4 < 0):.0%} of random directions; '
+                  + _cubic_report(rom, tests, base, U_long, dev_train), flush=True)
             if reg == 0.0 and sos:
                 _sos_line(lay, (Z / s, Zd / s, Zdd / s, U), (K, Cd), E, y_ref, tests, base,
                           U_long, dev_train)
@@ -706,23 +714,14 @@ def _sos_line(lay: Any, data: tuple, KC: tuple, E: np.ndarray, y_ref: np.ndarray
     if min(np.linalg.eigvalsh(K)[0], np.linalg.eigvalsh(Cd)[0]) < DEFAULT_EPS:
         print('      sum-of-squares quartic: skipped, K or C of the least squares is not SPD')
         return
-    e = np.abs(data[0]).max(axis=1)
-    t4 = DEFAULT_EPS4 * float(np.linalg.eigvalsh(K * np.outer(e, e))[-1])
+    ext = np.abs(data[0]).max(axis=1)
+    t4 = DEFAULT_EPS4 * float(np.linalg.eigvalsh(K * np.outer(ext, ext))[-1])
     (K, Cd, G, H, B), info = _sos_projected(lay, *data, t4)
     rom = CubicSecondOrderModel(K, Cd, G, H, B, E, dt=1e-3, y_ref=y_ref)
-    e = []
-    for te in tests:
-        t_up = _long_run(rom, np.asarray(te.U))[1]
-        e.append(math.inf if math.isfinite(t_up) else relative_deviation_error(
-            np.asarray(te.Y), rom.simulate(np.asarray(te.U)), y_ref))
-    peak, t_up = _long_run(rom, U_long)
     print(f"      cubic, reg 0, quartic moved to a sum of squares (SCS {info['status']}, "
           f"{info['seconds']:.0f} s; Gram matrix shifted by {info['shift']:.3g}, certified "
-          f"H(q⁴) ≥ {info['certificate']:.3g} |q / e|⁴, target {t4:.3g}): test "
-          + ' / '.join(f'{v:.3f}' for v in e) + '; × linear (trajectories) '
-          + ' / '.join(f'{a / b:.2f}' for a, b in zip(e, base)) + '; 10 × longer inputs: '
-          + (f"bounded, peak deviation {peak / dev_train:.2f} × the training data's"
-             if math.isinf(t_up) else f'blows up at {t_up:.2f} s'), flush=True)
+          f"H(q⁴) ≥ {info['certificate']:.3g} |q / e|⁴, target {t4:.3g}): "
+          + _cubic_report(rom, tests, base, U_long, dev_train), flush=True)
 
 
 def main() -> None:
