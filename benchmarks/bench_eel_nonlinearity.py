@@ -85,7 +85,7 @@ random pressures, 1 ms):
    re-projects the states scaled by those factors (states beyond the training data).
    ``--reproject-sos`` adds the certified variant: ``K`` and ``C`` of the least squares kept,
    the quartic moved to the nearest sum of squares in the data's metric (SCS), ``G`` and
-   ``B`` refitted (``_sos_projected``).
+   ``B`` refitted: the library's ``fit_cubic(..., quartic='projected')``.
 
 The reduced episodes come from ``--data`` (default ``/tmp/cubic_cache/eel_reduced.npz``,
 made by ``bench_cubic_eel.py`` with the study's pipeline when missing; never inside the
@@ -571,67 +571,6 @@ def _cubic_report(rom: Any, tests: list, base: list[float], U_long: np.ndarray,
                if math.isinf(t_up) else f'blows up at {t_up:.2f} s'))
 
 
-def _sos_projected(lay: Any, Z: np.ndarray, Zd: np.ndarray, Zdd: np.ndarray,
-                   U: np.ndarray, t4: float, keep: int = 1000) -> tuple[tuple, dict]:
-    """The least squares' quartic moved to the nearest sum of squares, in the data's metric.
-
-    ``K`` and ``C`` stay those of the least squares (they must be SPD); ``H`` is the quartic
-    with a Gram matrix ``X ⪰ t4 I`` nearest to the least-squares one in the metric of the
-    residual with ``G`` and ``B`` refitted (the ``H`` block of a QR with the columns ordered
-    ``G, B, H, K, C``; its leading ``keep`` singular directions, the rest weighted by the
-    next singular value); then ``G`` and ``B`` are refitted. The Gram matrix is that of the
-    coordinates divided by their largest training values (``q̃ = q / e``), so ``X ⪰ t4 I``
-    bounds ``H(q⁴) ≥ t4 |q̃|⁴`` and the solver's accuracy is relative to the data's scale.
-    Solved with SCS through cvxpy (Clarabel's interior point factors the cone's dense block:
-    the 136 × 136 Gram matrix at r = 16). An inaccurate solution's Gram matrix is shifted
-    by a multiple of ``I`` (the quartic ``|q̃|⁴``) to ``λmin ≥ t4``, so the returned quartic
-    is certified.
-    """
-    import cvxpy as cp
-    import scipy.linalg as sla
-
-    import soft_rom.learners.lopinf.cubic as cub
-    from soft_rom.models.tensors import gram_map
-    t0 = time.perf_counter()
-    o, n = lay.t_off, lay.n_theta
-    A, b, _ = cub._compressed(lay, Z, Zd, Zdd, U)
-    cs = np.sqrt(np.einsum('ij,ij->j', A, A))
-    cs[cs == 0.0] = 1.0
-    fi = np.concatenate([np.arange(o['G'], o['H']), np.arange(o['B'], n)])
-    hi = np.arange(o['H'], o['C'])
-    order = np.concatenate([fi, hi, np.arange(o['K'], o['G']), np.arange(o['C'], o['B'])])
-    nf, nh = len(fi), len(hi)
-    Qa, R = np.linalg.qr(A[:, order] / cs[order])
-    c = Qa.T @ b
-    del Qa
-    d = np.abs(np.diag(R))
-    if d.min() <= cub._RANK_TOL * d.max():          # B's dependent columns, as the library does
-        Qj, R = np.linalg.qr(np.vstack([R, math.sqrt(cub._JITTER) * np.eye(n)]))
-        c = Qj[:n].T @ c
-    th = sla.solve_triangular(R, c)                 # the least squares, unit-norm columns
-    _, S, Vt = np.linalg.svd(R[nf:nf + nh, nf:nf + nh])
-    keep = min(keep, nh - 1)
-    Tg, ns = gram_map(lay.r)
-    e = np.abs(Z).max(axis=1)
-    w = np.array([np.prod(e[list(a)]) for a in lay.idx[4]])   # H̃ = H · e⊗e⊗e⊗e
-    X = cp.Variable((ns, ns), symmetric=True)
-    dh = cp.multiply(cs[hi] / w, Tg @ cp.vec(X, order='C')) - th[nf:nf + nh]
-    objective = (cp.sum_squares((S[:keep, None] * Vt[:keep] / S[0]) @ dh)
-                 + (S[keep] / S[0]) ** 2 * cp.sum_squares(dh))
-    prob = cp.Problem(cp.Minimize(objective), [X - t4 * np.eye(ns) >> 0])
-    prob.solve(solver='SCS', max_iters=5000, eps_abs=1e-6, eps_rel=1e-6)
-    Xv = 0.5 * (np.asarray(X.value) + np.asarray(X.value).T)
-    shift = max(t4 - float(np.linalg.eigvalsh(Xv)[0]), 0.0)
-    Xv += shift * np.eye(ns)
-    th[nf:nf + nh] = cs[hi] * (Tg @ Xv.ravel()) / w
-    th[:nf] = sla.solve_triangular(R[:nf, :nf], c[:nf] - R[:nf, nf:] @ th[nf:])
-    full = np.empty(n)
-    full[order] = th / cs[order]
-    return lay.unpack(full), {'status': str(prob.status), 'shift': shift,
-                              'certificate': float(np.linalg.eigvalsh(Xv)[0]),
-                              'seconds': time.perf_counter() - t0}
-
-
 def reprojection(eps: list, tests: list, V_all: np.ndarray, train: Any,
                  rs: tuple[int, ...], scales: tuple[float, ...] = (), sos: bool = False
                  ) -> None:
@@ -685,7 +624,7 @@ def reprojection(eps: list, tests: list, V_all: np.ndarray, train: Any,
         for reg in (0.0, 1e-8):
             t1 = time.perf_counter()
             K, Cd, G, H, B = lay.unpack(cub._least_squares(lay, Z / s, Zd / s, Zdd / s, U,
-                                                           reg)[2])
+                                                           reg)[0].theta)
             t_ls = time.perf_counter() - t1
             res = Zdd / s + Cd @ (Zd / s) + K @ (Z / s) + cub._nl_force(Z / s, G, H) - B @ U
             # the library's model: the energy-consistent implicit step
@@ -699,28 +638,30 @@ def reprojection(eps: list, tests: list, V_all: np.ndarray, train: Any,
                   f'quartic < 0 in {np.mean(q4 < 0):.0%} of random directions; '
                   + _cubic_report(rom, tests, base, U_long, dev_train), flush=True)
             if reg == 0.0 and sos:
-                _sos_line(lay, (Z / s, Zd / s, Zdd / s, U), (K, Cd), E, y_ref, tests, base,
-                          U_long, dev_train)
+                _sos_line((Z / s, Zd / s, Zdd / s, U), E, y_ref, tests, base, U_long,
+                          dev_train)
         print(f'      ({time.perf_counter() - t0:.0f} s)', flush=True)
 
 
-def _sos_line(lay: Any, data: tuple, KC: tuple, E: np.ndarray, y_ref: np.ndarray,
-              tests: list, base: list[float], U_long: np.ndarray, dev_train: float) -> None:
-    """Check 9's certified variant: the quartic moved to a sum of squares (one line)."""
-    from soft_rom.learners.lopinf.cubic import DEFAULT_EPS4
-    from soft_rom.learners.lopinf.solvers import DEFAULT_EPS
+def _sos_line(data: tuple, E: np.ndarray, y_ref: np.ndarray, tests: list, base: list[float],
+              U_long: np.ndarray, dev_train: float) -> None:
+    """Check 9's certified variant: the library's ``quartic='projected'``, ``reg`` 0."""
+    from soft_rom.errors import SolverError
+    from soft_rom.learners.lopinf.cubic import fit_cubic
     from soft_rom.models.cubic import CubicSecondOrderModel
-    K, Cd = KC
-    if min(np.linalg.eigvalsh(K)[0], np.linalg.eigvalsh(Cd)[0]) < DEFAULT_EPS:
-        print('      sum-of-squares quartic: skipped, K or C of the least squares is not SPD')
+    try:
+        sol = fit_cubic(*data, reg=0.0, quartic='projected')
+    except SolverError as err:
+        print(f'      quartic projected onto sums of squares: not fitted ({err})')
         return
-    ext = np.abs(data[0]).max(axis=1)
-    t4 = DEFAULT_EPS4 * float(np.linalg.eigvalsh(K * np.outer(ext, ext))[-1])
-    (K, Cd, G, H, B), info = _sos_projected(lay, *data, t4)
-    rom = CubicSecondOrderModel(K, Cd, G, H, B, E, dt=1e-3, y_ref=y_ref)
-    print(f"      cubic, reg 0, quartic moved to a sum of squares (SCS {info['status']}, "
-          f"{info['seconds']:.0f} s; Gram matrix shifted by {info['shift']:.3g}, certified "
-          f"H(q⁴) ≥ {info['certificate']:.3g} |q / e|⁴, target {t4:.3g}): "
+    info = sol.info
+    rom = CubicSecondOrderModel(sol.K, sol.C, sol.G, sol.H, sol.B, E, dt=1e-3, y_ref=y_ref)
+    how = (f"SCS {info['projection_status']}, {info['projection_seconds']:.0f} s; Gram matrix "
+           f"shifted by {info['projection_shift']:.3g}" if 'projection_seconds' in info
+           else "the least squares' quartic already certified")
+    print(f"      cubic, reg 0, quartic='projected' ({info['time_s']:.0f} s in all; {how}; "
+          f"certified H(q⁴) ≥ {info['quartic_lower_bound']:.3g} |q / e|⁴, target "
+          f"{info['quartic_target']:.3g}): "
           + _cubic_report(rom, tests, base, U_long, dev_train), flush=True)
 
 

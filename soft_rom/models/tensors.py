@@ -16,8 +16,9 @@ import scipy.sparse as sp
 
 from soft_rom.errors import DimensionError
 
-__all__ = ['gram_map', 'is_symmetric', 'multiplicity', 'quartic_lower_bound', 'symmetric_entries',
-           'symmetric_from_entries', 'symmetric_index', 'symmetrize']
+__all__ = ['gram_map', 'is_symmetric', 'multiplicity', 'quartic_certified_positive',
+           'quartic_lower_bound', 'symmetric_entries', 'symmetric_from_entries', 'symmetric_index',
+           'symmetrize']
 
 Array = NDArray[np.float64]
 
@@ -94,6 +95,21 @@ def gram_map(r: int) -> tuple[sp.csr_matrix, int]:
             cols.append(p * ns + q)
             vals.append(c[p] * c[q] / multiplicity(beta))
     return sp.csr_matrix((vals, (rows, cols)), shape=(len(quads), ns * ns)), ns
+
+
+def quartic_certified_positive(H: Array) -> bool:
+    """Whether ``H(q⁴) > 0`` for all ``q ≠ 0`` is certified (:func:`quartic_lower_bound`).
+
+    Positivity does not depend on the coordinates' scale; a certificate's accuracy does (the
+    sum-of-squares solver works to a tolerance relative to the largest coefficients). So
+    ``H`` is certified in the coordinates ``q_i / s_i`` that make its diagonal ``H(e_i⁴)``
+    one: a scale the form carries with it. A diagonal entry ``≤ 0`` is not positive.
+    """
+    d = np.einsum('iiii->i', np.asarray(H, dtype=np.float64))
+    if not np.all(d > 0):
+        return False
+    s = d ** -0.25
+    return quartic_lower_bound(np.einsum('ijkl,i,j,k,l->ijkl', H, s, s, s, s), target=0.0)[0] > 0
 
 
 def quartic_lower_bound(H: Array, *, target: float | None = None, sdp: bool = True

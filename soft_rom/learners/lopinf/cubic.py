@@ -36,6 +36,11 @@ eigenvalue of the solver's Gram matrix (``H`` is rebuilt from it exactly). A qua
 many Gram matrices, so the objective also carries a small tie-break on ``‖X‖_F²``
 (:data:`_GRAM_WEIGHT`) that picks the smallest and makes the problem strictly convex.
 
+``quartic='projected'`` is the cheaper route for large r (:mod:`~soft_rom.learners.lopinf.
+quartic`): ``K`` and ``C`` of the least squares (which must be SPD), the quartic alone moved
+to the nearest sum of squares in the data's metric, certified as ``H(q⁴) ≥ t |q / e|⁴`` in
+the coordinates divided by their largest training values ``e``, ``t = eps4 · λ_max(e K e)``.
+
 When the data come from a model of this class with exact derivatives and the constraints
 are inactive, the least-squares solution is the truth.
 """
@@ -53,6 +58,12 @@ import scipy.linalg as sla
 import scipy.sparse as sp
 
 from soft_rom.errors import ConfigError, SolverError
+from soft_rom.learners.lopinf.quartic import (
+    ordered,
+    OrderedLeastSquares,
+    projected,
+    scaled_quartic_bound,
+)
 from soft_rom.learners.lopinf.solvers import (
     DEFAULT_EPS,
     FastSPDSolver,
@@ -67,8 +78,8 @@ from soft_rom.models.tensors import (
     symmetric_index,
 )
 
-__all__ = ['CubicSolution', 'DEFAULT_EPS4', 'DEFAULT_REG', 'fit_cubic', 'fit_scaled',
-           'isotropic_quartic']
+__all__ = ['CubicSolution', 'DEFAULT_EPS4', 'DEFAULT_REG', 'QUARTIC_ROUTES', 'fit_cubic',
+           'fit_scaled', 'isotropic_quartic']
 
 Array = NDArray[np.float64]
 
@@ -94,10 +105,10 @@ _CLARABEL_SETTINGS = (_CLARABEL_REFINE, {**_CLARABEL_REFINE, 'equilibrate_enable
 #: the smallest Gram matrix is chosen and those fits agree to 1e-12 on the scale benchmark;
 #: docs/methods_variants.md has the measurements. 0 turns it off.
 _GRAM_WEIGHT = 1e-8
-#: The least squares' scaled columns count as dependent below this relative pivot ...
-_RANK_TOL = 1e-10
-#: ... and then all get this ridge (relative to their unit norm).
-_JITTER = 1e-13
+#: How an uncertified least-squares quartic is made certified: jointly with ``K, C`` by the
+#: conic problem (``'conic'``), or alone, nearest in the data's metric with ``K, C`` of the
+#: least squares (``'projected'``, :mod:`soft_rom.learners.lopinf.quartic`).
+QUARTIC_ROUTES = ('conic', 'projected')
 
 
 class CubicSolution(NamedTuple):
@@ -197,7 +208,7 @@ def _nl_force(Q: Array, G: Array, H: Array) -> Array:
 
 
 def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT_EPS,
-              reg: float = DEFAULT_REG, eps4: float = DEFAULT_EPS4,
+              reg: float = DEFAULT_REG, eps4: float = DEFAULT_EPS4, quartic: str = 'conic',
               linear_solver: OperatorSolver | None = None) -> CubicSolution:
     """Fit ``K, C, G, H, B`` to ``Q̈ + C Q̇ + ∇V(Q) = B U`` (columns are samples).
 
@@ -211,19 +222,29 @@ def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT
         Tikhonov weight (per sample) on ``||G||_F² + ||H||_F²``.
     eps4 : float
         Relative floor of the quartic form (see module docstring).
+    quartic : {'conic', 'projected'}
+        How an uncertified least-squares quartic is made certified (:data:`QUARTIC_ROUTES`).
+        ``'projected'`` needs ``K, C`` of the least squares SPD, and certifies
+        ``H(q⁴) ≥ eps4 · λ_max(e K e) · |q / e|⁴`` in the coordinates scaled by their largest
+        values ``e`` (:mod:`~soft_rom.learners.lopinf.quartic`).
     linear_solver : OperatorSolver, optional
         SPD solver of the linear block (default :class:`FastSPDSolver`).
     """
     t0 = time.perf_counter()
     Q, Qd, Qdd, U = (np.asarray(a, dtype=np.float64) for a in (Q, Qd, Qdd, U))
     r = Q.shape[0]
+    if quartic not in QUARTIC_ROUTES:
+        raise ConfigError(f'unknown cubic quartic route {quartic!r}; known: '
+                          + ', '.join(QUARTIC_ROUTES) + '.')
     lay = _Layout(r, U.shape[0])
     norm_qdd = max(float(np.linalg.norm(Qdd)), 1e-300)
-    N, g, theta, base = _least_squares(lay, Q, Qd, Qdd, U, reg)
+    ls, base = _least_squares(lay, Q, Qd, Qdd, U, reg,
+                              ordered(lay) if quartic == 'projected' else None)
+    theta = ls.theta
     K, C, G, H, B = lay.unpack(theta)
     info: dict[str, Any] = {'solver': 'cubic-potential-least-squares', 'reg': float(reg),
-                            'eps': float(eps), 'eps4': float(eps4), 'n_unknowns': lay.n_theta,
-                            'n_features': lay.n_z}
+                            'eps': float(eps), 'eps4': float(eps4), 'quartic': quartic,
+                            'n_unknowns': lay.n_theta, 'n_features': lay.n_z}
 
     def spd_ok(Km: Array, Cm: Array) -> bool:
         return bool(np.linalg.eigvalsh(Km)[0] >= eps and np.linalg.eigvalsh(Cm)[0] >= eps)
@@ -231,15 +252,20 @@ def fit_cubic(Q: Array, Qd: Array, Qdd: Array, U: Array, *, eps: float = DEFAULT
     def target_of(Km: Array) -> float:
         return float(eps4) * max(float(np.linalg.eigvalsh(Km)[-1]), 1e-300)
 
-    target = target_of(K)
-    t_low, how = quartic_lower_bound(H, target=target) if spd_ok(K, C) else (-1.0, '')
-    if spd_ok(K, C) and t_low >= target:
-        info['method'] = 'least-squares (constraints inactive)'
+    if quartic == 'projected':
+        theta, t_low, target, how = _project(lay, ls, Q, eps, eps4, info)
+        K, C, G, H, B = lay.unpack(theta)
     else:
+        target = target_of(K)
+        t_low, how = quartic_lower_bound(H, target=target) if spd_ok(K, C) else (-1.0, '')
+    if quartic == 'conic' and spd_ok(K, C) and t_low >= target:
+        info['method'] = 'least-squares (constraints inactive)'
+    elif quartic == 'conic':
         lin = FastSPDSolver() if linear_solver is None else linear_solver
         K0 = lin.solve(Q, Qd, Qdd, U, eps=eps).K
         target = target_of(K0)
         h_ls = float(np.linalg.norm(theta[lay.t_off['H']:lay.t_off['C']]))
+        N, g = _normal(ls)
         K, C, G, H, B, sdp_info = _constrained(N, g, lay, eps, target, h_ls)
         info.update(sdp_info)
         info['method'] = 'conic (K, C ⪰ eps, sum-of-squares quartic)'
@@ -276,12 +302,13 @@ def _compressed(lay: _Layout, Q: Array, Qd: Array, Qdd: Array, U: Array
     return A, b, float(np.linalg.norm(Qdd) ** 2 - np.linalg.norm(b) ** 2)
 
 
-def _least_squares(lay: _Layout, Q: Array, Qd: Array, Qdd: Array, U: Array, reg: float
-                   ) -> tuple[Array, Array, Array, float]:
+def _least_squares(lay: _Layout, Q: Array, Qd: Array, Qdd: Array, U: Array, reg: float,
+                   order: NDArray[np.intp] | None = None) -> tuple[OrderedLeastSquares, float]:
     """The regularized least squares, compressed by a QR of the features.
 
-    Returns the normal matrix ``N``, its right-hand side ``g``, the solution ``θ`` and the
-    squared residual outside the features' range.
+    Returns the solved least squares (:class:`~soft_rom.learners.lopinf.quartic.
+    OrderedLeastSquares`, its columns in ``order``) and the squared residual outside the
+    features' range.
 
     ``θ`` comes from a Householder QR of the compressed rows (and the ridge's rows) with
     their columns scaled to unit norm, not from the normal equations: the monomials of
@@ -290,8 +317,8 @@ def _least_squares(lay: _Layout, Q: Array, Qd: Array, Qdd: Array, U: Array, reg:
     solution there: relative residual 4e-2 at ``reg`` 1e-10, against 8e-4 with this QR at
     ``reg`` 0, on re-projected eel data (``benchmarks/bench_eel_nonlinearity.py
     --reproject``). The ridge rows are dense here; a second QR of ``[R; diag]`` would be
-    cheaper at r = 16 (not done). ``N`` and
-    ``g``, which the conic problem needs, are formed from the triangular factor.
+    cheaper at r = 16 (not done). ``N`` and ``g``, which the conic problem needs, are formed
+    from the triangular factor (:func:`_normal`).
     """
     k = Q.shape[1]
     A, b, base = _compressed(lay, Q, Qd, Qdd, U)
@@ -299,28 +326,46 @@ def _least_squares(lay: _Layout, Q: Array, Qd: Array, Qdd: Array, U: Array, reg:
     w_all = np.zeros(lay.n_theta)
     w_all[np.arange(o['G'], o['C'])] = np.concatenate([lay.tensor_weights('G'),
                                                        lay.tensor_weights('H')])
-    ridge = float(reg) * k * w_all
-    cs = np.sqrt(np.einsum('ij,ij->j', A, A) + ridge)
-    cs[cs == 0.0] = 1.0
-    reg_rows = np.flatnonzero(ridge > 0)
-    penalty = np.zeros((len(reg_rows), lay.n_theta))
-    penalty[np.arange(len(reg_rows)), reg_rows] = np.sqrt(ridge[reg_rows]) / cs[reg_rows]
-    Qa, Ra = np.linalg.qr(np.vstack([A / cs, penalty]))
-    c = Qa[:len(b)].T @ b
-    diag = np.abs(np.diag(Ra))
-    if diag.min() <= _RANK_TOL * diag.max():
-        # dependent columns (antagonistic inputs make B's columns pairwise dependent): a
-        # relative ridge of _JITTER on every scaled column picks the least-norm solution there
-        Qj, Ra = np.linalg.qr(np.vstack([Ra, math.sqrt(_JITTER) * np.eye(lay.n_theta)]))
-        c = Qj[:len(c)].T @ c
-    Rd = Ra * cs[None, :]                                   # N = Rdᵀ Rd
-    N = Rd.T @ Rd
-    N += 1e-13 * float(np.trace(N)) / lay.n_theta * np.eye(lay.n_theta)
-    theta = sla.solve_triangular(Ra, c) / cs
-    if not np.all(np.isfinite(theta)):
+    ls = OrderedLeastSquares(A, b, float(reg) * k * w_all, order)
+    if not np.all(np.isfinite(ls.theta)):
         raise SolverError('the cubic LOpInf least squares has no finite solution; '
                           'try a larger --cubic-reg.')
-    return N, Rd.T @ c, theta, base
+    return ls, base
+
+
+def _normal(ls: OrderedLeastSquares) -> tuple[Array, Array]:
+    """The normal matrix ``N`` (with a relative jitter of 1e-13) and ``g``, natural order."""
+    n = len(ls.theta)
+    Rd = ls.R * ls.cs[ls.order][None, :]                    # N = Rdᵀ Rd, in order
+    N, g = np.empty((n, n)), np.empty(n)
+    N[np.ix_(ls.order, ls.order)] = Rd.T @ Rd
+    g[ls.order] = Rd.T @ ls.c
+    N += 1e-13 * float(np.trace(N)) / n * np.eye(n)
+    return N, g
+
+
+def _project(lay: _Layout, ls: OrderedLeastSquares, Q: Array, eps: float, eps4: float,
+             info: dict[str, Any]) -> tuple[Array, float, float, str]:
+    """``quartic='projected'``: ``(θ, certified floor, target, how)``, ``info`` updated."""
+    K, C = lay.unpack(ls.theta)[:2]
+    lows = (float(np.linalg.eigvalsh(K)[0]), float(np.linalg.eigvalsh(C)[0]))
+    if min(lows) < eps:
+        raise SolverError('quartic="projected" keeps K and C of the least squares, and they '
+                          f'are not SPD here (smallest eigenvalues {lows[0]:.3g}, '
+                          f'{lows[1]:.3g}); use the default quartic="conic".')
+    e = np.abs(Q).max(axis=1)
+    e[e == 0.0] = 1.0
+    target = float(eps4) * max(float(np.linalg.eigvalsh(K * np.outer(e, e))[-1]), 1e-300)
+    H = lay.unpack(ls.theta)[3]
+    t_low = scaled_quartic_bound(H, e)
+    info['quartic_scale'] = e.tolist()
+    if t_low >= target:
+        info['method'] = 'least-squares (constraints inactive)'
+        return ls.theta, t_low, target, 'gram (coordinates / their largest values)'
+    theta, p_info = projected(lay, ls, e, target)
+    info.update(p_info)
+    info['method'] = 'least-squares K, C; quartic projected onto sums of squares'
+    return theta, p_info['certificate'], target, 'sos (coordinates / their largest values)'
 
 
 def _sym_map(r: int) -> Array:
@@ -426,9 +471,10 @@ def fit_scaled(Q: Array, Qd: Array, Qdd: Array, U: Array, state_scale: float,
     the original units (``G = G̃ / s``, ``H = H̃ / s²``).
     """
     opts = dict(options or {})
-    unknown = set(opts) - {'reg', 'eps4'}
+    unknown = set(opts) - {'reg', 'eps4', 'quartic'}
     if unknown:
-        raise ConfigError(f'unknown cubic option(s) {sorted(unknown)}; known: reg, eps4.')
+        raise ConfigError(f'unknown cubic option(s) {sorted(unknown)}; known: reg, eps4, '
+                          'quartic.')
     sol = fit_cubic(Q, Qd, Qdd, U, eps=eps, linear_solver=solver, **opts)
     s = float(state_scale)
     return (LOpInfSolution(sol.K, sol.C, sol.B, sol.info),
