@@ -86,6 +86,10 @@ random pressures, 1 ms):
    ``--reproject-sos`` adds the certified variant: ``K`` and ``C`` of the least squares kept,
    the quartic moved to the nearest sum of squares in the data's metric (SCS), ``G`` and
    ``B`` refitted: the library's ``fit_cubic(..., quartic='projected')``.
+10. ``--reproject-select``: the r of that certified model chosen among ``--projection-r`` on
+   held-out training episodes (4 interleaved folds, as the library's selection), beside
+   the linear LOpInf of the trajectories on the same folds; the chosen r is then fitted on
+   all training episodes and run on the test episodes (used once, after the choice).
 
 The reduced episodes come from ``--data`` (default ``/tmp/cubic_cache/eel_reduced.npz``,
 made by ``bench_cubic_eel.py`` with the study's pipeline when missing; never inside the
@@ -97,7 +101,7 @@ Run::
         [--gen-r 4 8 22] [--only-gen]
     .venv/bin/python benchmarks/bench_eel_nonlinearity.py --projection TRAIN.zarr TEST.zarr
         [--projection-n 16] [--projection-r 4 6 8 12 16] [--dynamics] [--closure] [--reproject]
-        [--reproject-scale 1.5 2] [--reproject-sos]
+        [--reproject-scale 1.5 2] [--reproject-sos] [--reproject-select]
 
 Figures of one run are quoted in docs/methods_variants.md (cubic LOpInf section).
 """
@@ -303,7 +307,7 @@ def mirror_check(amplitude: float = 50e3) -> None:
 def representation(train_path: Path, test_path: Path, n_train: int,
                    rs: tuple[int, ...], dynamics: bool = False, closure: bool = False,
                    reproject: bool = False, scales: tuple[float, ...] = (),
-                   sos: bool = False) -> None:
+                   sos: bool = False, select: bool = False) -> None:
     """Output error of the test states in a linear POD and on a quadratic manifold (6)."""
     from soft_rom.basis import POD
     from soft_rom.dataset.reader import TrainingSet
@@ -339,6 +343,8 @@ def representation(train_path: Path, test_path: Path, n_train: int,
         closure_error(X[:, ::40], V_all, q_ref, rs)
     if reproject:
         reprojection(eps, list(test), V_all, train, rs, scales, sos)
+    if select:
+        reprojected_selection(eps, list(test), V_all, train, rs)
 
 
 def closure_error(X: np.ndarray, V_all: np.ndarray, q_ref: np.ndarray, rs: tuple[int, ...]
@@ -665,6 +671,102 @@ def _sos_line(data: tuple, E: np.ndarray, y_ref: np.ndarray, tests: list, base: 
           + _cubic_report(rom, tests, base, U_long, dev_train), flush=True)
 
 
+def reprojected_selection(eps: list, tests: list, V_all: np.ndarray, train: Any,
+                          rs: tuple[int, ...], folds: int = 4) -> None:
+    """The certified re-projected cubic LOpInf's r, chosen on held-out training episodes (10).
+
+    The training episodes are split into ``folds`` interleaved groups (as the library's
+    selection does); every candidate r is fitted (``quartic='projected'``, ``reg`` 0) on the
+    other groups' re-projected data and run on the held-out episodes' inputs; the score is
+    the pooled relative deviation error over everything held out (``inf`` when a fit is
+    refused or a run blows up). The linear LOpInf of the trajectories at the same r is
+    scored on the same folds. The test episodes are used once, after the choice.
+    """
+    from soft_rom.errors import SolverError
+    from soft_rom.learners.lopinf import LOpInf
+    from soft_rom.learners.lopinf.cubic import fit_cubic
+    from soft_rom.models.cubic import CubicSecondOrderModel
+    from soft_rom.pipeline.cubic import folds_of
+    from soft_rom.reduce.data import ReducedData
+    model = EelModel()
+    q_ref, y_ref = np.asarray(train.q_ref), np.asarray(train.y_ref)
+    C_out, free, m = model.output_matrix('xz'), model.free, model._rest_factor(1e-3)[2]
+    groups = folds_of(len(eps), folds)
+    U_long = np.concatenate([np.asarray(tests[i % len(tests)].U) for i in range(10)], axis=1)
+    dev_train = max(float(np.abs(np.asarray(ep.Y) - y_ref[:, None]).max()) for ep in eps)
+
+    def pooled(Ys: list[np.ndarray], Yh: list[np.ndarray]) -> float:
+        return relative_deviation_error(np.hstack(Ys), np.hstack(Yh), y_ref)
+
+    def cubic(parts: list[tuple], Wf: np.ndarray) -> tuple[Any, float]:
+        Z, Zd, Zdd, U = (np.concatenate([p[i] for p in parts], axis=1) for i in range(4))
+        s = float(np.sqrt(np.mean(Z ** 2)))
+        t0 = time.perf_counter()
+        sol = fit_cubic(Z / s, Zd / s, Zdd / s, U, reg=0.0, quartic='projected')
+        E = C_out[:, free] @ Wf * s
+        return (CubicSecondOrderModel(sol.K, sol.C, sol.G, sol.H, sol.B, E, dt=1e-3,
+                                      y_ref=y_ref), time.perf_counter() - t0)
+
+    def linear(idx: list[int], r: int) -> Any:
+        X = [V_all[:, :r].T @ (np.asarray(eps[i].Q[:, :]) - q_ref[:, None]) for i in idx]
+        data = ReducedData(coordinates=tuple(X), U=tuple(np.asarray(eps[i].U) for i in idx),
+                           Y=tuple(np.asarray(eps[i].Y) for i in idx),
+                           t=tuple(np.asarray(eps[i].t) for i in idx), y_ref=y_ref,
+                           names=tuple(eps[i].name for i in idx), basis='pod',
+                           n_states=len(q_ref), q_ref=q_ref, modes=V_all[:, :r],
+                           channels={k: getattr(train, k) for k in (
+                               'input_names', 'output_names', 'input_units', 'output_units')})
+        return LOpInf(r=r).fit(data)
+
+    def run(rom: Any, U: np.ndarray) -> np.ndarray:
+        Y, t_up = _long_run(rom, U)
+        return Y if math.isinf(t_up) else np.full_like(Y, np.inf)
+
+    print(f'10. r of the certified re-projected cubic LOpInf chosen on {len(groups)} folds of '
+          f'the {len(eps)} training episodes (reg 0, quartic projected); pooled held-out '
+          'deviation error, the linear LOpInf of the trajectories at the same r beside it:')
+    scores: dict[int, tuple[float, float]] = {}
+    for r in rs:
+        t0 = time.perf_counter()
+        Vf = V_all[free, :r]
+        Wf = np.linalg.solve(np.linalg.cholesky(Vf.T @ (m[:, None] * Vf)), Vf.T).T
+        parts = [_reprojected(model, Wf, q_ref, [ep]) for ep in eps]
+        held: dict[str, tuple[list, list]] = {'cubic': ([], []), 'linear': ([], [])}
+        fit_s = []
+        for g in groups:
+            rest = [i for i in range(len(eps)) if i not in g]
+            try:
+                rom, sec = cubic([parts[i] for i in rest], Wf)
+                fit_s.append(sec)
+                Yc = [run(rom, np.asarray(eps[i].U)) for i in g]
+            except SolverError as err:
+                print(f'      r = {r}, fold {g}: cubic not fitted ({err})', flush=True)
+                Yc = [np.full_like(np.asarray(eps[i].Y), np.inf) for i in g]
+            lin = linear(rest, r)
+            held['cubic'][1].extend(Yc)
+            held['linear'][1].extend(lin.predict(np.asarray(eps[i].U)) for i in g)
+            for key in held:
+                held[key][0].extend(np.asarray(eps[i].Y) for i in g)
+        sc = (pooled(*held['cubic']), pooled(*held['linear']))
+        scores[r] = sc
+        print(f'   r = {r:2d}: held-out cubic {sc[0]:.3f}, linear {sc[1]:.3f} '
+              f'({sc[0] / sc[1]:.2f} x); cubic fits {min(fit_s, default=math.nan):.0f}-'
+              f'{max(fit_s, default=math.nan):.0f} s; '
+              f'({time.perf_counter() - t0:.0f} s)', flush=True)
+    best = min(scores, key=lambda r: scores[r][0])
+    print(f'   chosen: r = {best} (held-out {scores[best][0]:.3f}); fitted on all '
+          f'{len(eps)} training episodes, then the test episodes:', flush=True)
+    Vf = V_all[free, :best]
+    Wf = np.linalg.solve(np.linalg.cholesky(Vf.T @ (m[:, None] * Vf)), Vf.T).T
+    rom, sec = cubic([_reprojected(model, Wf, q_ref, [ep]) for ep in eps], Wf)
+    traj = linear(list(range(len(eps))), best)
+    base = [relative_deviation_error(np.asarray(te.Y), traj.predict(np.asarray(te.U)), y_ref)
+            for te in tests]
+    print('      linear LOpInf of the trajectories ' + ' / '.join(f'{v:.3f}' for v in base)
+          + f'; cubic ({sec:.0f} s) ' + _cubic_report(rom, tests, base, U_long, dev_train),
+          flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--data', type=Path, default=Path('/tmp/cubic_cache/eel_reduced.npz'))
@@ -689,13 +791,16 @@ def main() -> None:
                     help='with --reproject: also re-project the states scaled by these')
     ap.add_argument('--reproject-sos', action='store_true',
                     help='with --reproject: also the quartic moved to a sum of squares')
+    ap.add_argument('--reproject-select', action='store_true',
+                    help='with --projection: r of the certified re-projected cubic LOpInf '
+                    'chosen on held-out training episodes among --projection-r (10.)')
     args = ap.parse_args()
     if args.projection:
         t0 = time.perf_counter()
         representation(*args.projection, args.projection_n, tuple(args.projection_r),
                        dynamics=args.dynamics, closure=args.closure,
                        reproject=args.reproject, scales=tuple(args.reproject_scale),
-                       sos=args.reproject_sos)
+                       sos=args.reproject_sos, select=args.reproject_select)
         print(f'({time.perf_counter() - t0:.0f} s)')
         return
     if not args.data.exists():

@@ -17,7 +17,12 @@ from soft_rom.learners.lopinf import cubic as lc
 from soft_rom.learners.lopinf.cubic import fit_cubic
 from soft_rom.learners.lopinf.quartic import scaled_quartic_bound
 from soft_rom.models import CubicSecondOrderModel
-from soft_rom.models.tensors import gram_map, quartic_lower_bound
+from soft_rom.models.tensors import (
+    gram_map,
+    quartic_certified_positive,
+    quartic_lower_bound,
+    symmetric_from_entries,
+)
 
 DT = 1e-3
 
@@ -148,3 +153,31 @@ def test_projected_refuses_an_indefinite_least_squares_and_unknown_routes() -> N
     assert '\n' not in str(err.value)
     with pytest.raises(ConfigError, match='known: conic, projected'):
         fit_cubic(Q, Qd, Qdd, U, quartic='nearest')
+
+
+def test_trust_check_certifies_a_sum_of_squares_whose_coordinates_span_decades() -> None:
+    """A certified model's quartic in coordinates three decades apart is trusted.
+
+    ``H(q) = H̃(q / e)`` with ``H̃`` a sum of squares (Gram matrix ``⪰ 1e-3 I``) and ``e`` from 1
+    to 1e-3, as the projected route returns on POD coordinates. In these coordinates the
+    sum-of-squares solver's tolerance, relative to the largest coefficient (1e12 times the
+    smallest), loses the certificate; with the diagonal made one it holds. Its negative is
+    refused either way.
+    """
+    r = 4
+    rng = np.random.default_rng(0)
+    Tg, ns = gram_map(r)
+    F = rng.standard_normal((ns, 3))
+    Ht = symmetric_from_entries(Tg @ (F @ F.T + 1e-3 * np.eye(ns)).ravel(), r, 4)
+    s = 1.0 / np.array([1.0, 1e-1, 1e-2, 1e-3])
+    H = np.einsum('ijkl,i,j,k,l->ijkl', Ht, s, s, s, s)
+    assert quartic_lower_bound(H, target=0.0)[0] < 0         # unscaled: not certified
+    assert quartic_certified_positive(H) and not quartic_certified_positive(-H)
+    K = np.diag(s ** 2)
+    model = CubicSecondOrderModel(K, 0.1 * np.eye(r), np.zeros((r, r, r)), H,
+                                  rng.standard_normal((r, 2)), rng.standard_normal((3, r)),
+                                  dt=DT)
+    assert not any('quartic' in issue for issue in model.trust_issues()), model.trust_issues()
+    bad = CubicSecondOrderModel(K, 0.1 * np.eye(r), np.zeros((r, r, r)), -H, model.B, model.E,
+                                dt=DT)
+    assert any('quartic' in issue for issue in bad.trust_issues())
