@@ -347,7 +347,7 @@ def _normal(ls: OrderedLeastSquares) -> tuple[Array, Array]:
 def _project(lay: _Layout, ls: OrderedLeastSquares, Q: Array, eps: float, eps4: float,
              info: dict[str, Any]) -> tuple[Array, float, float, str]:
     """``quartic='projected'``: ``(θ, certified floor, target, how)``, ``info`` updated."""
-    K, C = lay.unpack(ls.theta)[:2]
+    K, C, _G, H, _B = lay.unpack(ls.theta)
     lows = (float(np.linalg.eigvalsh(K)[0]), float(np.linalg.eigvalsh(C)[0]))
     if min(lows) < eps:
         raise SolverError('quartic="projected" keeps K and C of the least squares, and they '
@@ -356,7 +356,6 @@ def _project(lay: _Layout, ls: OrderedLeastSquares, Q: Array, eps: float, eps4: 
     e = np.abs(Q).max(axis=1)
     e[e == 0.0] = 1.0
     target = float(eps4) * max(float(np.linalg.eigvalsh(K * np.outer(e, e))[-1]), 1e-300)
-    H = lay.unpack(ls.theta)[3]
     t_low = scaled_quartic_bound(H, e)
     info['quartic_scale'] = e.tolist()
     if t_low >= target:

@@ -69,8 +69,9 @@ class OrderedLeastSquares:
     ``docs/methods_variants.md``). Dependent columns (antagonistic inputs make ``B``'s
     pairwise dependent) get a relative ridge of :data:`JITTER`.
 
-    Attributes: ``R`` and ``c`` (``R y = c``, ``y`` the scaled unknowns in ``order``), ``cs``
-    (column norms, natural order), ``order`` and ``theta`` (the solution, natural order).
+    Attributes: ``R``, ``c`` and ``y`` (``R y = c``, ``y`` the scaled unknowns in ``order``),
+    ``cs`` (column norms, natural order), ``order`` and ``theta`` (the solution, natural
+    order).
     """
 
     def __init__(self, A: Array, b: Array, ridge: Array,
@@ -92,9 +93,9 @@ class OrderedLeastSquares:
             Qj, R = np.linalg.qr(np.vstack([R, math.sqrt(JITTER) * np.eye(n)]))
             c = Qj[:n].T @ c
         self.R, self.c = R, c
-        y = sla.solve_triangular(R, c)
+        self.y = sla.solve_triangular(R, c)
         self.theta = np.empty(n)
-        self.theta[self.order] = y / cs[self.order]
+        self.theta[self.order] = self.y / cs[self.order]
 
 
 def ordered(lay: _Layout) -> NDArray[np.intp]:
@@ -130,7 +131,7 @@ def projected(lay: _Layout, ls: OrderedLeastSquares, e: Array, t4: float, *,
     nf = (o['H'] - o['G']) + (lay.n_theta - o['B'])
     nh = o['C'] - o['H']
     R, c, cs = ls.R, ls.c, ls.cs[ls.order]
-    y = sla.solve_triangular(R, c)                  # the least squares, scaled, in order
+    y = ls.y.copy()                                 # the least squares, scaled, in order
     _, S, Vt = np.linalg.svd(R[nf:nf + nh, nf:nf + nh])
     keep = max(1, min(int(keep), nh))             # nh: the exact metric
     Tg, ns = gram_map(lay.r)
