@@ -577,6 +577,35 @@ def _cubic_report(rom: Any, tests: list, base: list[float], U_long: np.ndarray,
                if math.isinf(t_up) else f'blows up at {t_up:.2f} s'))
 
 
+def _trajectory_data(eps: list, V: np.ndarray, train: Any) -> Any:
+    """The episodes' projected trajectories ``Vᵀ (x - q_ref)`` as the learners take them."""
+    from soft_rom.reduce.data import ReducedData
+    q_ref, y_ref = np.asarray(train.q_ref), np.asarray(train.y_ref)
+    X = [V.T @ (np.asarray(ep.Q[:, :]) - q_ref[:, None]) for ep in eps]
+    return ReducedData(coordinates=tuple(X), U=tuple(np.asarray(ep.U) for ep in eps),
+                       Y=tuple(np.asarray(ep.Y) for ep in eps),
+                       t=tuple(np.asarray(ep.t) for ep in eps), y_ref=y_ref,
+                       names=tuple(ep.name for ep in eps), basis='pod',
+                       n_states=len(q_ref), q_ref=q_ref, modes=V,
+                       channels={k: getattr(train, k) for k in (
+                           'input_names', 'output_names', 'input_units', 'output_units')})
+
+
+def _mass_orthonormal(model: EelModel, V_all: np.ndarray, r: int) -> np.ndarray:
+    """``W`` on the free DOFs spanning the first r POD modes, ``Wᵀ M W = I``."""
+    Vf, m = V_all[model.free, :r], model._rest_factor(1e-3)[2]
+    return np.linalg.solve(np.linalg.cholesky(Vf.T @ (m[:, None] * Vf)), Vf.T).T
+
+
+def _long_inputs(tests: list, eps: list, y_ref: np.ndarray) -> tuple[np.ndarray, float]:
+    """10 × longer inputs than a training episode, and the training outputs' largest deviation.
+
+    The test inputs chained, as the learning curve's bounded check builds them.
+    """
+    U_long = np.concatenate([np.asarray(tests[i % len(tests)].U) for i in range(10)], axis=1)
+    return U_long, max(float(np.abs(np.asarray(ep.Y) - y_ref[:, None]).max()) for ep in eps)
+
+
 def reprojection(eps: list, tests: list, V_all: np.ndarray, train: Any,
                  rs: tuple[int, ...], scales: tuple[float, ...] = (), sos: bool = False
                  ) -> None:
@@ -586,29 +615,19 @@ def reprojection(eps: list, tests: list, V_all: np.ndarray, train: Any,
     from soft_rom.learners.lopinf.solvers import DEFAULT_EPS, FastSPDSolver
     from soft_rom.models.cubic import CubicSecondOrderModel
     from soft_rom.models.tensors import quartic_lower_bound
-    from soft_rom.reduce.data import ReducedData
     model = EelModel()
     q_ref, y_ref = np.asarray(train.q_ref), np.asarray(train.y_ref)
-    C_out, free, m = model.output_matrix('xz'), model.free, model._rest_factor(1e-3)[2]
-    X = [V_all.T @ (np.asarray(ep.Q[:, :]) - q_ref[:, None]) for ep in eps]
-    data = ReducedData(coordinates=tuple(X), U=tuple(np.asarray(ep.U) for ep in eps),
-                       Y=tuple(np.asarray(ep.Y) for ep in eps),
-                       t=tuple(np.asarray(ep.t) for ep in eps), y_ref=y_ref,
-                       names=tuple(ep.name for ep in eps), basis='pod',
-                       n_states=len(q_ref), q_ref=q_ref, modes=V_all,
-                       channels={k: getattr(train, k) for k in (
-                           'input_names', 'output_names', 'input_units', 'output_units')})
+    C_out, free = model.output_matrix('xz'), model.free
+    data = _trajectory_data(eps, V_all, train)
     # 10 x longer inputs than a training episode: the test inputs chained (as the learning
     # curve's bounded check builds them), and the training outputs' largest deviation
-    U_long = np.concatenate([np.asarray(tests[i % len(tests)].U) for i in range(10)], axis=1)
-    dev_train = max(float(np.abs(np.asarray(ep.Y) - y_ref[:, None]).max()) for ep in eps)
+    U_long, dev_train = _long_inputs(tests, eps, y_ref)
     print('9. Re-projected training data' + (f' (and the states scaled by {scales})'
                                               if scales else '')
           + ': deviation error on the test episodes')
     for r in rs:
         t0 = time.perf_counter()
-        Vf = V_all[free, :r]
-        Wf = np.linalg.solve(np.linalg.cholesky(Vf.T @ (m[:, None] * Vf)), Vf.T).T
+        Wf = _mass_orthonormal(model, V_all, r)
         Z, Zd, Zdd, U = _reprojected(model, Wf, q_ref, eps, scales=scales)
         s = float(np.sqrt(np.mean(Z ** 2)))
         lay = cub._Layout(r, U.shape[0])
@@ -687,13 +706,11 @@ def reprojected_selection(eps: list, tests: list, V_all: np.ndarray, train: Any,
     from soft_rom.learners.lopinf.cubic import fit_cubic
     from soft_rom.models.cubic import CubicSecondOrderModel
     from soft_rom.pipeline.cubic import folds_of
-    from soft_rom.reduce.data import ReducedData
     model = EelModel()
     q_ref, y_ref = np.asarray(train.q_ref), np.asarray(train.y_ref)
-    C_out, free, m = model.output_matrix('xz'), model.free, model._rest_factor(1e-3)[2]
+    C_out, free = model.output_matrix('xz'), model.free
     groups = folds_of(len(eps), folds)
-    U_long = np.concatenate([np.asarray(tests[i % len(tests)].U) for i in range(10)], axis=1)
-    dev_train = max(float(np.abs(np.asarray(ep.Y) - y_ref[:, None]).max()) for ep in eps)
+    U_long, dev_train = _long_inputs(tests, eps, y_ref)
 
     def pooled(Ys: list[np.ndarray], Yh: list[np.ndarray]) -> float:
         return relative_deviation_error(np.hstack(Ys), np.hstack(Yh), y_ref)
@@ -708,15 +725,7 @@ def reprojected_selection(eps: list, tests: list, V_all: np.ndarray, train: Any,
                                       y_ref=y_ref), time.perf_counter() - t0)
 
     def linear(idx: list[int], r: int) -> Any:
-        X = [V_all[:, :r].T @ (np.asarray(eps[i].Q[:, :]) - q_ref[:, None]) for i in idx]
-        data = ReducedData(coordinates=tuple(X), U=tuple(np.asarray(eps[i].U) for i in idx),
-                           Y=tuple(np.asarray(eps[i].Y) for i in idx),
-                           t=tuple(np.asarray(eps[i].t) for i in idx), y_ref=y_ref,
-                           names=tuple(eps[i].name for i in idx), basis='pod',
-                           n_states=len(q_ref), q_ref=q_ref, modes=V_all[:, :r],
-                           channels={k: getattr(train, k) for k in (
-                               'input_names', 'output_names', 'input_units', 'output_units')})
-        return LOpInf(r=r).fit(data)
+        return LOpInf(r=r).fit(_trajectory_data([eps[i] for i in idx], V_all[:, :r], train))
 
     def run(rom: Any, U: np.ndarray) -> np.ndarray:
         Y, t_up = _long_run(rom, U)
@@ -728,8 +737,7 @@ def reprojected_selection(eps: list, tests: list, V_all: np.ndarray, train: Any,
     scores: dict[int, tuple[float, float]] = {}
     for r in rs:
         t0 = time.perf_counter()
-        Vf = V_all[free, :r]
-        Wf = np.linalg.solve(np.linalg.cholesky(Vf.T @ (m[:, None] * Vf)), Vf.T).T
+        Wf = _mass_orthonormal(model, V_all, r)
         parts = [_reprojected(model, Wf, q_ref, [ep]) for ep in eps]
         held: dict[str, tuple[list, list]] = {'cubic': ([], []), 'linear': ([], [])}
         fit_s = []
@@ -756,8 +764,7 @@ def reprojected_selection(eps: list, tests: list, V_all: np.ndarray, train: Any,
     best = min(scores, key=lambda r: scores[r][0])
     print(f'   chosen: r = {best} (held-out {scores[best][0]:.3f}); fitted on all '
           f'{len(eps)} training episodes, then the test episodes:', flush=True)
-    Vf = V_all[free, :best]
-    Wf = np.linalg.solve(np.linalg.cholesky(Vf.T @ (m[:, None] * Vf)), Vf.T).T
+    Wf = _mass_orthonormal(model, V_all, best)
     rom, sec = cubic([_reprojected(model, Wf, q_ref, [ep]) for ep in eps], Wf)
     traj = linear(list(range(len(eps))), best)
     base = [relative_deviation_error(np.asarray(te.Y), traj.predict(np.asarray(te.U)), y_ref)

@@ -17,8 +17,8 @@ import scipy.sparse as sp
 from soft_rom.errors import DimensionError
 
 __all__ = ['gram_map', 'is_symmetric', 'multiplicity', 'quartic_certified_positive',
-           'quartic_lower_bound', 'symmetric_entries', 'symmetric_from_entries', 'symmetric_index',
-           'symmetrize']
+           'quartic_lower_bound', 'scaled_quartic', 'symmetric_entries', 'symmetric_from_entries',
+           'symmetric_index', 'symmetrize']
 
 Array = NDArray[np.float64]
 
@@ -108,8 +108,12 @@ def quartic_certified_positive(H: Array) -> bool:
     d = np.einsum('iiii->i', np.asarray(H, dtype=np.float64))
     if not np.all(d > 0):
         return False
-    s = d ** -0.25
-    return quartic_lower_bound(np.einsum('ijkl,i,j,k,l->ijkl', H, s, s, s, s), target=0.0)[0] > 0
+    return quartic_lower_bound(scaled_quartic(H, d ** -0.25), target=0.0)[0] > 0
+
+
+def scaled_quartic(H: Array, s: Array) -> Array:
+    """``H · s⊗s⊗s⊗s``: the quartic form in the coordinates ``q / s``."""
+    return np.einsum('ijkl,i,j,k,l->ijkl', H, s, s, s, s)
 
 
 def quartic_lower_bound(H: Array, *, target: float | None = None, sdp: bool = True

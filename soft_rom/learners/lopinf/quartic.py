@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 import scipy.linalg as sla
 
 from soft_rom.errors import SolverError
-from soft_rom.models.tensors import gram_map, quartic_lower_bound
+from soft_rom.models.tensors import gram_map, quartic_lower_bound, scaled_quartic
 
 #: :class:`soft_rom.learners.lopinf.cubic._Layout` (not imported: that module imports this one)
 _Layout = Any
@@ -113,8 +113,7 @@ def _weights(lay: _Layout, e: Array) -> Array:
 
 def scaled_quartic_bound(H: Array, e: Array) -> float:
     """Smallest eigenvalue of the canonical Gram matrix of ``H̃ = H · e⊗e⊗e⊗e`` (cheap bound)."""
-    He = np.einsum('ijkl,i,j,k,l->ijkl', H, e, e, e, e)
-    return quartic_lower_bound(He, sdp=False)[0]
+    return quartic_lower_bound(scaled_quartic(H, e), sdp=False)[0]
 
 
 def projected(lay: _Layout, ls: OrderedLeastSquares, e: Array, t4: float, *,
